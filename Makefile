@@ -1,0 +1,53 @@
+# The two commands of the README:
+#   make demo   set everything up, then run the scripted demo (no CAN hardware, no root)
+#   make test   set everything up, then run every test (CI runs exactly this: .ci/run)
+PYTHON ?= python3
+VENV   := .venv
+VPY    := $(VENV)/bin/python
+STAMP  := $(VENV)/.installed
+COVDIR := build/cov
+
+.PHONY: setup demo test check pytest coverage hil bench clean
+setup: $(STAMP) $(VENV)/bin/estopd
+
+$(STAMP): pyproject.toml setup.py pyext/build_core.py $(wildcard firmware/core/*)
+	test -x $(VPY) || $(PYTHON) -m venv $(VENV)
+	$(VPY) -m pip install -q --upgrade pip
+	$(VPY) -m pip install -q -e '.[test]'
+	touch $@
+
+$(VENV)/bin/estopd: $(STAMP) $(wildcard firmware/core/* firmware/estopd/*)
+	$(MAKE) -C firmware
+	install -m 0755 firmware/build/estopd $@
+
+demo: setup
+	$(VENV)/bin/estop demo
+
+test: setup
+	$(MAKE) check
+	$(MAKE) coverage
+	$(MAKE) hil
+
+check: setup
+	$(MAKE) -C firmware strict
+	$(VENV)/bin/ruff check src tests hil bench pyext
+
+# The whole suite runs once against a build of the core instrumented for gcov and UBSan
+# (UB aborts the process), then the spec vectors run again on the installed optimised build.
+coverage: setup
+	rm -rf $(COVDIR) && mkdir -p $(COVDIR)
+	$(VPY) pyext/build_instrumented.py $(COVDIR)
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" PYTHONPATH=$(COVDIR) ESTOP_CORE_MODULE=_estop_core_cov \
+	  UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 $(VPY) -m pytest -q
+	$(VENV)/bin/gcovr --root . --filter 'firmware/core/' --object-directory $(COVDIR) \
+	  --txt-metric branch --print-summary --fail-under-line 100 $(COVDIR)
+	$(VPY) -m pytest -q tests/test_spec_vectors.py
+
+hil: setup
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" hil/run
+
+bench: setup
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/stop_latency.py
+
+clean:
+	rm -rf build firmware/build $(VENV) src/estop/_core*.so

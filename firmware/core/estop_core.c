@@ -1,0 +1,579 @@
+/*
+ * estop_core: the emergency-stop state machine. See estop_core.h for the host contract and
+ * PROTOCOL.md sections 1-4 for the rules implemented here.
+ *
+ * Every entry point runs the same three steps:
+ *   1. begin(): advance the clock (timeout stop, link ageing), send what is due;
+ *   2. the input itself (a datagram, a TCP frame, a fault...);
+ *   3. finish(): state read-out and the next call time.
+ * So a late input can never undo a stop that its own timestamp already implies.
+ */
+#include "estop_core.h"
+
+#include "estop_crc.h"
+
+#define CORE_MAGIC 0x45535450u    /* "ESTP" */
+#define HALF_RANGE 0x80000000u    /* wrap-safe comparisons: differences below this are ahead */
+#define FLOAT_ONE_BITS 0x3F800000u  /* IEEE-754 single 1.0f */
+#define FLOAT_ABS_MASK 0x7FFFFFFFu
+#define FLOAT_SIGN_BIT 0x80000000u
+#define BRAKE_LEVEL_FULL 100u
+#define COUNTER_MODULO 15u        /* alive counter runs 0..14; 15 is never sent */
+#define SAT8_MAX 255u
+#define LINK_AGE_NONE_MS 0xFFFFu
+
+/* ---- small helpers ------------------------------------------------------------------------ */
+
+static uint32_t rd_u32le(const uint8_t *p)
+{
+    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) |
+           ((uint32_t)p[3] << 24);
+}
+
+static void wr_u32le(uint8_t *p, uint32_t v)
+{
+    p[0] = (uint8_t)(v & 0xFFu);
+    p[1] = (uint8_t)((v >> 8) & 0xFFu);
+    p[2] = (uint8_t)((v >> 16) & 0xFFu);
+    p[3] = (uint8_t)(v >> 24);
+}
+
+/* True when tick `now` is at or after `due` (both wrapping, less than half a range apart). */
+static int reached(uint32_t now, uint32_t due)
+{
+    return (uint32_t)(now - due) < HALF_RANGE;
+}
+
+static uint8_t sat8_inc(uint8_t v)
+{
+    return (v < SAT8_MAX) ? (uint8_t)(v + 1u) : v;
+}
+
+static uint32_t sat32_inc(uint32_t v)
+{
+    return (v < 0xFFFFFFFFu) ? (v + 1u) : v;
+}
+
+static uint8_t sat8_of(uint32_t v)
+{
+    return (v < SAT8_MAX) ? (uint8_t)v : (uint8_t)SAT8_MAX;
+}
+
+/* A float32 (as raw bits) is finite and within -1.0 .. 1.0. NaN and infinities have a
+ * magnitude above 1.0's bit pattern, so one comparison covers all three; no FPU needed. */
+static int unit_range_bits(uint32_t bits)
+{
+    return (bits & FLOAT_ABS_MASK) <= FLOAT_ONE_BITS;
+}
+
+/* gas_brake <= 0: any negative value, -0.0 or +0.0. */
+static int non_positive_bits(uint32_t bits)
+{
+    return ((bits & FLOAT_SIGN_BIT) != 0u) || (bits == 0u);
+}
+
+/* ---- configuration ------------------------------------------------------------------------ */
+
+void estop_config_default(estop_config_t *cfg)
+{
+    if (cfg != NULL) {
+        cfg->timeout_us = ESTOP_DEFAULT_TIMEOUT_US;
+        cfg->warn_us = ESTOP_DEFAULT_TIMEOUT_US / 2u;
+        cfg->stop_id = ESTOP_DEFAULT_STOP_ID;
+        cfg->brake_can_id = ESTOP_DEFAULT_BRAKE_CAN_ID;
+        cfg->status_can_id = ESTOP_DEFAULT_STATUS_CAN_ID;
+        cfg->brake_data_id = (uint16_t)ESTOP_DEFAULT_BRAKE_DATA_ID;
+        cfg->status_data_id = (uint16_t)ESTOP_DEFAULT_STATUS_DATA_ID;
+        cfg->release_packets = ESTOP_DEFAULT_RELEASE_PACKETS;
+        cfg->brake_period_us = ESTOP_DEFAULT_BRAKE_PERIOD_US;
+        cfg->status_period_us = ESTOP_DEFAULT_STATUS_PERIOD_US;
+    }
+}
+
+estop_err_t estop_config_check(const estop_config_t *cfg)
+{
+    estop_err_t err = ESTOP_OK;
+    if (cfg == NULL) {
+        err = ESTOP_ERR_NULL_ARG;
+    } else if ((cfg->timeout_us < ESTOP_TIMEOUT_MIN_US) ||
+               (cfg->timeout_us > ESTOP_TIMEOUT_MAX_US)) {
+        err = ESTOP_ERR_TIMEOUT;
+    } else if ((cfg->warn_us == 0u) || (cfg->warn_us >= cfg->timeout_us)) {
+        err = ESTOP_ERR_WARN;
+    } else if ((cfg->stop_id == 0u) || (cfg->stop_id == ESTOP_MSG_STATUS) ||
+               (cfg->stop_id == ESTOP_MSG_RELEASE)) {
+        err = ESTOP_ERR_STOP_ID;
+    } else if ((cfg->brake_can_id > ESTOP_CAN_ID_MAX) || (cfg->status_can_id > ESTOP_CAN_ID_MAX) ||
+               (cfg->brake_can_id == cfg->status_can_id)) {
+        err = ESTOP_ERR_CAN_ID;
+    } else if (cfg->brake_data_id == cfg->status_data_id) {
+        err = ESTOP_ERR_DATA_ID;
+    } else if (cfg->release_packets == 0u) {
+        err = ESTOP_ERR_RELEASE_COUNT;
+    } else if ((cfg->brake_period_us < ESTOP_BRAKE_PERIOD_MIN_US) ||
+               (cfg->brake_period_us > ESTOP_BRAKE_PERIOD_MAX_US)) {
+        err = ESTOP_ERR_BRAKE_PERIOD;
+    } else if ((cfg->status_period_us < ESTOP_STATUS_PERIOD_MIN_US) ||
+               (cfg->status_period_us > ESTOP_STATUS_PERIOD_MAX_US) ||
+               (cfg->status_period_us < cfg->brake_period_us)) {
+        err = ESTOP_ERR_STATUS_PERIOD;
+    } else {
+        err = ESTOP_OK;
+    }
+    return err;
+}
+
+estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t now_us)
+{
+    estop_err_t err = ESTOP_ERR_NULL_ARG;
+    if (core != NULL) {
+        estop_core_t fresh = {0};
+        *core = fresh; /* magic 0: unusable until the checks below pass */
+        err = estop_config_check(cfg);
+        if (err == ESTOP_OK) {
+            core->cfg = *cfg;
+            core->now_us = now_us;
+            core->state = (uint8_t)ESTOP_STATE_STOPPED;
+            core->reason = (uint8_t)ESTOP_REASON_BOOT;
+            core->counters.stops[ESTOP_REASON_BOOT] = 1u;
+            core->brake_due_us = now_us; /* the boot frames are due at once */
+            core->status_due_us = now_us;
+            core->magic = CORE_MAGIC;
+        }
+    }
+    return err;
+}
+
+/* ---- read-outs ---------------------------------------------------------------------------- */
+
+static uint32_t link_age(const estop_core_t *core)
+{
+    return (uint32_t)(core->now_us - core->last_valid_us);
+}
+
+static uint8_t current_flags(const estop_core_t *core)
+{
+    uint8_t flags = 0u;
+    if ((core->state == ESTOP_STATE_ARMED) && (link_age(core) >= core->cfg.warn_us)) {
+        flags = (uint8_t)ESTOP_FLAG_LINK_DEGRADED;
+    }
+    return flags;
+}
+
+/* The link check of a RELEASE. begin() has already aged the link, so a fresh link is younger
+ * than the timeout. */
+static int link_live(const estop_core_t *core)
+{
+    return (core->link_fresh != 0u) && (core->valid_since_stop >= core->cfg.release_packets);
+}
+
+/* ---- CAN frames --------------------------------------------------------------------------- */
+
+static void push_frame(estop_out_t *out, uint32_t id, uint16_t data_id, const uint8_t *payload,
+                       uint8_t *counter)
+{
+    /* Callers never exceed ESTOP_OUT_MAX_CAN (see the header); the guard keeps that true. */
+    if (out->n_can < ESTOP_OUT_MAX_CAN) {
+        estop_can_frame_t *f = &out->can[out->n_can];
+        uint8_t i;
+        f->id = id;
+        f->dlc = (uint8_t)ESTOP_CAN_DLC;
+        for (i = 0u; i < 6u; i++) {
+            f->data[i] = payload[i];
+        }
+        f->data[6] = (uint8_t)(*counter & 0x0Fu);
+        f->data[7] = estop_crc8_e2e(data_id, f->data, 7u);
+        *counter = (uint8_t)((*counter + 1u) % COUNTER_MODULO);
+        out->n_can++;
+    }
+}
+
+static void send_brake(estop_core_t *core, estop_out_t *out)
+{
+    uint8_t p[6];
+    int stopped = (core->state == ESTOP_STATE_STOPPED);
+    p[0] = stopped ? 1u : 0u;
+    p[1] = stopped ? (uint8_t)BRAKE_LEVEL_FULL : 0u;
+    p[2] = core->state;
+    p[3] = core->reason;
+    p[4] = current_flags(core);
+    p[5] = 0u;
+    push_frame(out, core->cfg.brake_can_id, core->cfg.brake_data_id, p, &core->brake_counter);
+}
+
+static void send_status(estop_core_t *core, estop_out_t *out)
+{
+    uint8_t p[6];
+    uint32_t stops = core->counters.stops[ESTOP_REASON_TCP_STOP] +
+                     core->counters.stops[ESTOP_REASON_UDP_TIMEOUT] +
+                     core->counters.stops[ESTOP_REASON_FAULT];
+    uint32_t age_ms = LINK_AGE_NONE_MS;
+    if (core->link_fresh != 0u) {
+        age_ms = link_age(core) / 1000u; /* below the 60 s timeout limit, so fits in 16 bits */
+    }
+    p[0] = core->status_valid;
+    p[1] = core->status_invalid;
+    p[2] = sat8_of(core->counters.tcp_bad_crc);
+    p[3] = sat8_of(stops);
+    p[4] = (uint8_t)(age_ms & 0xFFu);
+    p[5] = (uint8_t)((age_ms >> 8) & 0xFFu);
+    push_frame(out, core->cfg.status_can_id, core->cfg.status_data_id, p, &core->status_counter);
+    core->status_valid = 0u;
+    core->status_invalid = 0u;
+}
+
+/* ---- transitions -------------------------------------------------------------------------- */
+
+/* A state change sends ESTOP_BRAKE at once and restarts its period from there. */
+static void state_changed(estop_core_t *core, estop_out_t *out)
+{
+    out->state_changed = 1u;
+    send_brake(core, out);
+    core->brake_due_us = core->now_us + core->cfg.brake_period_us;
+}
+
+/* Every stop request restarts the release count; only the first one sets the reason. */
+static void stop(estop_core_t *core, uint8_t reason, estop_out_t *out)
+{
+    core->valid_since_stop = 0u;
+    if (core->state == ESTOP_STATE_ARMED) {
+        core->state = (uint8_t)ESTOP_STATE_STOPPED;
+        core->reason = reason;
+        core->counters.stops[reason]++;
+        state_changed(core, out);
+    }
+}
+
+static void arm(estop_core_t *core, estop_out_t *out)
+{
+    core->state = (uint8_t)ESTOP_STATE_ARMED;
+    core->reason = (uint8_t)ESTOP_REASON_NONE;
+    state_changed(core, out);
+}
+
+/* ---- the common prologue and epilogue ----------------------------------------------------- */
+
+static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
+{
+    uint32_t step = (uint32_t)(now_us - core->now_us);
+    core->now_us = now_us;
+    if (step > ESTOP_MAX_STEP_US) {
+        /* The tick went backwards: the unit can no longer trust any age it computes. */
+        core->link_fresh = 0u;
+        core->counters.faults++;
+        stop(core, (uint8_t)ESTOP_REASON_FAULT, out);
+    }
+    if ((core->link_fresh != 0u) && (link_age(core) >= core->cfg.timeout_us)) {
+        core->link_fresh = 0u; /* latched: a wrapped tick can never make this link young again */
+    }
+    if ((core->state == ESTOP_STATE_ARMED) && (core->link_fresh == 0u)) {
+        stop(core, (uint8_t)ESTOP_REASON_UDP_TIMEOUT, out);
+    }
+    if (out->state_changed != 0u) {
+        out->changed_by_clock = 1u;
+    }
+}
+
+/* Next due time on a fixed grid; a caller that fell a whole period behind restarts it. */
+static uint32_t next_due(uint32_t due, uint32_t period, uint32_t now)
+{
+    uint32_t next = due + period;
+    if (reached(now, next)) {
+        next = now + period;
+    }
+    return next;
+}
+
+static void send_due_frames(estop_core_t *core, estop_out_t *out)
+{
+    if (reached(core->now_us, core->brake_due_us)) {
+        send_brake(core, out);
+        core->brake_due_us = next_due(core->brake_due_us, core->cfg.brake_period_us, core->now_us);
+    }
+    if (reached(core->now_us, core->status_due_us)) {
+        send_status(core, out);
+        core->status_due_us =
+            next_due(core->status_due_us, core->cfg.status_period_us, core->now_us);
+    }
+}
+
+static void clear_out(estop_out_t *out)
+{
+    estop_out_t empty = {0};
+    *out = empty;
+}
+
+static estop_err_t begin(estop_core_t *core, uint32_t now_us, estop_out_t *out)
+{
+    estop_err_t err = ESTOP_OK;
+    if ((core == NULL) || (out == NULL)) {
+        err = ESTOP_ERR_NULL_ARG;
+    } else if (core->magic != CORE_MAGIC) {
+        clear_out(out);
+        err = ESTOP_ERR_NOT_INIT;
+    } else {
+        clear_out(out);
+        advance_clock(core, now_us, out);
+        send_due_frames(core, out);
+    }
+    return err;
+}
+
+static uint32_t earliest(uint32_t now, uint32_t a, uint32_t b)
+{
+    return ((uint32_t)(a - now) <= (uint32_t)(b - now)) ? a : b;
+}
+
+static void finish(const estop_core_t *core, estop_out_t *out)
+{
+    uint32_t next = earliest(core->now_us, core->brake_due_us, core->status_due_us);
+    if (core->state == ESTOP_STATE_ARMED) {
+        next = earliest(core->now_us, next, core->last_valid_us + core->cfg.timeout_us);
+    }
+    out->next_call_us = next;
+    out->state = core->state;
+    out->reason = core->reason;
+    out->flags = current_flags(core);
+}
+
+/* ---- entry points ------------------------------------------------------------------------- */
+
+estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out)
+{
+    estop_err_t err = begin(core, now_us, out);
+    if (err == ESTOP_OK) {
+        finish(core, out);
+    }
+    return err;
+}
+
+/* Section 1: exactly 20 bytes, or 16 (no horn), every field in range. */
+static int control_packet_valid(const uint8_t *d, size_t len)
+{
+    int valid = 0;
+    if ((d != NULL) && ((len == ESTOP_UDP_LEN) || (len == ESTOP_UDP_LEN_NO_HORN))) {
+        uint32_t gear = rd_u32le(d + 8);
+        uint32_t turn = rd_u32le(d + 12);
+        uint32_t horn = (len == ESTOP_UDP_LEN) ? rd_u32le(d + 16) : 0u;
+        valid = unit_range_bits(rd_u32le(d)) && unit_range_bits(rd_u32le(d + 4)) &&
+                ((gear == 1u) || (gear == 2u) || (gear == 4u) || (gear == 8u)) && (turn <= 3u) &&
+                (horn <= 1u);
+    }
+    return valid;
+}
+
+estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
+                         estop_out_t *out)
+{
+    estop_err_t err = begin(core, now_us, out);
+    if (err == ESTOP_OK) {
+        if (control_packet_valid(data, len)) {
+            core->counters.udp_valid++;
+            core->status_valid = sat8_inc(core->status_valid);
+            core->valid_since_stop = sat32_inc(core->valid_since_stop);
+            core->last_valid_us = now_us;
+            core->link_fresh = 1u;
+            core->last_neutral = non_positive_bits(rd_u32le(data)) ? 1u : 0u;
+        } else {
+            core->counters.udp_invalid++;
+            core->status_invalid = sat8_inc(core->status_invalid);
+        }
+        finish(core, out);
+    }
+    return err;
+}
+
+static estop_err_t check_slot(const estop_core_t *core, uint32_t slot)
+{
+    estop_err_t err = ESTOP_OK;
+    if (core == NULL) {
+        err = ESTOP_ERR_NULL_ARG;
+    } else if (slot >= ESTOP_MAX_SLOTS) {
+        err = ESTOP_ERR_SLOT;
+    }
+    return err;
+}
+
+estop_err_t estop_tcp_open(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out)
+{
+    estop_err_t err = check_slot(core, slot);
+    if (err == ESTOP_OK) {
+        err = begin(core, now_us, out);
+    }
+    if (err == ESTOP_OK) {
+        core->slots[slot].open = 1u;
+        core->slots[slot].fill = 0u;
+        finish(core, out);
+    }
+    return err;
+}
+
+estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out)
+{
+    estop_err_t err = check_slot(core, slot);
+    if (err == ESTOP_OK) {
+        err = begin(core, now_us, out);
+    }
+    if (err == ESTOP_OK) {
+        core->slots[slot].open = 0u;
+        core->slots[slot].fill = 0u;
+        finish(core, out);
+    }
+    return err;
+}
+
+static void reply(const estop_core_t *core, uint32_t seq, uint8_t nak_code, estop_out_t *out)
+{
+    wr_u32le(out->reply, (nak_code == ESTOP_NAK_NONE) ? ESTOP_MSG_ACK : ESTOP_MSG_NAK);
+    wr_u32le(out->reply + 4, seq);
+    out->reply[8] = core->state;
+    out->reply[9] = core->reason;
+    out->reply[10] = current_flags(core);
+    out->reply[11] = nak_code;
+    wr_u32le(out->reply + 12, estop_crc32(out->reply, 12u));
+    out->has_reply = 1u;
+}
+
+/* Section 3: a RELEASE needs a live link and a neutral latest packet. */
+static uint8_t release(estop_core_t *core, estop_out_t *out)
+{
+    uint8_t nak = (uint8_t)ESTOP_NAK_NONE;
+    if (core->state == ESTOP_STATE_STOPPED) {
+        if (!link_live(core)) {
+            nak = (uint8_t)ESTOP_NAK_NO_LIVE_LINK;
+        } else if (core->last_neutral == 0u) {
+            nak = (uint8_t)ESTOP_NAK_NOT_NEUTRAL;
+        } else {
+            arm(core, out);
+        }
+        if (nak == ESTOP_NAK_NONE) {
+            core->counters.releases_accepted++;
+        } else {
+            core->counters.releases_refused++;
+        }
+    }
+    return nak;
+}
+
+/* One whole 16-byte request frame. */
+static void handle_frame(estop_core_t *core, estop_slot_t *slot, estop_out_t *out)
+{
+    const uint8_t *f = slot->buf;
+    if (estop_crc32(f, 12u) != rd_u32le(f + 12)) {
+        /* The stream has lost framing: nothing after this can be trusted. */
+        core->counters.tcp_bad_crc++;
+        slot->open = 0u;
+        out->close_slot = 1u;
+    } else {
+        uint32_t msg_id = rd_u32le(f);
+        uint8_t nak = (uint8_t)ESTOP_NAK_NONE;
+        core->counters.tcp_frames++;
+        if (msg_id == core->cfg.stop_id) {
+            stop(core, (uint8_t)ESTOP_REASON_TCP_STOP, out);
+        } else if (msg_id == ESTOP_MSG_RELEASE) {
+            nak = release(core, out);
+        } else if (msg_id != ESTOP_MSG_STATUS) {
+            core->counters.tcp_unknown_id++;
+            nak = (uint8_t)ESTOP_NAK_UNKNOWN_ID;
+        }
+        reply(core, rd_u32le(f + 4), nak, out);
+    }
+}
+
+estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data, size_t len,
+                         size_t *consumed, uint32_t now_us, estop_out_t *out)
+{
+    estop_err_t err = check_slot(core, slot);
+    if ((err == ESTOP_OK) && ((consumed == NULL) || ((data == NULL) && (len > 0u)))) {
+        err = ESTOP_ERR_NULL_ARG;
+    }
+    if (err == ESTOP_OK) {
+        *consumed = 0u;
+        err = begin(core, now_us, out);
+    }
+    if ((err == ESTOP_OK) && (core->slots[slot].open == 0u)) {
+        err = ESTOP_ERR_SLOT_CLOSED;
+        finish(core, out);
+    }
+    if (err == ESTOP_OK) {
+        estop_slot_t *s = &core->slots[slot];
+        size_t take = ESTOP_TCP_FRAME_LEN - (size_t)s->fill;
+        size_t i;
+        if (take > len) {
+            take = len;
+        }
+        for (i = 0u; i < take; i++) {
+            s->buf[s->fill + i] = data[i];
+        }
+        s->fill = (uint8_t)(s->fill + take);
+        *consumed = take;
+        if (s->fill == ESTOP_TCP_FRAME_LEN) {
+            s->fill = 0u;
+            handle_frame(core, s, out);
+            if (out->close_slot != 0u) {
+                *consumed = len; /* the rest of a broken stream is dropped */
+            }
+        }
+        finish(core, out);
+    }
+    return err;
+}
+
+estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out)
+{
+    estop_err_t err = begin(core, now_us, out);
+    if (err == ESTOP_OK) {
+        core->counters.faults++;
+        stop(core, (uint8_t)ESTOP_REASON_FAULT, out);
+        finish(core, out);
+    }
+    return err;
+}
+
+estop_err_t estop_get_status(const estop_core_t *core, estop_status_t *status)
+{
+    estop_err_t err = ESTOP_OK;
+    if ((core == NULL) || (status == NULL)) {
+        err = ESTOP_ERR_NULL_ARG;
+    } else if (core->magic != CORE_MAGIC) {
+        err = ESTOP_ERR_NOT_INIT;
+    } else {
+        status->state = core->state;
+        status->reason = core->reason;
+        status->flags = current_flags(core);
+        status->link_live = link_live(core) ? 1u : 0u;
+        status->valid_since_stop = core->valid_since_stop;
+        status->link_age_us = (core->link_fresh != 0u) ? link_age(core) : 0xFFFFFFFFu;
+        status->counters = core->counters;
+    }
+    return err;
+}
+
+/* ---- names for host logs ------------------------------------------------------------------ */
+
+const char *estop_err_name(estop_err_t err)
+{
+    static const char *const names[] = {
+        "ok",           "null_arg",         "bad_timeout",  "bad_warn_time",
+        "bad_stop_id",  "bad_can_id",       "bad_data_id",  "bad_release_count",
+        "bad_brake_period", "bad_status_period", "not_initialised", "bad_slot",
+        "slot_closed"};
+    const char *name = "unknown_error";
+    int idx = -(int)err;
+    if ((idx >= 0) && (idx < (int)(sizeof(names) / sizeof(names[0])))) {
+        name = names[idx];
+    }
+    return name;
+}
+
+const char *estop_state_name(uint32_t state)
+{
+    static const char *const names[] = {"STOPPED", "ARMED"};
+    return (state < 2u) ? names[state] : "?";
+}
+
+const char *estop_reason_name(uint32_t reason)
+{
+    static const char *const names[] = {"none", "boot", "tcp_stop", "udp_timeout", "fault"};
+    return (reason < ESTOP_REASON_COUNT) ? names[reason] : "?";
+}

@@ -1,0 +1,222 @@
+/*
+ * estop_core: the portable emergency-stop state machine (PROTOCOL.md sections 1-4).
+ *
+ * Portable C99. All state lives in a caller-owned estop_core_t; there is no heap, no mutable
+ * global, no I/O and no clock read. Time comes in as a wrapping uint32 microsecond tick.
+ *
+ * Host contract:
+ *  - Call estop_init() once, then estop_tick() at once (the boot frames are due at init time).
+ *  - Every entry point takes the current tick `now_us` and fills a caller-owned estop_out_t:
+ *    CAN frames to send (in order), at most one TCP reply, a "close this slot" request, a
+ *    state-change event, and out->next_call_us: the host must call again (estop_tick at the
+ *    latest) when the tick reaches that value.
+ *  - Successive calls may be at most ESTOP_MAX_STEP_US apart. A host that keeps a wider clock
+ *    feeds longer gaps in steps of at most that size. A step that looks longer (the tick went
+ *    backwards) is treated as an internal fault: the unit stops.
+ *  - TCP bytes are consumed at most one frame per call: call estop_tcp_rx() again with the
+ *    rest until everything is consumed, so the reply buffer is never more than one frame.
+ */
+#ifndef ESTOP_CORE_H
+#define ESTOP_CORE_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#ifdef __cplusplus
+extern "C" {
+#endif
+
+#define ESTOP_VERSION_MAJOR 1u
+#define ESTOP_VERSION_MINOR 0u
+
+/* Wire sizes (PROTOCOL.md 1, 2, 4). */
+#define ESTOP_UDP_LEN 20u
+#define ESTOP_UDP_LEN_NO_HORN 16u
+#define ESTOP_TCP_FRAME_LEN 16u
+#define ESTOP_CAN_DLC 8u
+
+/* TCP message ids and reply codes (PROTOCOL.md 2). */
+#define ESTOP_MSG_STATUS 0x00000001u
+#define ESTOP_MSG_RELEASE 0x00000002u
+#define ESTOP_MSG_ACK 0x00000080u
+#define ESTOP_MSG_NAK 0x00000081u
+#define ESTOP_NAK_NONE 0u
+#define ESTOP_NAK_UNKNOWN_ID 1u
+#define ESTOP_NAK_NO_LIVE_LINK 2u
+#define ESTOP_NAK_NOT_NEUTRAL 3u
+
+/* States, reasons, flags (PROTOCOL.md 3). */
+#define ESTOP_STATE_STOPPED 0u
+#define ESTOP_STATE_ARMED 1u
+#define ESTOP_REASON_NONE 0u
+#define ESTOP_REASON_BOOT 1u
+#define ESTOP_REASON_TCP_STOP 2u
+#define ESTOP_REASON_UDP_TIMEOUT 3u
+#define ESTOP_REASON_FAULT 4u
+#define ESTOP_REASON_COUNT 5u
+#define ESTOP_FLAG_LINK_DEGRADED 0x01u
+
+/* Longest gap between two calls; longer gaps must be fed in steps. */
+#define ESTOP_MAX_STEP_US 0x7FFFFFFFu
+/* TCP connection slots the core can track at once (the spec asks for at least 4). */
+#define ESTOP_MAX_SLOTS 8u
+/* At most: one state-change brake frame from the clock, one status frame, one state-change
+ * brake frame from the input. */
+#define ESTOP_OUT_MAX_CAN 3u
+
+/* Defaults (PROTOCOL.md). */
+#define ESTOP_DEFAULT_TIMEOUT_US 200000u
+#define ESTOP_DEFAULT_STOP_ID 0xE570E570u
+#define ESTOP_DEFAULT_BRAKE_CAN_ID 0x050u
+#define ESTOP_DEFAULT_STATUS_CAN_ID 0x051u
+#define ESTOP_DEFAULT_BRAKE_DATA_ID 0x0E57u
+#define ESTOP_DEFAULT_STATUS_DATA_ID 0x0E58u
+#define ESTOP_DEFAULT_RELEASE_PACKETS 5u
+#define ESTOP_DEFAULT_BRAKE_PERIOD_US 10000u
+#define ESTOP_DEFAULT_STATUS_PERIOD_US 100000u
+
+/* Accepted configuration ranges (checked by estop_init). */
+#define ESTOP_TIMEOUT_MIN_US 1000u
+#define ESTOP_TIMEOUT_MAX_US 60000000u
+#define ESTOP_BRAKE_PERIOD_MIN_US 1000u
+#define ESTOP_BRAKE_PERIOD_MAX_US 25000u /* well inside the brake controller's 50 ms */
+#define ESTOP_STATUS_PERIOD_MIN_US 10000u
+#define ESTOP_STATUS_PERIOD_MAX_US 1000000u
+#define ESTOP_CAN_ID_MAX 0x7FFu
+
+typedef enum {
+    ESTOP_OK = 0,
+    ESTOP_ERR_NULL_ARG = -1,
+    ESTOP_ERR_TIMEOUT = -2,        /* timeout_us outside its range */
+    ESTOP_ERR_WARN = -3,           /* warn_us not in 1 .. timeout_us-1 */
+    ESTOP_ERR_STOP_ID = -4,        /* stop_id is 0, 1 or 2 */
+    ESTOP_ERR_CAN_ID = -5,         /* CAN id over 11 bits, or both ids equal */
+    ESTOP_ERR_DATA_ID = -6,        /* both data ids equal */
+    ESTOP_ERR_RELEASE_COUNT = -7,  /* release_packets is 0 */
+    ESTOP_ERR_BRAKE_PERIOD = -8,   /* brake_period_us outside its range */
+    ESTOP_ERR_STATUS_PERIOD = -9,  /* status_period_us outside its range or below the brake period */
+    ESTOP_ERR_NOT_INIT = -10,      /* the core was never initialised, or its init failed */
+    ESTOP_ERR_SLOT = -11,          /* slot index out of range */
+    ESTOP_ERR_SLOT_CLOSED = -12    /* bytes for a slot that is not open */
+} estop_err_t;
+
+typedef struct {
+    uint32_t timeout_us;       /* UDP silence that stops the unit */
+    uint32_t warn_us;          /* silence that raises the link-degraded flag */
+    uint32_t stop_id;          /* the vehicle's TCP stop message id */
+    uint32_t brake_can_id;     /* ESTOP_BRAKE */
+    uint32_t status_can_id;    /* ESTOP_STATUS */
+    uint16_t brake_data_id;    /* enters the ESTOP_BRAKE CRC, never sent */
+    uint16_t status_data_id;   /* enters the ESTOP_STATUS CRC, never sent */
+    uint32_t release_packets;  /* valid packets needed since the stop before a RELEASE */
+    uint32_t brake_period_us;
+    uint32_t status_period_us;
+} estop_config_t;
+
+typedef struct {
+    uint32_t id;
+    uint8_t dlc;
+    uint8_t data[ESTOP_CAN_DLC];
+} estop_can_frame_t;
+
+typedef struct {
+    uint32_t udp_valid;
+    uint32_t udp_invalid;
+    uint32_t tcp_frames;      /* frames with a good crc */
+    uint32_t tcp_bad_crc;     /* frames with a bad crc (connection closed) */
+    uint32_t tcp_unknown_id;  /* good crc, unknown msg_id (NAK 1) */
+    uint32_t releases_accepted;
+    uint32_t releases_refused;
+    uint32_t stops[ESTOP_REASON_COUNT]; /* transitions into STOPPED, by reason; [1] counts boot */
+    uint32_t faults;          /* faults reported by the host, in any state */
+} estop_counters_t;
+
+/* Filled by every entry point. Fields not mentioned stay zero. */
+typedef struct {
+    estop_can_frame_t can[ESTOP_OUT_MAX_CAN];
+    uint8_t n_can;
+    uint8_t has_reply;                   /* reply holds a 16-byte frame for the input's slot */
+    uint8_t reply[ESTOP_TCP_FRAME_LEN];
+    uint8_t close_slot;                  /* the host must close the input's slot (bad crc) */
+    uint8_t state_changed;               /* the state changed during this call */
+    uint8_t changed_by_clock;            /* ... and the change came from the clock (timeout or a
+                                            tick that went backwards), not from the input */
+    uint8_t state;                       /* state and reason after the call */
+    uint8_t reason;
+    uint8_t flags;
+    uint32_t next_call_us;               /* call again (estop_tick) when the tick reaches this */
+} estop_out_t;
+
+typedef struct {
+    uint8_t open;
+    uint8_t fill;
+    uint8_t buf[ESTOP_TCP_FRAME_LEN];
+} estop_slot_t;
+
+/* Caller-owned state. Treat as opaque: read it only through the functions below. */
+typedef struct {
+    uint32_t magic;            /* set by a successful estop_init */
+    estop_config_t cfg;
+    uint32_t now_us;           /* tick of the latest call */
+    uint8_t state;
+    uint8_t reason;
+    uint8_t link_fresh;        /* a valid packet arrived and has not yet aged past the timeout */
+    uint8_t last_neutral;      /* the latest valid packet had gas_brake <= 0 */
+    uint32_t last_valid_us;    /* tick of the latest valid packet (meaningful while link_fresh) */
+    uint32_t valid_since_stop; /* saturating */
+    uint32_t brake_due_us;
+    uint32_t status_due_us;
+    uint8_t brake_counter;
+    uint8_t status_counter;
+    uint8_t status_valid;      /* valid packets since the last status frame, saturating */
+    uint8_t status_invalid;    /* invalid packets since the last status frame, saturating */
+    estop_counters_t counters;
+    estop_slot_t slots[ESTOP_MAX_SLOTS];
+} estop_core_t;
+
+/* A read-out of everything observable. */
+typedef struct {
+    uint8_t state;
+    uint8_t reason;
+    uint8_t flags;
+    uint8_t link_live;          /* a RELEASE would pass the link check now */
+    uint32_t valid_since_stop;
+    uint32_t link_age_us;       /* saturates at UINT32_MAX when no fresh packet */
+    estop_counters_t counters;
+} estop_status_t;
+
+/* Fills cfg with the defaults of PROTOCOL.md (warn time = half the timeout). */
+void estop_config_default(estop_config_t *cfg);
+/* Checks a configuration; returns ESTOP_OK or the first error found. */
+estop_err_t estop_config_check(const estop_config_t *cfg);
+/* Boots the unit STOPPED (reason boot) at now_us. On error the core stays unusable. */
+estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t now_us);
+
+/* Advances time: timeout stop, link-degraded flag, periodic frames. */
+estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out);
+/* One UDP datagram of any length (data may be NULL when len is 0). */
+estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
+                         estop_out_t *out);
+/* A TCP connection was accepted into slot (0 .. ESTOP_MAX_SLOTS-1). */
+estop_err_t estop_tcp_open(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out);
+/* The host closed slot (peer gone, or on the core's request). */
+estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out);
+/* TCP bytes for slot. Consumes up to one complete frame; *consumed says how many bytes. */
+estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data, size_t len,
+                         size_t *consumed, uint32_t now_us, estop_out_t *out);
+/* The host reports a fault it cannot mend (e.g. CAN frames keep failing to send). */
+estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out);
+
+/* Read-out at the tick of the latest call. */
+estop_err_t estop_get_status(const estop_core_t *core, estop_status_t *status);
+/* A short constant name for an error code, for host logs. */
+const char *estop_err_name(estop_err_t err);
+/* Constant names for states and reasons ("?" when out of range). */
+const char *estop_state_name(uint32_t state);
+const char *estop_reason_name(uint32_t reason);
+
+#ifdef __cplusplus
+}
+#endif
+
+#endif /* ESTOP_CORE_H */

@@ -1,0 +1,252 @@
+"""Typed wrapper around the C watchdog core (the cffi module built from firmware/core).
+
+Times are plain integer microseconds on the host's monotonic clock, as wide as Python ints.
+The core itself counts in a wrapping 32-bit tick; this wrapper hands it the low 32 bits and
+splits any gap longer than ``MAX_STEP_US`` into several ticks, as the header asks of a host.
+
+``ESTOP_CORE_MODULE`` selects another build of the same sources (the coverage/UBSan build).
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from dataclasses import dataclass, field
+from types import ModuleType
+from typing import Any
+
+_MODULE_NAME = os.environ.get("ESTOP_CORE_MODULE", "estop._core")
+_mod: ModuleType = importlib.import_module(_MODULE_NAME)
+ffi: Any = _mod.ffi
+lib: Any = _mod.lib
+
+MAX_STEP_US: int = lib.ESTOP_MAX_STEP_US
+MAX_SLOTS: int = lib.ESTOP_MAX_SLOTS
+_U32 = 0xFFFFFFFF
+
+
+class CoreError(Exception):
+    """The core refused a call (bad configuration, bad slot, ...)."""
+
+    def __init__(self, code: int, action: str) -> None:
+        self.code = code
+        self.name = ffi.string(lib.estop_err_name(code)).decode()
+        super().__init__(f"{action}: {self.name} ({code})")
+
+
+@dataclass(frozen=True)
+class Config:
+    """Core configuration; ``warn_us`` of None means half the timeout."""
+
+    timeout_us: int = lib.ESTOP_DEFAULT_TIMEOUT_US
+    warn_us: int | None = None
+    stop_id: int = lib.ESTOP_DEFAULT_STOP_ID
+    brake_can_id: int = lib.ESTOP_DEFAULT_BRAKE_CAN_ID
+    status_can_id: int = lib.ESTOP_DEFAULT_STATUS_CAN_ID
+    brake_data_id: int = lib.ESTOP_DEFAULT_BRAKE_DATA_ID
+    status_data_id: int = lib.ESTOP_DEFAULT_STATUS_DATA_ID
+    release_packets: int = lib.ESTOP_DEFAULT_RELEASE_PACKETS
+    brake_period_us: int = lib.ESTOP_DEFAULT_BRAKE_PERIOD_US
+    status_period_us: int = lib.ESTOP_DEFAULT_STATUS_PERIOD_US
+
+    @property
+    def effective_warn_us(self) -> int:
+        return self.timeout_us // 2 if self.warn_us is None else self.warn_us
+
+    def to_c(self) -> Any:
+        cfg = ffi.new("estop_config_t *")
+        for name in (
+            "timeout_us", "stop_id", "brake_can_id", "status_can_id", "brake_data_id",
+            "status_data_id", "release_packets", "brake_period_us", "status_period_us",
+        ):
+            setattr(cfg, name, getattr(self, name))
+        cfg.warn_us = self.effective_warn_us
+        return cfg
+
+
+@dataclass(frozen=True)
+class CanFrame:
+    can_id: int
+    data: bytes
+
+
+@dataclass(frozen=True)
+class Step:
+    """What one call into the core produced."""
+
+    frames: tuple[CanFrame, ...]
+    reply: bytes | None
+    close: bool
+    state_changed: bool
+    changed_by_clock: bool
+    state: int
+    reason: int
+    flags: int
+    next_call_us: int
+
+
+@dataclass(frozen=True)
+class Counters:
+    udp_valid: int
+    udp_invalid: int
+    tcp_frames: int
+    tcp_bad_crc: int
+    tcp_unknown_id: int
+    releases_accepted: int
+    releases_refused: int
+    stops: tuple[int, ...]
+    faults: int
+
+
+@dataclass(frozen=True)
+class Status:
+    state: int
+    reason: int
+    flags: int
+    link_live: bool
+    valid_since_stop: int
+    link_age_us: int | None
+    counters: Counters
+
+
+def check_config(config: Config) -> None:
+    """Raises CoreError when the core would refuse this configuration."""
+    err = lib.estop_config_check(config.to_c())
+    if err != lib.ESTOP_OK:
+        raise CoreError(err, "config")
+
+
+@dataclass
+class _Merged:
+    """Frames gathered from the extra ticks of a split time gap."""
+
+    frames: list[CanFrame] = field(default_factory=list)
+    changed: bool = False
+    by_clock: bool = False
+
+
+class Watchdog:
+    """One emergency-stop unit, booted STOPPED at ``now_us``."""
+
+    def __init__(self, config: Config | None = None, now_us: int = 0) -> None:
+        self.config = config or Config()
+        self._core = ffi.new("estop_core_t *")
+        self._out = ffi.new("estop_out_t *")
+        self._consumed = ffi.new("size_t *")
+        err = lib.estop_init(self._core, self.config.to_c(), now_us & _U32)
+        if err != lib.ESTOP_OK:
+            raise CoreError(err, "init")
+        self._now = now_us
+
+    @property
+    def now_us(self) -> int:
+        return self._now
+
+    # -- time -----------------------------------------------------------------------------
+    def _advance(self, now_us: int) -> _Merged:
+        if now_us < self._now:
+            raise ValueError(f"time went backwards: {now_us} < {self._now}")
+        merged = _Merged()
+        while now_us - self._now > MAX_STEP_US:
+            self._now += MAX_STEP_US
+            self._call(lib.estop_tick, self._now & _U32)
+            step = self._step(None)
+            merged.frames.extend(step.frames)
+            merged.changed |= step.state_changed
+            merged.by_clock |= step.changed_by_clock
+        self._now = now_us
+        return merged
+
+    def _call(self, fn: Any, *args: Any) -> None:
+        err = fn(self._core, *args, self._out)
+        if err != lib.ESTOP_OK:
+            raise CoreError(err, fn.__name__)
+
+    def _step(self, merged: _Merged | None) -> Step:
+        out = self._out
+        frames = tuple(
+            CanFrame(out.can[i].id, bytes(ffi.buffer(out.can[i].data, out.can[i].dlc)))
+            for i in range(out.n_can)
+        )
+        changed = bool(out.state_changed)
+        by_clock = bool(out.changed_by_clock)
+        if merged is not None:
+            frames = tuple(merged.frames) + frames
+            changed |= merged.changed
+            by_clock |= merged.by_clock
+        next_call = self._now + ((out.next_call_us - (self._now & _U32)) & _U32)
+        return Step(
+            frames=frames,
+            reply=bytes(ffi.buffer(out.reply, 16)) if out.has_reply else None,
+            close=bool(out.close_slot),
+            state_changed=changed,
+            changed_by_clock=by_clock,
+            state=out.state,
+            reason=out.reason,
+            flags=out.flags,
+            next_call_us=next_call,
+        )
+
+    # -- inputs ---------------------------------------------------------------------------
+    def tick(self, now_us: int) -> Step:
+        merged = self._advance(now_us)
+        self._call(lib.estop_tick, now_us & _U32)
+        return self._step(merged)
+
+    def udp(self, data: bytes, now_us: int) -> Step:
+        merged = self._advance(now_us)
+        self._call(lib.estop_udp_rx, ffi.from_buffer("uint8_t[]", data), len(data), now_us & _U32)
+        return self._step(merged)
+
+    def fault(self, now_us: int) -> Step:
+        merged = self._advance(now_us)
+        self._call(lib.estop_fault, now_us & _U32)
+        return self._step(merged)
+
+    def tcp_open(self, slot: int, now_us: int) -> Step:
+        merged = self._advance(now_us)
+        self._call(lib.estop_tcp_open, slot, now_us & _U32)
+        return self._step(merged)
+
+    def tcp_close(self, slot: int, now_us: int) -> Step:
+        merged = self._advance(now_us)
+        self._call(lib.estop_tcp_close, slot, now_us & _U32)
+        return self._step(merged)
+
+    def tcp_data(self, slot: int, data: bytes, now_us: int) -> list[Step]:
+        """Feeds a TCP read; one Step per core call (the core takes at most a frame a call)."""
+        merged: _Merged | None = self._advance(now_us)
+        steps: list[Step] = []
+        buf = ffi.from_buffer("uint8_t[]", data)
+        offset = 0
+        while True:
+            err = lib.estop_tcp_rx(self._core, slot, buf + offset, len(data) - offset,
+                                   self._consumed, now_us & _U32, self._out)
+            if err != lib.ESTOP_OK:
+                raise CoreError(err, "estop_tcp_rx")
+            steps.append(self._step(merged))
+            merged = None
+            offset += self._consumed[0]
+            if offset >= len(data) or steps[-1].close:
+                break
+        return steps
+
+    # -- read-out -------------------------------------------------------------------------
+    def status(self) -> Status:
+        st = ffi.new("estop_status_t *")
+        err = lib.estop_get_status(self._core, st)
+        if err != lib.ESTOP_OK:
+            raise CoreError(err, "estop_get_status")
+        c = st.counters
+        counters = Counters(
+            udp_valid=c.udp_valid, udp_invalid=c.udp_invalid, tcp_frames=c.tcp_frames,
+            tcp_bad_crc=c.tcp_bad_crc, tcp_unknown_id=c.tcp_unknown_id,
+            releases_accepted=c.releases_accepted, releases_refused=c.releases_refused,
+            stops=tuple(c.stops[i] for i in range(lib.ESTOP_REASON_COUNT)), faults=c.faults,
+        )
+        return Status(
+            state=st.state, reason=st.reason, flags=st.flags, link_live=bool(st.link_live),
+            valid_since_stop=st.valid_since_stop,
+            link_age_us=None if st.link_age_us == _U32 else st.link_age_us,
+            counters=counters,
+        )

@@ -1,0 +1,233 @@
+"""TCP stop channel, remote <-> unit (spec section 2).
+
+Every frame is 16 bytes, little-endian, the last 4 bytes a CRC-32 (as zlib.crc32) of bytes
+0..11. Requests: ``u32 msg_id, u32 seq, u32 arg, u32 crc``. Replies:
+``u32 ACK/NAK, u32 seq, u8 state, u8 reason, u8 flags, u8 nak_code, u32 crc``.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterator
+from dataclasses import dataclass
+from enum import IntEnum
+
+from estop.protocol.can import ContentError, check_status_fields
+from estop.protocol.crc import crc32
+
+__all__ = [
+    "ACK",
+    "DEFAULT_PORT",
+    "DEFAULT_STOP_ID",
+    "FRAME_SIZE",
+    "NAK",
+    "NAK_NAMES",
+    "RELEASE",
+    "RESERVED_MSG_IDS",
+    "STATUS",
+    "CrcMismatch",
+    "FrameAssembler",
+    "FrameError",
+    "NakCode",
+    "Reply",
+    "Request",
+    "check_stop_id",
+    "release_request",
+    "status_request",
+    "stop_request",
+]
+
+DEFAULT_PORT = 5701
+FRAME_SIZE = 16
+DEFAULT_STOP_ID = 0xE570E570
+STATUS = 0x00000001
+RELEASE = 0x00000002
+ACK = 0x00000080
+NAK = 0x00000081
+RESERVED_MSG_IDS = frozenset((0, STATUS, RELEASE))
+
+_REQ = struct.Struct("<III")
+_REP = struct.Struct("<IIBBBB")
+_CRC = struct.Struct("<I")
+_U32_MAX = 0xFFFFFFFF
+
+
+class NakCode(IntEnum):
+    NONE = 0
+    UNKNOWN_MSG_ID = 1
+    NO_LIVE_LINK = 2
+    NOT_NEUTRAL = 3
+
+
+NAK_NAMES = {
+    NakCode.NONE: "none",
+    NakCode.UNKNOWN_MSG_ID: "unknown_msg_id",
+    NakCode.NO_LIVE_LINK: "no_live_link",
+    NakCode.NOT_NEUTRAL: "not_neutral",
+}
+
+
+class FrameError(ValueError):
+    """A 16-byte TCP frame that cannot be accepted. ``str()`` is a one-line reason."""
+
+
+class CrcMismatch(FrameError):
+    """The CRC-32 does not match: per spec the stream has lost framing (close the connection)."""
+
+
+def _u32(name: str, value: int) -> int:
+    if not isinstance(value, int) or not 0 <= value <= _U32_MAX:
+        raise ValueError(f"{name} must be a u32 (0..0xFFFFFFFF), got {value!r}")
+    return value
+
+
+def check_stop_id(stop_id: int) -> int:
+    """Return ``stop_id`` if it may be a vehicle's stop ID (a u32 other than 0, 1, 2)."""
+    _u32("stop ID", stop_id)
+    if stop_id in RESERVED_MSG_IDS:
+        raise ValueError(f"stop ID may not be 0, 1 or 2, got {stop_id}")
+    return stop_id
+
+
+def _seal(body: bytes) -> bytes:
+    return body + _CRC.pack(crc32(body))
+
+
+def _open(frame: bytes | bytearray | memoryview, what: str) -> bytes:
+    raw = bytes(frame)
+    if len(raw) != FRAME_SIZE:
+        raise FrameError(f"{what} frame must be {FRAME_SIZE} bytes, got {len(raw)}")
+    body = raw[:12]
+    (got,) = _CRC.unpack(raw[12:])
+    want = crc32(body)
+    if got != want:
+        raise CrcMismatch(f"{what} frame CRC mismatch (got {got:#010x}, want {want:#010x})")
+    return body
+
+
+@dataclass(frozen=True, slots=True)
+class Request:
+    """A request frame. ``arg`` is 0 in protocol version 1."""
+
+    msg_id: int
+    seq: int
+    arg: int = 0
+
+    def encode(self) -> bytes:
+        return _seal(_REQ.pack(_u32("msg_id", self.msg_id), _u32("seq", self.seq),
+                               _u32("arg", self.arg)))
+
+    @classmethod
+    def decode(cls, frame: bytes | bytearray | memoryview) -> Request:
+        """Decode a request; raise :class:`CrcMismatch` / :class:`FrameError`.
+
+        Any msg_id is returned (the unit answers unknown ones with NAK 1).
+        """
+        msg_id, seq, arg = _REQ.unpack(_open(frame, "request"))
+        return cls(msg_id, seq, arg)
+
+    def kind(self, stop_id: int = DEFAULT_STOP_ID) -> str:
+        """``"stop"``, ``"status"``, ``"release"`` or ``"unknown"`` for a unit with ``stop_id``."""
+        if self.msg_id == stop_id and self.msg_id not in RESERVED_MSG_IDS:
+            return "stop"
+        if self.msg_id == STATUS:
+            return "status"
+        if self.msg_id == RELEASE:
+            return "release"
+        return "unknown"
+
+
+def stop_request(seq: int, stop_id: int = DEFAULT_STOP_ID) -> Request:
+    return Request(check_stop_id(stop_id), seq)
+
+
+def status_request(seq: int) -> Request:
+    return Request(STATUS, seq)
+
+
+def release_request(seq: int) -> Request:
+    return Request(RELEASE, seq)
+
+
+@dataclass(frozen=True, slots=True)
+class Reply:
+    """A reply frame: ``ack`` True for ACK (0x80), False for NAK (0x81)."""
+
+    ack: bool
+    seq: int
+    state: int
+    reason: int
+    flags: int = 0
+    nak_code: int = NakCode.NONE
+
+    def validate(self) -> None:
+        """Raise :class:`FrameError` unless the fields are a reply spec version 1 allows
+        (known state/reason/flags/nak code, consistent with each other)."""
+        _u32("seq", self.seq)
+        try:
+            check_status_fields(self.state, self.reason, self.flags)
+        except ContentError as exc:
+            raise FrameError(f"reply: {exc}") from exc
+        if self.nak_code not in NAK_NAMES:
+            raise FrameError(f"reply nak code {self.nak_code} unknown (0..3)")
+        if self.ack and self.nak_code != NakCode.NONE:
+            raise FrameError(f"ACK with nak code {self.nak_code} (must be 0)")
+        if not self.ack and self.nak_code == NakCode.NONE:
+            raise FrameError("NAK with nak code 0 (must say why)")
+
+    @property
+    def msg_id(self) -> int:
+        return ACK if self.ack else NAK
+
+    def encode(self, *, validate: bool = True) -> bytes:
+        if validate:
+            self.validate()
+        return _seal(_REP.pack(self.msg_id, _u32("seq", self.seq), self.state, self.reason,
+                               self.flags, self.nak_code))
+
+    @classmethod
+    def decode(cls, frame: bytes | bytearray | memoryview, *, strict: bool = True) -> Reply:
+        """Decode a reply; raise :class:`CrcMismatch` / :class:`FrameError`.
+
+        The msg_id must be ACK or NAK. With ``strict`` (default) the other fields must hold
+        values spec version 1 defines (see :meth:`validate`).
+        """
+        msg_id, seq, state, reason, flags, nak_code = _REP.unpack(_open(frame, "reply"))
+        if msg_id not in (ACK, NAK):
+            raise FrameError(f"reply msg_id {msg_id:#010x} is neither ACK 0x80 nor NAK 0x81")
+        reply = cls(msg_id == ACK, seq, state, reason, flags, nak_code)
+        if strict:
+            reply.validate()
+        return reply
+
+
+class FrameAssembler:
+    """Cut a byte stream, split anywhere, into 16-byte frames.
+
+    ``feed(data)`` returns the complete frames now available (possibly none, possibly several);
+    the remainder is kept for the next call. CRCs are not checked here.
+    """
+
+    def __init__(self, frame_size: int = FRAME_SIZE) -> None:
+        self._size = frame_size
+        self._buf = bytearray()
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[bytes]:
+        self._buf += data
+        return list(self._drain())
+
+    def _drain(self) -> Iterator[bytes]:
+        n = len(self._buf) // self._size * self._size
+        if n:
+            chunk = bytes(self._buf[:n])
+            del self._buf[:n]
+            for i in range(0, n, self._size):
+                yield chunk[i:i + self._size]
+
+    @property
+    def pending(self) -> int:
+        """Bytes held back waiting for the rest of a frame."""
+        return len(self._buf)
+
+    def reset(self) -> None:
+        self._buf.clear()

@@ -1,0 +1,574 @@
+"""Stop latency of estopd against a plain asyncio baseline, idle and under a UDP flood.
+
+Two measurements, each over many quick trials, for each daemon (estopd and
+``bench/baseline_asyncio.py``), each at idle and while another process floods the daemon's UDP
+port with invalid packets (loopback only, bounded in time):
+
+- timeout overshoot = first stop frame - (last valid packet sent + timeout)
+- TCP stop latency  = first stop frame (brake_request 1) - STOP sent
+
+A trial: pause a random 0..10 ms, send 5 neutral valid packets, RELEASE over TCP (retried
+if refused), then either drive 3 packets 1 ms apart and go silent (timeout trial), or drive 1
+packet and send STOP (TCP trial). Frame times are the daemon's own can-log stamps
+(CLOCK_REALTIME); send times are time.time() taken just before the send call (same clock).
+A trial whose send call itself took longer than --send-slack-ms (the bench was descheduled,
+so the send time is uncertain) or whose packets left gaps over half the timeout is discarded
+and counted. Stops with the wrong reason,
+missing stops and early stops (overshoot < 0) are counted and reported, never dropped.
+
+Outputs: a Markdown table (printed and saved), JSON with the raw samples, and a PNG histogram,
+in bench/out/ by default. Goals are checked and printed; the exit code is 0 unless the bench
+could not run (or --strict and a goal failed).
+
+    bench/stop_latency.py [--quick] [--trials N] [--timeout-ms 20] [--flood-rate 80000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import math
+import os
+import platform
+import queue
+import random
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+from estop.demo import Daemon, DaemonError, Link, find_estopd, is_stop_frame, stamp
+from estop.protocol import can, tcp, udp
+
+HERE = Path(__file__).resolve().parent
+METRICS = ("overshoot", "tcp_stop")
+METRIC_TITLES = {"overshoot": "timeout overshoot", "tcp_stop": "TCP stop latency"}
+GOAL_FLOOD_RATE = 50_000.0
+GOAL_P999_MS = {"idle": 1.0, "flood": 2.0}
+GOAL_AHEAD_FACTOR = 5.0
+
+
+# --------------------------------------------------------------------------------------------
+# Statistics (pure; exercised on synthetic data by tests/test_bench_smoke.py)
+
+
+def percentile(sorted_values: Sequence[float], q: float) -> float:
+    """The q-th percentile (0..100) of already sorted values, linear between closest ranks
+    (numpy's default method). NaN for no values."""
+    if not sorted_values:
+        return math.nan
+    if not 0.0 <= q <= 100.0:
+        raise ValueError(f"percentile must be 0..100, got {q}")
+    pos = (len(sorted_values) - 1) * q / 100.0
+    lo = math.floor(pos)
+    hi = min(lo + 1, len(sorted_values) - 1)
+    frac = pos - lo
+    return sorted_values[lo] + (sorted_values[hi] - sorted_values[lo]) * frac
+
+
+def summarize(values: Sequence[float]) -> dict[str, float]:
+    """n, min, p50, p99, p99.9, max and mean of values (in their own unit)."""
+    s = sorted(values)
+    if not s:
+        nan = math.nan
+        return {"n": 0, "min": nan, "p50": nan, "p99": nan, "p99.9": nan, "max": nan,
+                "mean": nan}
+    return {"n": len(s), "min": s[0], "p50": percentile(s, 50.0), "p99": percentile(s, 99.0),
+            "p99.9": percentile(s, 99.9), "max": s[-1], "mean": math.fsum(s) / len(s)}
+
+
+def log_bins(values: Sequence[float], floor: float, n_bins: int = 60) -> list[float]:
+    """Log-spaced histogram edges from ``floor`` to just above the largest value."""
+    if floor <= 0:
+        raise ValueError("floor must be > 0")
+    top = max([floor * 10.0, *values]) * 1.05
+    lo, hi = math.log10(floor), math.log10(top)
+    return [10 ** (lo + (hi - lo) * i / n_bins) for i in range(n_bins + 1)]
+
+
+def say(text: str = "") -> None:
+    """Output for the person running the bench."""
+    sys.stdout.write(text + "\n")
+    sys.stdout.flush()
+
+
+def fmt_ms(v: float) -> str:
+    return "-" if math.isnan(v) else f"{v:.3f}"
+
+
+# --------------------------------------------------------------------------------------------
+# The flood: a child process sending invalid packets at a paced rate for a bounded time
+
+FLOOD_PAYLOADS = (
+    b"\x00" * 7,                                        # wrong length
+    b"\x00\x00\xc0\x7f" + b"\x00" * 4 + b"\x08\x00\x00\x00" + b"\x00" * 8,  # gas NaN
+    b"\x00" * 8 + b"\x03\x00\x00\x00" + b"\x00" * 8,    # gear 3 unknown
+    b"\xff" * 24,                                       # wrong length
+)
+
+
+def flood_child(port: int, rate: float, max_s: float) -> int:
+    """Send invalid datagrams to 127.0.0.1:port at ``rate``/s until SIGTERM or max_s; print
+    one JSON line with the count and duration."""
+    stop = False
+
+    def on_term(_sig: int, _frame: object) -> None:
+        nonlocal stop
+        stop = True
+
+    signal.signal(signal.SIGTERM, on_term)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    sock.setblocking(False)
+    addr = ("127.0.0.1", port)
+    payloads = FLOOD_PAYLOADS
+    batch = 25
+    sent = errors = 0
+    start = time.monotonic()
+    end = start + max_s
+    while not stop:
+        now = time.monotonic()
+        if now >= end:
+            break
+        due = start + sent / rate
+        if now < due:
+            time.sleep(due - now)
+            continue
+        for i in range(batch):
+            try:
+                sock.sendto(payloads[i & 3], addr)
+                sent += 1
+            except (BlockingIOError, ConnectionRefusedError):
+                errors += 1
+    elapsed = time.monotonic() - start
+    sys.stdout.write(json.dumps({"sent": sent, "errors": errors, "elapsed_s": elapsed}) + "\n")
+    return 0
+
+
+def udp_drops(port: int) -> int | None:
+    """Kernel receive drops of the loopback UDP socket bound to ``port`` (/proc/net/udp)."""
+    try:
+        lines = Path("/proc/net/udp").read_text().splitlines()[1:]
+    except OSError:
+        return None
+    for line in lines:
+        f = line.split()
+        if len(f) >= 13 and int(f[1].split(":")[1], 16) == port:
+            return int(f[-1])
+    return None
+
+
+@dataclass
+class FloodStats:
+    target_rate: float
+    sent: int = 0
+    errors: int = 0
+    elapsed_s: float = 0.0
+    kernel_drops: int | None = None
+
+    @property
+    def rate(self) -> float:
+        return self.sent / self.elapsed_s if self.elapsed_s > 0 else 0.0
+
+
+class Flood:
+    def __init__(self, port: int, rate: float, max_s: float) -> None:
+        self.port = port
+        self.stats = FloodStats(rate)
+        self._drops0 = udp_drops(port)
+        self._proc = subprocess.Popen(
+            [sys.executable, str(Path(__file__).resolve()), "--flood-child", str(port),
+             str(rate), str(max_s)], stdout=subprocess.PIPE, text=True)
+
+    def stop(self) -> FloodStats:
+        if self._proc.poll() is None:
+            self._proc.send_signal(signal.SIGTERM)
+        try:
+            out, _ = self._proc.communicate(timeout=10)
+        except subprocess.TimeoutExpired:
+            self._proc.kill()
+            out, _ = self._proc.communicate()
+        for line in out.splitlines():
+            if line.startswith("{"):
+                d = json.loads(line)
+                self.stats.sent, self.stats.errors = d["sent"], d["errors"]
+                self.stats.elapsed_s = d["elapsed_s"]
+        drops1 = udp_drops(self.port)
+        if self._drops0 is not None and drops1 is not None:
+            self.stats.kernel_drops = drops1 - self._drops0
+        return self.stats
+
+
+# --------------------------------------------------------------------------------------------
+# Trials
+
+
+@dataclass
+class RunResult:
+    daemon: str
+    load: str
+    timeout_ms: int
+    samples: dict[str, list[float]] = field(default_factory=lambda: {m: [] for m in METRICS})
+    missed: dict[str, int] = field(default_factory=lambda: {m: 0 for m in METRICS})
+    wrong_reason: dict[str, int] = field(default_factory=lambda: {m: 0 for m in METRICS})
+    discarded: dict[str, int] = field(default_factory=lambda: {m: 0 for m in METRICS})
+    release_failures: int = 0
+    release_naks: int = 0
+    wall_s: float = 0.0
+    flood: FloodStats | None = None
+    error: str | None = None
+
+    def early(self, metric: str) -> int:
+        return sum(1 for v in self.samples[metric] if v < 0)
+
+
+class Trials:
+    def __init__(self, daemon: Daemon, link: Link, timeout_ms: int, send_slack_s: float,
+                 result: RunResult, seed: int = 1) -> None:
+        self.d = daemon
+        self.link = link
+        self.timeout_s = timeout_ms / 1000.0
+        self.slack = send_slack_s
+        self.r = result
+        self.rng = random.Random(seed)
+
+    def send(self, gas: float, gear: int) -> tuple[float, bool]:
+        """Send one control packet; (time before the send, send took <= slack)."""
+        t = self.link.send_control(gas, 0.0, gear)
+        return t, time.time() - t <= self.slack
+
+    def release(self) -> float | None:
+        """Bring the unit to ARMED; time.time() after the ACK, None if it keeps refusing.
+
+        First a random pause of 0..10 ms (one brake period), so that trials do not lock onto
+        the phase of the daemon's periodic work (each trial starts right after a stop frame).
+        """
+        time.sleep(self.rng.uniform(0.0, 0.010))
+        for _ in range(50):
+            for _ in range(5):
+                self.link.send_control(0.0, 0.0, udp.Gear.NEUTRAL)
+            time.sleep(0.0005)
+            reply, _t = self.link.request(tcp.RELEASE)
+            if reply.ack and reply.state == 1:
+                return time.time()
+            self.r.release_naks += 1
+            time.sleep(0.002)
+        self.r.release_failures += 1
+        return None
+
+    def wait_stop(self, after: float, max_s: float) -> tuple[float, int] | None:
+        """(stamp, reason) of the first brake frame with brake_request 1 stamped at or after
+        ``after``; None if none comes within max_s."""
+        deadline = time.monotonic() + max_s
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None
+            try:
+                rec = self.d.frames.get(timeout=min(left, 0.1))
+            except queue.Empty:
+                if not self.d.alive():
+                    raise DaemonError("the daemon died") from None
+                continue
+            if is_stop_frame(rec) and stamp(rec) >= after:
+                return stamp(rec), can.BrakeFrame.parse(rec.data).reason
+
+    def timeout_trial(self) -> bool:
+        """One timeout trial; True when it produced a sample."""
+        t_ack = self.release()
+        if t_ack is None:
+            return False
+        prev, clean = t_ack, True
+        t_last = t_ack
+        for i in range(3):
+            if i:
+                time.sleep(0.001)
+            t_last, quick = self.send(0.3, udp.Gear.DRIVE)
+            clean = clean and quick and t_last - prev < self.timeout_s / 2
+            prev = t_last
+        stop = self.wait_stop(t_ack, self.timeout_s + 2.0)
+        if stop is None:
+            self.r.missed["overshoot"] += 1
+            return False
+        t_stop, reason = stop
+        if not clean or t_stop < t_last:
+            self.r.discarded["overshoot"] += 1
+            return False
+        if reason != can.Reason.UDP_TIMEOUT:
+            self.r.wrong_reason["overshoot"] += 1
+            return False
+        self.r.samples["overshoot"].append((t_stop - (t_last + self.timeout_s)) * 1000.0)
+        return True
+
+    def tcp_trial(self) -> bool:
+        t_ack = self.release()
+        if t_ack is None:
+            return False
+        t_pkt, quick = self.send(0.3, udp.Gear.DRIVE)
+        seq, t_stop = self.link.send_request(tcp.DEFAULT_STOP_ID)
+        quick = quick and time.time() - t_stop <= self.slack
+        stop = self.wait_stop(t_ack, 2.0)
+        self.link.read_reply(seq)
+        if stop is None:
+            self.r.missed["tcp_stop"] += 1
+            return False
+        t_frame, reason = stop
+        if reason != can.Reason.TCP_STOP:
+            if t_stop - t_pkt >= self.timeout_s / 2 or not quick:
+                self.r.discarded["tcp_stop"] += 1
+            else:
+                self.r.wrong_reason["tcp_stop"] += 1
+            return False
+        if not quick:
+            self.r.discarded["tcp_stop"] += 1
+            return False
+        self.r.samples["tcp_stop"].append((t_frame - t_stop) * 1000.0)
+        return True
+
+    def run(self, n: int, max_s: float) -> None:
+        want = {"overshoot": n, "tcp_stop": n}
+        end = time.monotonic() + max_s
+        attempts = 0
+        while (len(self.r.samples["overshoot"]) < want["overshoot"]
+               or len(self.r.samples["tcp_stop"]) < want["tcp_stop"]):
+            if time.monotonic() > end or attempts > 3 * n:
+                break
+            attempts += 1
+            if len(self.r.samples["overshoot"]) < want["overshoot"]:
+                self.timeout_trial()
+            if len(self.r.samples["tcp_stop"]) < want["tcp_stop"]:
+                self.tcp_trial()
+
+
+def run_one(name: str, command: list[str], load: str, args: argparse.Namespace,
+            n: int) -> RunResult:
+    res = RunResult(name, load, args.timeout_ms)
+    t0 = time.monotonic()
+    flood: Flood | None = None
+    daemon = Daemon(command, timeout_ms=args.timeout_ms)
+    try:
+        daemon.start()
+        link = Link(daemon.udp_port, daemon.tcp_port)
+        try:
+            if load == "flood":
+                flood = Flood(daemon.udp_port, args.flood_rate, args.max_run_s + 10.0)
+                time.sleep(0.5)  # let the flood reach its rate
+            gc.collect()
+            gc.disable()
+            try:
+                Trials(daemon, link, args.timeout_ms, args.send_slack_ms / 1000.0,
+                       res).run(n, args.max_run_s)
+            finally:
+                gc.enable()
+        finally:
+            if flood is not None:
+                res.flood = flood.stop()
+            link.close()
+    except (DaemonError, OSError, tcp.FrameError) as exc:
+        res.error = str(exc)
+    finally:
+        if flood is not None and res.flood is None:
+            res.flood = flood.stop()
+        daemon.stop()
+    res.wall_s = time.monotonic() - t0
+    return res
+
+
+# --------------------------------------------------------------------------------------------
+# Reporting
+
+
+def check_goals(results: list[RunResult]) -> list[tuple[str, bool]]:
+    by = {(r.daemon, r.load): r for r in results}
+    goals: list[tuple[str, bool]] = []
+    for load in ("idle", "flood"):
+        e, b = by.get(("estopd", load)), by.get(("baseline", load))
+        if e is None:
+            continue
+        ok_run = e.error is None and len(e.samples["overshoot"]) > 0
+        p = summarize(e.samples["overshoot"])["p99.9"]
+        lim = GOAL_P999_MS[load]
+        goals.append((f"estopd p99.9 timeout overshoot {load}: {fmt_ms(p)} ms < {lim} ms",
+                      ok_run and p < lim))
+        missing = sum(e.missed.values()) + sum(e.wrong_reason.values())
+        goals.append((f"estopd {load}: every trial stopped, with the right reason "
+                      f"({missing} missed or wrong)", ok_run and missing == 0))
+        if b is not None and b.samples["overshoot"]:
+            pb = summarize(b.samples["overshoot"])["p99.9"]
+            goals.append((f"estopd p99.9 overshoot {load} at most 1/{GOAL_AHEAD_FACTOR:g} of "
+                          f"the baseline's ({fmt_ms(p)} vs {fmt_ms(pb)} ms)",
+                          ok_run and p * GOAL_AHEAD_FACTOR <= pb))
+        if load == "flood":
+            for r in (e, b):
+                if r is not None and r.flood is not None:
+                    goals.append((f"flood at {r.daemon}: {r.flood.rate:,.0f} packets/s "
+                                  f">= {GOAL_FLOOD_RATE:,.0f}", r.flood.rate >= GOAL_FLOOD_RATE))
+    return goals
+
+
+def markdown(results: list[RunResult], meta: dict[str, Any],
+             goals: list[tuple[str, bool]]) -> str:
+    lines = [
+        "# Stop latency: estopd vs asyncio baseline",
+        "",
+        f"{meta['date']} on {meta['host']} ({meta['cpus']} CPUs, Python {meta['python']}); "
+        f"timeout {meta['timeout_ms']} ms; {meta['trials']} trials per cell; flood target "
+        f"{meta['flood_rate']:,.0f} invalid packets/s on loopback. All times in ms.",
+        "",
+        "| daemon | load | metric | n | p50 | p99 | p99.9 | max | early | missed | wrong | "
+        "discarded |",
+        "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |",
+    ]
+    for r in results:
+        for m in METRICS:
+            s = summarize(r.samples[m])
+            early = str(r.early(m)) if m == "overshoot" else "-"
+            lines.append(
+                f"| {r.daemon} | {r.load} | {METRIC_TITLES[m]} | {s['n']} | {fmt_ms(s['p50'])} |"
+                f" {fmt_ms(s['p99'])} | {fmt_ms(s['p99.9'])} | {fmt_ms(s['max'])} | {early} |"
+                f" {r.missed[m]} | {r.wrong_reason[m]} | {r.discarded[m]} |")
+    lines += ["", "Flood (per run): sender's count over its own run time; kernel drops are "
+              "datagrams the daemon's socket dropped for a full receive buffer.", ""]
+    for r in results:
+        if r.flood is not None:
+            f = r.flood
+            drops = "n/a" if f.kernel_drops is None else f"{f.kernel_drops:,}"
+            lines.append(f"- {r.daemon}: {f.sent:,} packets in {f.elapsed_s:.1f} s = "
+                         f"{f.rate:,.0f} packets/s; kernel drops {drops}")
+    lines += ["", "Per run: wall time, RELEASE refusals (retried) and failures, errors.", ""]
+    for r in results:
+        err = f"; ERROR {r.error}" if r.error else ""
+        lines.append(f"- {r.daemon} {r.load}: {r.wall_s:.1f} s; RELEASE NAKs {r.release_naks},"
+                     f" release failures {r.release_failures}{err}")
+    lines += ["", "Goals:", ""]
+    lines += [f"- {'PASS' if ok else 'FAIL'}: {text}" for text, ok in goals]
+    lines += ["", "Columns: early = stop frame before last packet + timeout (safe, but the "
+              "daemon's deadline did not come from our last packet: e.g. it was dropped); "
+              "missed = no stop frame within 2 s; wrong = stopped for another reason; "
+              "discarded = the bench's own send was late (descheduled), sample dropped.", ""]
+    return "\n".join(lines)
+
+
+def plot(results: list[RunResult], path: Path, timeout_ms: int) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    floor = 0.001
+    fig, axes = plt.subplots(2, 2, figsize=(12, 7.5), squeeze=False)
+    colors = {"estopd": "tab:blue", "baseline": "tab:orange"}
+    for row, m in enumerate(METRICS):
+        for col, load in enumerate(("idle", "flood")):
+            ax = axes[row][col]
+            runs = [r for r in results if r.load == load and r.samples[m]]
+            allv = [max(v, floor) for r in runs for v in r.samples[m]]
+            if not allv:
+                ax.set_axis_off()
+                continue
+            bins = log_bins(allv, floor)
+            for r in runs:
+                vals = [max(v, floor) for v in r.samples[m]]
+                s = summarize(r.samples[m])
+                ax.hist(vals, bins=bins, alpha=0.6, color=colors.get(r.daemon),
+                        label=f"{r.daemon} (p99.9 {fmt_ms(s['p99.9'])} ms)")
+            if m == "overshoot":
+                ax.axvline(GOAL_P999_MS[load], color="k", ls="--", lw=1,
+                           label=f"goal p99.9 < {GOAL_P999_MS[load]:g} ms")
+            ax.set_xscale("log")
+            ax.set_xlabel("ms (log; values <= 0.001 ms drawn at 0.001)")
+            ax.set_ylabel("trials")
+            ax.set_title(f"{METRIC_TITLES[m]}, {load}")
+            ax.legend(fontsize=8)
+    fig.suptitle(f"estop stop latency, timeout {timeout_ms} ms")
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+# --------------------------------------------------------------------------------------------
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["--flood-child"]:
+        return flood_child(int(argv[1]), float(argv[2]), float(argv[3]))
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--trials", type=int, default=1000, help="trials per metric and run")
+    ap.add_argument("--quick", action="store_true", help="smoke run: 100 trials")
+    ap.add_argument("--timeout-ms", type=int, default=20)
+    ap.add_argument("--flood-rate", type=float, default=80_000.0,
+                    help="invalid packets/s sent during the flood runs (goal: >= 50,000)")
+    ap.add_argument("--send-slack-ms", type=float, default=0.25,
+                    help="discard a trial whose send call took longer than this")
+    ap.add_argument("--max-run-s", type=float, default=150.0,
+                    help="time limit of one run (daemon x load)")
+    ap.add_argument("--estopd", metavar="PATH", help="estopd binary (default: found like "
+                    "`estop demo` does)")
+    ap.add_argument("--only", choices=("estopd", "baseline"), help="run one daemon only")
+    ap.add_argument("--loads", default="idle,flood", help="comma-separated: idle,flood")
+    ap.add_argument("--out", type=Path, default=HERE / "out")
+    ap.add_argument("--strict", action="store_true", help="exit 1 when a goal fails")
+    args = ap.parse_args(argv)
+    n = 100 if args.quick else args.trials
+
+    daemons: list[tuple[str, list[str]]] = []
+    if args.only != "baseline":
+        exe = find_estopd(args.estopd)
+        if exe is None:
+            sys.stderr.write("stop_latency: estopd not found (make setup, or make -C firmware,"
+                             " or --estopd PATH)\n")
+            return 2
+        daemons.append(("estopd", [exe]))
+    if args.only != "estopd":
+        daemons.append(("baseline", [sys.executable, str(HERE / "baseline_asyncio.py")]))
+    loads = [x for x in args.loads.split(",") if x]
+    if any(x not in ("idle", "flood") for x in loads):
+        ap.error("--loads takes idle and/or flood")
+
+    t_start = time.monotonic()
+    results: list[RunResult] = []
+    for load in loads:
+        for name, cmd in daemons:
+            say(f"running {name} {load}: {n} trials per metric ...")
+            r = run_one(name, cmd, load, args, n)
+            results.append(r)
+            extra = f", flood {r.flood.rate:,.0f}/s" if r.flood else ""
+            err = f", ERROR {r.error}" if r.error else ""
+            say(f"  done in {r.wall_s:.1f} s ({len(r.samples['overshoot'])} + "
+                f"{len(r.samples['tcp_stop'])} samples{extra}{err})")
+
+    meta = {"date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "host": platform.node(),
+            "cpus": os.cpu_count(), "python": platform.python_version(),
+            "timeout_ms": args.timeout_ms, "trials": n, "flood_rate": args.flood_rate,
+            "send_slack_ms": args.send_slack_ms, "commands": {k: v for k, v in daemons},
+            "bench_wall_s": round(time.monotonic() - t_start, 1)}
+    goals = check_goals(results)
+    md = markdown(results, meta, goals)
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "stop_latency.md").write_text(md)
+    doc = {"meta": meta, "goals": [{"goal": g, "pass": ok} for g, ok in goals], "runs": []}
+    for r in results:
+        d = asdict(r)
+        d["summary_ms"] = {m: summarize(r.samples[m]) for m in METRICS}
+        if r.flood is not None:
+            d["flood"]["rate"] = r.flood.rate
+        doc["runs"].append(d)
+    (args.out / "stop_latency.json").write_text(json.dumps(doc, indent=1, allow_nan=True))
+    plot(results, args.out / "stop_latency.png", args.timeout_ms)
+    say()
+    say(md)
+    say(f"bench wall time {meta['bench_wall_s']} s; wrote {args.out}/stop_latency.md, "
+        f".json, .png")
+    if args.strict and not all(ok for _, ok in goals):
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,587 @@
+"""``estop demo``: a scripted drive against a real ``estopd`` on loopback (no root, no CAN).
+
+The demo starts ``estopd`` with free loopback ports and its CAN frames logged to a pipe, then
+plays the remote's part: release, drive, lift the finger (the unit stops on the UDP timeout),
+release again, drive, press the stop button (the unit stops on the TCP STOP). A live line shows
+what the brake frames on the (logged) bus say; the end prints a timeline and the measured stop
+latencies, both taken from the daemon's own can-log timestamps against the send times (both
+CLOCK_REALTIME):
+
+- timeout overshoot = first stop frame - (last valid packet sent + timeout)
+- TCP stop latency  = first stop frame - STOP sent
+
+The daemon runner here (:class:`Daemon`, :func:`find_estopd`) is also used by the bench
+(``bench/stop_latency.py``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import math
+import os
+import queue
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO, TextIO
+
+from estop.protocol import can, canlog, tcp, udp
+
+__all__ = [
+    "Daemon",
+    "DaemonError",
+    "Link",
+    "find_estopd",
+    "is_stop_frame",
+    "main",
+    "parse_start_ports",
+    "stamp",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# Reading the daemon's output
+
+
+def stamp(rec: canlog.CanLogRecord) -> float:
+    """A can-log record's realtime stamp in seconds (comparable with time.time())."""
+    return rec.timestamp_us / 1_000_000
+
+
+def is_stop_frame(rec: canlog.CanLogRecord) -> bool:
+    """An ESTOP_BRAKE frame that requests the brake."""
+    return rec.can_id == can.BRAKE_ID and len(rec.data) == can.DLC and rec.data[0] == 1
+
+
+_PORT_RE = {
+    kind: re.compile(kind + r"[A-Za-z_]*\"?\s*[=:]\s*\"?(?:[0-9A-Za-z.\[\]:]*:)?(\d{1,5})\b")
+    for kind in ("udp", "tcp")
+}
+
+
+def parse_start_ports(line: str) -> tuple[int, int] | None:
+    """(udp_port, tcp_port) from a daemon's ``start`` log line, text or JSON; else None.
+
+    Accepts ``udp=5700``, ``udp_port=5700``, ``udp=127.0.0.1:5700``, ``"udp_port": 5700`` ...
+    """
+    if not re.search(r"\bstart\b", line):
+        return None
+    found = []
+    for kind in ("udp", "tcp"):
+        m = _PORT_RE[kind].search(line)
+        if m is None:
+            return None
+        found.append(int(m.group(1)))
+    return found[0], found[1]
+
+
+# --------------------------------------------------------------------------------------------
+# Finding and running the daemon
+
+
+class DaemonError(RuntimeError):
+    """The daemon could not be found, started, or it died. ``str()`` is one line."""
+
+
+def find_estopd(explicit: str | None = None) -> str | None:
+    """Path of the estopd binary: ``explicit``, $ESTOPD, beside this Python (the venv's bin),
+    on PATH, or the repo's firmware/build/estopd. None when there is none."""
+    candidates: list[Path] = []
+    for given in (explicit, os.environ.get("ESTOPD")):
+        if given:
+            return given if Path(given).is_file() or shutil.which(given) else None
+    candidates.append(Path(sys.executable).parent / "estopd")
+    on_path = shutil.which("estopd")
+    if on_path:
+        candidates.append(Path(on_path))
+    candidates.append(Path(__file__).resolve().parents[2] / "firmware" / "build" / "estopd")
+    for cand in candidates:
+        if cand.is_file() and os.access(cand, os.X_OK):
+            return str(cand)
+    return None
+
+
+class Daemon:
+    """An estopd-compatible daemon on loopback with free ports and its can-log on a pipe.
+
+    ``command`` is the program (and any leading arguments, e.g. ``[python, baseline.py]``).
+    Every can-log line arrives as a :class:`canlog.CanLogRecord` on :attr:`frames`; stderr
+    lines are
+        kept in :attr:`log_lines`. Use as a context manager: the process is always ended.
+    """
+
+    def __init__(self, command: Sequence[str], *, timeout_ms: int = 200,
+                 extra_args: Sequence[str] = ()) -> None:
+        self.argv = [*command, "--bind", "127.0.0.1", "--udp-port", "0", "--tcp-port", "0",
+                     "--timeout-ms", str(timeout_ms), "--can-log", "-", *extra_args]
+        self.timeout_ms = timeout_ms
+        self.frames: queue.Queue[canlog.CanLogRecord] = queue.Queue()
+        self.log_lines: list[str] = []
+        self.udp_port = 0
+        self.tcp_port = 0
+        self.returncode: int | None = None
+        self.bad_lines = 0
+        self._proc: subprocess.Popen[str] | None = None
+        self._started = threading.Event()
+        self._threads: list[threading.Thread] = []
+
+    @property
+    def pid(self) -> int | None:
+        return self._proc.pid if self._proc else None
+
+    def start(self, wait_s: float = 10.0) -> None:
+        try:
+            self._proc = subprocess.Popen(
+                self.argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE, text=True, bufsize=1)
+        except OSError as exc:
+            raise DaemonError(f"cannot run {self.argv[0]}: {exc.strerror}") from exc
+        assert self._proc.stdout is not None and self._proc.stderr is not None
+        for target, stream in ((self._read_frames, self._proc.stdout),
+                               (self._read_log, self._proc.stderr)):
+            th = threading.Thread(target=target, args=(stream,), daemon=True)
+            th.start()
+            self._threads.append(th)
+        deadline = time.monotonic() + wait_s
+        while not self._started.wait(0.05):
+            if self._proc.poll() is not None or time.monotonic() > deadline:
+                self.stop()
+                last = self.log_lines[-1] if self.log_lines else "no output"
+                raise DaemonError(f"{Path(self.argv[0]).name} did not start ({last})")
+
+    def _read_frames(self, stream: IO[str]) -> None:
+        for line in stream:
+            try:
+                self.frames.put(canlog.parse_line(line))
+            except canlog.CanLogError:
+                self.bad_lines += 1
+
+    def _read_log(self, stream: IO[str]) -> None:
+        for line in stream:
+            self.log_lines.append(line.rstrip("\n"))
+            if not self._started.is_set():
+                ports = parse_start_ports(line)
+                if ports is not None:
+                    self.udp_port, self.tcp_port = ports
+                    self._started.set()
+
+    def alive(self) -> bool:
+        return self._proc is not None and self._proc.poll() is None
+
+    def stop(self, wait_s: float = 3.0) -> int | None:
+        """SIGTERM, wait (SIGKILL if it hangs), collect the output; return the exit code."""
+        proc = self._proc
+        if proc is None:
+            return None
+        if proc.poll() is None:
+            with contextlib.suppress(ProcessLookupError):
+                proc.send_signal(signal.SIGTERM)
+            try:
+                proc.wait(wait_s)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(wait_s)
+        for th in self._threads:
+            th.join(wait_s)
+        for stream in (proc.stdout, proc.stderr):
+            if stream is not None:
+                stream.close()
+        self.returncode = proc.returncode
+        return self.returncode
+
+    def __enter__(self) -> Daemon:
+        self.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+
+# --------------------------------------------------------------------------------------------
+# The remote's side: UDP control packets and the TCP stop channel
+
+
+class Link:
+    """Raw sockets to a daemon on loopback; every send returns time.time() just before it."""
+
+    def __init__(self, udp_port: int, tcp_port: int, host: str = "127.0.0.1",
+                 reply_timeout_s: float = 2.0) -> None:
+        self.addr = (host, udp_port)
+        self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.tcp = socket.create_connection((host, tcp_port), timeout=reply_timeout_s)
+        self.tcp.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        self._asm = tcp.FrameAssembler()
+        self._seq = 0
+        self._packets: dict[tuple[float, float, int], bytes] = {}
+
+    def send_control(self, gas: float = 0.0, steering: float = 0.0,
+                     gear: int = udp.Gear.NEUTRAL) -> float:
+        key = (gas, steering, gear)
+        data = self._packets.get(key)
+        if data is None:
+            data = udp.ControlPacket(gas, steering, gear).encode()
+            if len(self._packets) < 256:
+                self._packets[key] = data
+        t = time.time()
+        self.udp.sendto(data, self.addr)
+        return t
+
+    def send_request(self, msg_id: int) -> tuple[int, float]:
+        """Send one request; return (seq, time just before sending)."""
+        self._seq = (self._seq + 1) & 0xFFFFFFFF
+        data = tcp.Request(msg_id, self._seq).encode()
+        t = time.time()
+        self.tcp.sendall(data)
+        return self._seq, t
+
+    def read_reply(self, seq: int) -> tcp.Reply:
+        while True:
+            for frame in self._asm.feed(b""):
+                reply = tcp.Reply.decode(frame)
+                if reply.seq == seq:
+                    return reply
+            chunk = self.tcp.recv(4096)
+            if not chunk:
+                raise DaemonError("the daemon closed the TCP connection")
+            for frame in self._asm.feed(chunk):
+                reply = tcp.Reply.decode(frame)
+                if reply.seq == seq:
+                    return reply
+
+    def request(self, msg_id: int) -> tuple[tcp.Reply, float]:
+        seq, t = self.send_request(msg_id)
+        return self.read_reply(seq), t
+
+    def close(self) -> None:
+        self.udp.close()
+        self.tcp.close()
+
+
+# --------------------------------------------------------------------------------------------
+# The demo itself
+
+Packet = tuple[float, float, int]  # gas_brake, steering, gear
+
+
+@dataclass
+class Stop:
+    """A brake frame that started a stop: its realtime stamp and its decoded fields."""
+
+    t: float
+    frame: can.BrakeFrame
+
+
+@dataclass
+class View:
+    """What the logged bus says, checked frame by frame, and how it is shown."""
+
+    out: TextIO
+    live: bool
+    t0: float
+    phase: str = "boot"
+    brake: can.BrakeFrame | None = None
+    link_age_ms: int | None = None
+    frames: int = 0
+    bad_frames: int = 0
+    counter_jumps: int = 0
+    events: list[tuple[float, str]] = field(default_factory=list)
+    stops: list[Stop] = field(default_factory=list)
+    _brake_ctr: can.CounterChecker = field(default_factory=can.CounterChecker)
+    _status_ctr: can.CounterChecker = field(default_factory=can.CounterChecker)
+    _last_draw: float = 0.0
+    _last_plain: float = -10.0
+    _prev: tuple[int, int, int] | None = None
+
+    def event(self, t: float, text: str) -> None:
+        self.events.append((t, text))
+        self._clear()
+        self.out.write(f"  {t - self.t0:7.3f}s  {text}\n")
+        self.out.flush()
+        self._last_draw = 0.0
+
+    def take(self, rec: canlog.CanLogRecord) -> None:
+        self.frames += 1
+        if rec.can_id == can.STATUS_ID:
+            if can.StatusFrame.check(rec.data):
+                self.bad_frames += 1
+                return
+            status = can.StatusFrame.parse(rec.data)
+            self.counter_jumps += not self._status_ctr.check(status.counter).ok
+            self.link_age_ms = status.link_age
+            return
+        if rec.can_id != can.BRAKE_ID:
+            return
+        if can.BrakeFrame.check(rec.data):
+            self.bad_frames += 1
+            return
+        b = can.BrakeFrame.parse(rec.data)
+        self.counter_jumps += not self._brake_ctr.check(b.counter).ok
+        self.brake = b
+        key = (b.state, b.reason, b.flags)
+        if key == self._prev:
+            return
+        prev, self._prev = self._prev, key
+        if prev is not None and prev[:2] == key[:2]:
+            self.event(stamp(rec), "bus: flags " + (",".join(can.flag_names(b.flags)) or "none"))
+            return
+        if b.brakes:
+            self.stops.append(Stop(stamp(rec), b))
+        self.event(stamp(rec), f"bus: {can.state_name(b.state)} reason={can.reason_name(b.reason)}"
+                               f" brake_request={b.brake_request} (counter {b.counter})")
+
+    def line(self) -> str:
+        now = time.time() - self.t0
+        b = self.brake
+        if b is None:
+            bus = "no brake frame yet"
+        else:
+            flags = ",".join(can.flag_names(b.flags)) or "-"
+            bus = (f"{can.state_name(b.state):7} reason={can.reason_name(b.reason):11} "
+                   f"flags={flags:13} brake={b.brake_request} ctr={b.counter:2}")
+        age = "-" if self.link_age_ms is None else f"{self.link_age_ms:3d} ms"
+        return (f"[{now:5.2f}s] {self.phase:13} | {bus} | frames {self.frames:4} "
+                f"| link age {age}")
+
+    def draw(self) -> None:
+        now = time.monotonic()
+        if self.live:
+            if now - self._last_draw >= 0.05:
+                self.out.write("\r\x1b[2K" + self.line())
+                self.out.flush()
+                self._last_draw = now
+        elif now - self._last_plain >= 1.0:
+            self.out.write("  " + self.line() + "\n")
+            self.out.flush()
+            self._last_plain = now
+
+    def _clear(self) -> None:
+        if self.live:
+            self.out.write("\r\x1b[2K")
+
+    def finish(self) -> None:
+        self._clear()
+        self.out.flush()
+
+
+class Script:
+    """Plays the remote against a running daemon, feeding every logged frame to the view."""
+
+    def __init__(self, daemon: Daemon, link: Link, view: View) -> None:
+        self.daemon = daemon
+        self.link = link
+        self.view = view
+        self.last_valid_sent = 0.0
+
+    def pump(self, until: Callable[[], bool], max_s: float,
+             packet: Callable[[float], Packet] | None = None, period_s: float = 0.02) -> bool:
+        """Drain frames (and send a packet every period) until ``until()`` or max_s passes."""
+        start = time.monotonic()
+        next_send = start
+        while True:
+            now = time.monotonic()
+            if packet is not None and now >= next_send:
+                self.last_valid_sent = self.link.send_control(*packet(now - start))
+                next_send += period_s
+            while True:
+                try:
+                    self.view.take(self.daemon.frames.get_nowait())
+                except queue.Empty:
+                    break
+            self.view.draw()
+            if until():
+                return True
+            if now - start >= max_s:
+                return False
+            if not self.daemon.alive():
+                raise DaemonError("estopd exited during the demo")
+            time.sleep(0.002)
+
+    def wait(self, seconds: float, packet: Callable[[float], Packet] | None = None) -> None:
+        self.pump(lambda: False, seconds, packet)
+
+    def request(self, name: str, msg_id: int) -> tuple[tcp.Reply, float]:
+        reply, t = self.link.request(msg_id)
+        what = ("ACK" if reply.ack else
+                f"NAK {reply.nak_code} ({tcp.NAK_NAMES.get(tcp.NakCode(reply.nak_code))})")
+        self.view.event(t, f"remote: {name} -> {what}, unit {can.state_name(reply.state)} "
+                           f"reason={can.reason_name(reply.reason)}")
+        return reply, t
+
+    def first_stop_after(self, t: float, max_s: float) -> Stop | None:
+        def found() -> bool:
+            return any(s.t >= t for s in self.view.stops)
+
+        if not self.pump(found, max_s):
+            return None
+        return next(s for s in self.view.stops if s.t >= t)
+
+    def release(self) -> bool:
+        self.view.phase = "release"
+        self.wait(0.3, _neutral)
+        reply, _ = self.request("RELEASE", tcp.RELEASE)
+        return reply.ack and reply.state == can.State.ARMED
+
+
+def _neutral(_t: float) -> Packet:
+    return 0.0, 0.0, udp.Gear.NEUTRAL
+
+
+def _drive(t: float) -> Packet:
+    return round(min(0.4, 0.2 * t), 3), round(0.3 * math.sin(2.0 * t), 3), udp.Gear.DRIVE
+
+
+@dataclass
+class Result:
+    overshoot_ms: float | None = None
+    tcp_latency_ms: float | None = None
+    timeout_reason: int | None = None
+    tcp_reason: int | None = None
+    problems: list[str] = field(default_factory=list)
+
+
+def run_script(daemon: Daemon, view: View, timeout_ms: int, res: Result) -> None:
+    """The scripted drive; fills ``res`` as it goes."""
+    link = Link(daemon.udp_port, daemon.tcp_port)
+    s = Script(daemon, link, view)
+    try:
+        view.phase = "boot"
+        s.wait(0.3)
+        s.request("RELEASE (no packets yet)", tcp.RELEASE)
+
+        if not s.release():
+            res.problems.append("the first RELEASE was refused")
+            return
+        view.phase = "drive"
+        s.wait(2.0, _drive)
+
+        view.phase = "finger lifted"
+        t_last = s.last_valid_sent
+        view.event(time.time(), f"remote: finger lifted (last valid packet sent at "
+                                f"{t_last - view.t0:.3f}s), timeout {timeout_ms} ms")
+        stop = s.first_stop_after(t_last, timeout_ms / 1000.0 + 2.0)
+        if stop is None:
+            res.problems.append("no stop frame after the finger was lifted")
+            return
+        res.timeout_reason = stop.frame.reason
+        res.overshoot_ms = (stop.t - (t_last + timeout_ms / 1000.0)) * 1000.0
+        s.wait(0.4)
+
+        if not s.release():
+            res.problems.append("the second RELEASE was refused")
+            return
+        view.phase = "drive"
+        s.wait(1.5, _drive)
+
+        view.phase = "stop button"
+        _reply, t_stop = s.request("STOP button", tcp.DEFAULT_STOP_ID)
+        stop = s.first_stop_after(t_stop, 2.0)
+        if stop is None:
+            res.problems.append("no stop frame after the STOP button")
+            return
+        res.tcp_reason = stop.frame.reason
+        res.tcp_latency_ms = (stop.t - t_stop) * 1000.0
+        view.phase = "latched"
+        s.wait(0.4, _drive)
+        s.request("RELEASE (gas still pressed)", tcp.RELEASE)
+        s.wait(0.2, _drive)
+    finally:
+        link.close()
+
+
+def _fmt_ms(v: float | None) -> str:
+    return "-" if v is None else f"{v:.3f} ms"
+
+
+def _report(out: TextIO, view: View, res: Result, timeout_ms: int) -> None:
+    out.write("\nTimeline\n")
+    for t, text in view.events:
+        out.write(f"  {t - view.t0:7.3f}s  {text}\n")
+    out.write("\nStops measured (the daemon's can-log stamps against the send times, both "
+              "CLOCK_REALTIME)\n")
+    reasons = (can.reason_name(res.timeout_reason) if res.timeout_reason is not None else "-",
+               can.reason_name(res.tcp_reason) if res.tcp_reason is not None else "-")
+    out.write(f"  finger lifted: stop reason {reasons[0]:11}  timeout overshoot "
+              f"{_fmt_ms(res.overshoot_ms):>10}  (stop frame - (last valid packet + "
+              f"{timeout_ms} ms))\n")
+    out.write(f"  stop button:   stop reason {reasons[1]:11}  TCP stop latency  "
+              f"{_fmt_ms(res.tcp_latency_ms):>10}  (stop frame - STOP sent)\n")
+    out.write(f"  frames checked: {view.frames} (bad CRC or content: {view.bad_frames}, alive "
+              f"counter jumps: {view.counter_jumps})\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="estop demo", description=(
+        "Run estopd on loopback and play a scripted drive: release, drive, finger lifted "
+        "(timeout stop), release, drive, stop button (TCP stop). No root, no CAN needed."))
+    ap.add_argument("--estopd", metavar="PATH", help="the estopd binary (default: beside "
+                    "this Python, on PATH, or firmware/build/estopd)")
+    ap.add_argument("--timeout-ms", type=int, default=200,
+                    help="the daemon's UDP timeout (default 200)")
+    ap.add_argument("--plain", action="store_true",
+                    help="plain lines instead of a refreshing status line (default off a TTY)")
+    args = ap.parse_args(argv)
+    out = sys.stdout
+
+    exe = find_estopd(args.estopd)
+    if exe is None:
+        sys.stderr.write("estop demo: estopd not found (run `make setup`, or build it with "
+                         "`make -C firmware`, or pass --estopd PATH)\n")
+        return 2
+
+    live = out.isatty() and not args.plain and os.environ.get("TERM", "") != "dumb"
+    view = View(out=out, live=live, t0=time.time())
+    out.write(f"estop demo: {exe} on 127.0.0.1, UDP timeout {args.timeout_ms} ms, CAN frames "
+              f"logged to a pipe (no CAN hardware, no root)\n")
+    daemon = Daemon([exe], timeout_ms=args.timeout_ms)
+    res = Result()
+    try:
+        daemon.start()
+        view.event(time.time(), f"estopd started (pid {daemon.pid}), UDP port "
+                                f"{daemon.udp_port}, TCP port {daemon.tcp_port}")
+        run_script(daemon, view, args.timeout_ms, res)
+    except (DaemonError, OSError, tcp.FrameError) as exc:
+        res.problems.append(f"demo aborted: {exc}")
+    finally:
+        rc = daemon.stop()
+        while True:
+            try:
+                view.take(daemon.frames.get_nowait())
+            except queue.Empty:
+                break
+        view.finish()
+    final = view.brake.brake_request if view.brake is not None else None
+    view.event(time.time(), f"estopd ended (pid {daemon.pid}, exit code {rc}); its last brake "
+                            f"frame: brake_request={final}")
+    _report(out, view, res, args.timeout_ms)
+
+    if res.timeout_reason not in (None, can.Reason.UDP_TIMEOUT):
+        res.problems.append(f"the finger-lifted stop had reason "
+                            f"{can.reason_name(res.timeout_reason)}")
+    if res.tcp_reason not in (None, can.Reason.TCP_STOP):
+        res.problems.append(f"the stop button's stop had reason {can.reason_name(res.tcp_reason)}")
+    if (res.overshoot_ms is None or res.tcp_latency_ms is None) and not res.problems:
+        res.problems.append("a stop was not observed")
+    if final != 1:
+        res.problems.append("the daemon's last frame did not request the brake")
+    if view.bad_frames:
+        res.problems.append(f"{view.bad_frames} logged frames failed their checks")
+    if rc is None or rc < 0 and rc != -signal.SIGTERM:
+        res.problems.append(f"estopd ended abnormally (exit code {rc})")
+    for p in res.problems:
+        out.write(f"PROBLEM: {p}\n")
+    out.write("demo " + ("FAILED" if res.problems else "ok") + "\n")
+    out.flush()
+    return 1 if res.problems else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,114 @@
+"""The bench's statistics and reporting helpers, on synthetic data only.
+
+No timing is measured or asserted here: the stop-latency goals live in bench/stop_latency.py
+(``make bench``), never in unit tests.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import math
+import random
+import sys
+from pathlib import Path
+from types import ModuleType
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "bench" / "stop_latency.py"
+
+
+@pytest.fixture(scope="module")
+def bench() -> ModuleType:
+    spec = importlib.util.spec_from_file_location("stop_latency", BENCH)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["stop_latency"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_percentile_matches_linear_interpolation(bench: ModuleType) -> None:
+    values = [float(v) for v in range(1, 1001)]  # 1..1000
+    assert bench.percentile(values, 0) == 1.0
+    assert bench.percentile(values, 100) == 1000.0
+    assert bench.percentile(values, 50) == pytest.approx(500.5)
+    assert bench.percentile(values, 99) == pytest.approx(990.01)
+    assert bench.percentile(values, 99.9) == pytest.approx(999.001)
+    assert bench.percentile([7.0], 99.9) == 7.0
+    assert math.isnan(bench.percentile([], 50))
+    with pytest.raises(ValueError):
+        bench.percentile(values, 101)
+
+
+def test_percentile_agrees_with_numpy(bench: ModuleType) -> None:
+    np = pytest.importorskip("numpy")
+    rng = random.Random(7)
+    values = sorted(rng.lognormvariate(0.0, 1.0) for _ in range(1234))
+    for q in (0, 1, 50, 90, 99, 99.9, 100):
+        assert bench.percentile(values, q) == pytest.approx(float(np.percentile(values, q)))
+
+
+def test_summarize_is_order_free_and_complete(bench: ModuleType) -> None:
+    rng = random.Random(1)
+    values = [rng.uniform(-0.5, 10.0) for _ in range(1000)]
+    s = bench.summarize(values)
+    assert s == bench.summarize(list(reversed(values)))
+    assert s["n"] == 1000
+    assert s["min"] <= s["p50"] <= s["p99"] <= s["p99.9"] <= s["max"]
+    assert s["max"] == max(values) and s["min"] == min(values)
+    empty = bench.summarize([])
+    assert empty["n"] == 0 and math.isnan(empty["p99.9"])
+
+
+def test_log_bins_cover_the_data(bench: ModuleType) -> None:
+    edges = bench.log_bins([0.02, 0.5, 12.0], floor=0.001, n_bins=30)
+    assert len(edges) == 31
+    assert edges[0] == pytest.approx(0.001)
+    assert edges[-1] > 12.0
+    assert all(a < b for a, b in zip(edges, edges[1:], strict=False))
+    with pytest.raises(ValueError):
+        bench.log_bins([1.0], floor=0.0)
+
+
+def _run(bench: ModuleType, daemon: str, load: str, overshoot: list[float],
+         rate: float | None = None) -> object:
+    r = bench.RunResult(daemon, load, 20)
+    r.samples["overshoot"] = overshoot
+    r.samples["tcp_stop"] = [0.05] * len(overshoot)
+    if rate is not None:
+        r.flood = bench.FloodStats(target_rate=rate, sent=int(rate * 10), elapsed_s=10.0)
+    return r
+
+
+def test_goals_and_report_on_synthetic_runs(bench: ModuleType, tmp_path: Path) -> None:
+    fast = [0.1] * 999 + [0.5]
+    slow = [5.0] * 999 + [9.9]
+    runs = [_run(bench, "estopd", "idle", fast), _run(bench, "baseline", "idle", slow),
+            _run(bench, "estopd", "flood", fast[:-2] + [3.0, 3.0], rate=80_000.0),
+            _run(bench, "baseline", "flood", slow, rate=40_000.0)]
+    goals = dict(bench.check_goals(runs))
+    verdicts = sorted(goals.values())
+    assert verdicts.count(False) == 3  # flood p99.9 >= 2 ms, not 5x ahead, flood too slow
+    assert any("idle" in g and "< 1.0 ms" in g and ok for g, ok in goals.items())
+    assert any("40,000 packets/s" in g and not ok for g, ok in goals.items())
+
+    meta = {"date": "today", "host": "h", "cpus": 2, "python": "3.11", "timeout_ms": 20,
+            "trials": 1000, "flood_rate": 80_000.0}
+    md = bench.markdown(runs, meta, bench.check_goals(runs))
+    assert md.count("| estopd |") == 4 and md.count("| baseline |") == 4
+    assert "FAIL:" in md and "PASS:" in md
+    pytest.importorskip("matplotlib")
+    bench.plot(runs, tmp_path / "h.png", 20)
+    assert (tmp_path / "h.png").stat().st_size > 1000
+
+
+def test_start_line_ports_are_parsed() -> None:
+    from estop.demo import parse_start_ports
+
+    assert parse_start_ports("estopd 0.000001 start udp=127.0.0.1:5700 tcp=127.0.0.1:5701") \
+        == (5700, 5701)
+    assert parse_start_ports('{"t_mono": 1.5, "event": "start", "udp_port": 40000, '
+                             '"tcp_port": 40001}') == (40000, 40001)
+    assert parse_start_ports("estopd 1.0 start udp_port=1 tcp_port=2") == (1, 2)
+    assert parse_start_ports("estopd 1.0 state ARMED->STOPPED reason=udp_timeout") is None

@@ -1,0 +1,67 @@
+"""``estop demo`` end to end: a real estopd on loopback, the scripted drive, both stops.
+
+Checks what a person reads: exit code 0, the finger-lifted stop reported with reason
+udp_timeout and the stop button with reason tcp_stop, both latencies measured, and the daemon
+gone afterwards. No latency values are asserted (timing goals live in the bench).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from estop.demo import find_estopd, main
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _estopd() -> str:
+    exe = find_estopd()
+    if exe is None:
+        if os.environ.get("CI"):
+            pytest.fail("estopd not found in CI (make setup should have built it)")
+        pytest.skip("estopd not built (make -C firmware)")
+    return exe
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
+
+
+def test_demo_runs_both_stops_and_cleans_up() -> None:
+    exe = _estopd()
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(
+        [str(ROOT / "src"), *filter(None, [env.get("PYTHONPATH")])])
+    proc = subprocess.run([sys.executable, "-m", "estop.demo", "--estopd", exe],
+                          capture_output=True, text=True, timeout=60, env=env,
+                          stdin=subprocess.DEVNULL)
+    out = proc.stdout
+    assert proc.returncode == 0, out + proc.stderr
+    assert "demo ok" in out and "PROBLEM" not in out
+    assert re.search(r"finger lifted: stop reason udp_timeout +timeout overshoot +-?\d+\.\d+ ms",
+                     out), out
+    assert re.search(r"stop button: +stop reason tcp_stop +TCP stop latency +\d+\.\d+ ms", out), out
+    assert "bus: STOPPED reason=udp_timeout" in out
+    assert "bus: STOPPED reason=tcp_stop" in out
+    assert "NAK 2" in out and "NAK 3" in out  # refused releases: no link, gas pressed
+    assert "\x1b[" not in out  # no TTY: plain lines
+    m = re.search(r"estopd ended \(pid (\d+), exit code (-?\d+)\)", out)
+    assert m is not None, out
+    assert not _pid_alive(int(m.group(1)))
+
+
+def test_demo_without_estopd_says_so_in_one_line(capsys: pytest.CaptureFixture[str],
+                                                 tmp_path: Path) -> None:
+    assert main(["--estopd", str(tmp_path / "no-such-estopd")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "estopd not found" in err

@@ -1,0 +1,33 @@
+/* Calls into the core: host time (64-bit) to core ticks, gaps fed in steps, and everything
+ * that must follow each call (frames out, reply, close request, state log, next deadline). */
+#ifndef ESTOPD_CORE_IO_H
+#define ESTOPD_CORE_IO_H
+
+#include <netinet/in.h>
+#include <stdint.h>
+
+#include "daemon.h"
+#include "estop_core.h"
+
+/* Results of cio_done for the input's slot. */
+#define CIO_DROP 0x1u   /* the reply could not be written: drop the client */
+#define CIO_CLOSE 0x2u  /* the core asked to close the slot (bad crc) */
+#define CIO_ERROR 0x4u  /* the core call failed */
+
+/* Boots the core at the current time and sends the boot frames. Returns 0 or -1. */
+int cio_boot(daemon_t *d);
+/* Reads the clock, catches the core up (steps, due tick, CAN retries and faults) and
+ * returns the time to hand to the next input call. Call it before every input. */
+uint64_t cio_prepare(daemon_t *d);
+/* Handles the output of a core call made at host time now. src: who caused it (NULL for
+ * the clock or the host). slot: the TCP slot of the input, or -1. Returns CIO_* bits. */
+unsigned cio_done(daemon_t *d, estop_err_t err, const char *what, const estop_out_t *out,
+                  uint64_t now, const struct sockaddr_in *src, int slot);
+/* Reports a host fault to the core (logged as cause). */
+void cio_fault(daemon_t *d, uint64_t now, const char *cause);
+/* Hands one frame to the CAN output (or the can-log when there is no CAN). */
+void cio_emit(daemon_t *d, const estop_can_frame_t *f, uint64_t now);
+/* Host time at which the loop must wake next (core deadline or CAN retry). */
+uint64_t cio_wakeup(const daemon_t *d);
+
+#endif

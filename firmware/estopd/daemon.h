@@ -1,0 +1,55 @@
+/* The daemon's whole state (one static instance, no heap) and the hooks its parts share. */
+#ifndef ESTOPD_DAEMON_H
+#define ESTOPD_DAEMON_H
+
+#include <netinet/in.h>
+#include <stdint.h>
+
+#include "can.h"
+#include "canlog.h"
+#include "estop_core.h"
+#include "opts.h"
+
+/* epoll tags (data.u64). */
+enum {
+    TAG_TIMER = 1,
+    TAG_SIGNAL,
+    TAG_UDP,
+    TAG_TCP,
+    TAG_CAN,
+    TAG_CLIENT0 = 16 /* + slot */
+};
+
+typedef struct {
+    int fd;                   /* -1: slot free */
+    struct sockaddr_in peer;
+} client_t;
+
+typedef struct {
+    opts_t opt;
+    estop_core_t core;
+    int epfd;
+    int timerfd;
+    int sigfd;
+    int udp_fd;
+    int tcp_fd;
+    uint16_t udp_port;        /* bound ports (port 0 picks one) */
+    uint16_t tcp_port;
+    client_t clients[ESTOP_MAX_SLOTS];
+    int can_on;
+    can_t can;
+    canlog_t canlog;
+    uint64_t last_call_us;    /* host time of the latest successful core call */
+    uint64_t deadline_us;     /* host time the core asked to be called back */
+    uint64_t armed_us;        /* what the timerfd is armed for (0: never armed) */
+    uint8_t state;
+    uint8_t reason;
+    estop_can_frame_t last_brake; /* latest brake frame the core produced */
+    uint8_t have_brake;
+    uint32_t frames_out;      /* frames handed out so far */
+    estop_can_frame_t last_frame;
+    int fatal;                /* an unrecoverable error: leave the loop */
+    int stop_signal;          /* the signal that asks us to stop, 0 if none */
+} daemon_t;
+
+#endif

@@ -1,0 +1,219 @@
+#include "opts.h"
+
+#include <arpa/inet.h>
+#include <errno.h>
+#include <getopt.h>
+#include <net/if.h>
+#include <stdio.h>
+#include <stdlib.h>
+#include <string.h>
+
+enum {
+    OPT_CAN = 256,
+    OPT_CAN_LOG,
+    OPT_UDP_PORT,
+    OPT_TCP_PORT,
+    OPT_BIND,
+    OPT_TIMEOUT_MS,
+    OPT_WARN_MS,
+    OPT_STOP_ID,
+    OPT_LOG_JSON
+};
+
+static const struct option long_opts[] = {
+    { "can", required_argument, NULL, OPT_CAN },
+    { "can-log", required_argument, NULL, OPT_CAN_LOG },
+    { "udp-port", required_argument, NULL, OPT_UDP_PORT },
+    { "tcp-port", required_argument, NULL, OPT_TCP_PORT },
+    { "bind", required_argument, NULL, OPT_BIND },
+    { "timeout-ms", required_argument, NULL, OPT_TIMEOUT_MS },
+    { "warn-ms", required_argument, NULL, OPT_WARN_MS },
+    { "stop-id", required_argument, NULL, OPT_STOP_ID },
+    { "log-json", no_argument, NULL, OPT_LOG_JSON },
+    { "help", no_argument, NULL, 'h' },
+    { "version", no_argument, NULL, 'V' },
+    { NULL, 0, NULL, 0 }
+};
+
+static void usage(void)
+{
+    (void)printf(
+        "usage: estopd [--can IFACE] [--can-log PATH|-] [--udp-port 5700] [--tcp-port 5701]\n"
+        "              [--bind 0.0.0.0] [--timeout-ms 200] [--warn-ms TIMEOUT/2]\n"
+        "              [--stop-id 0xE570E570] [--log-json] [--help] [--version]\n"
+        "\n"
+        "Emergency-stop unit: watches UDP control packets and TCP stop frames and commands\n"
+        "the brake on CAN (PROTOCOL.md). Without --can, frames go to the can-log (stdout).\n"
+        "Port 0 picks a free port; the start event on stderr shows the ports in use.\n");
+}
+
+/* Strict unsigned number: digits only (no sign, no spaces), optional 0x prefix when
+ * hex_ok, no trailing characters, at most max. Returns 0, or -1. */
+static int parse_num(const char *s, int hex_ok, unsigned long long max, unsigned long long *v)
+{
+    int base = 10;
+    char *end = NULL;
+
+    if (hex_ok && s[0] == '0' && (s[1] == 'x' || s[1] == 'X')) {
+        base = 16;
+        s += 2;
+        if (s[0] == '0' && (s[1] == 'x' || s[1] == 'X')) {
+            return -1; /* strtoull would accept a second prefix */
+        }
+    }
+    if (!((s[0] >= '0' && s[0] <= '9') ||
+          (base == 16 && ((s[0] >= 'a' && s[0] <= 'f') || (s[0] >= 'A' && s[0] <= 'F'))))) {
+        return -1;
+    }
+    errno = 0;
+    *v = strtoull(s, &end, base);
+    if (errno != 0 || end == NULL || *end != '\0' || *v > max) {
+        return -1;
+    }
+    return 0;
+}
+
+static int bad_value(const char *name, const char *arg, const char *want, char *err,
+                     size_t errlen)
+{
+    (void)snprintf(err, errlen, "invalid value '%s' for --%s (expected %s)", arg, name, want);
+    return -1;
+}
+
+static int set_port(const char *name, const char *arg, uint16_t *port, char *err, size_t n)
+{
+    unsigned long long v;
+    if (parse_num(arg, 0, 65535u, &v) != 0) {
+        return bad_value(name, arg, "a port number 0..65535", err, n);
+    }
+    *port = (uint16_t)v;
+    return 0;
+}
+
+/* Milliseconds in the range the core accepts for a timeout (checked again by the core). */
+static int set_ms(const char *name, const char *arg, uint32_t *us, char *err, size_t n)
+{
+    unsigned long long v;
+    if (parse_num(arg, 0, ESTOP_TIMEOUT_MAX_US / 1000u, &v) != 0 || v == 0u) {
+        return bad_value(name, arg, "milliseconds 1..60000", err, n);
+    }
+    *us = (uint32_t)v * 1000u;
+    return 0;
+}
+
+static int set_one(int c, const char *arg, opts_t *o, int *warn_set, char *err, size_t n)
+{
+    unsigned long long v;
+
+    switch (c) {
+    case OPT_CAN:
+        if (arg[0] == '\0' || strlen(arg) >= IF_NAMESIZE || strchr(arg, '/') != NULL) {
+            return bad_value("can", arg, "a network interface name", err, n);
+        }
+        o->can_iface = arg;
+        return 0;
+    case OPT_CAN_LOG:
+        if (arg[0] == '\0') {
+            return bad_value("can-log", arg, "a file path or -", err, n);
+        }
+        o->can_log = arg;
+        return 0;
+    case OPT_UDP_PORT:
+        return set_port("udp-port", arg, &o->udp_port, err, n);
+    case OPT_TCP_PORT:
+        return set_port("tcp-port", arg, &o->tcp_port, err, n);
+    case OPT_BIND:
+        if (inet_pton(AF_INET, arg, &o->bind) != 1) {
+            return bad_value("bind", arg, "an IPv4 address like 0.0.0.0", err, n);
+        }
+        o->bind_str = arg;
+        return 0;
+    case OPT_TIMEOUT_MS:
+        return set_ms("timeout-ms", arg, &o->cfg.timeout_us, err, n);
+    case OPT_WARN_MS:
+        *warn_set = 1;
+        return set_ms("warn-ms", arg, &o->cfg.warn_us, err, n);
+    case OPT_STOP_ID:
+        if (parse_num(arg, 1, 0xFFFFFFFFu, &v) != 0) {
+            return bad_value("stop-id", arg, "a 32-bit number, e.g. 0xE570E570", err, n);
+        }
+        o->cfg.stop_id = (uint32_t)v;
+        return 0;
+    case OPT_LOG_JSON:
+        o->log_json = 1;
+        return 0;
+    default:
+        (void)snprintf(err, n, "internal: unhandled option %d", c);
+        return -1;
+    }
+}
+
+static const char *config_hint(estop_err_t e)
+{
+    switch (e) {
+    case ESTOP_ERR_TIMEOUT: return "--timeout-ms must be 1..60000";
+    case ESTOP_ERR_WARN: return "--warn-ms must be at least 1 and below --timeout-ms";
+    case ESTOP_ERR_STOP_ID: return "--stop-id may not be 0, 1 or 2";
+    default: return "rejected by the core";
+    }
+}
+
+/* getopt's own error for the option at optind, as one line. */
+static void getopt_error(int c, char **argv, char *err, size_t n)
+{
+    const char *arg = argv[optind - 1];
+    if (c == ':') {
+        (void)snprintf(err, n, "option '%s' needs a value", arg);
+    } else if (optopt != 0 && optopt < 256) {
+        (void)snprintf(err, n, "unknown option '-%c'", optopt);
+    } else {
+        (void)snprintf(err, n, "unknown or ambiguous option '%s'", arg);
+    }
+}
+
+opts_result_t opts_parse(int argc, char **argv, opts_t *o, char *err, size_t errlen)
+{
+    int warn_set = 0;
+    int c;
+    estop_err_t ce;
+
+    memset(o, 0, sizeof *o);
+    o->udp_port = 5700u;
+    o->tcp_port = 5701u;
+    o->bind.s_addr = htonl(INADDR_ANY);
+    o->bind_str = "0.0.0.0";
+    estop_config_default(&o->cfg);
+
+    opterr = 0; /* errors are reported here, as one line */
+    while ((c = getopt_long(argc, argv, ":hV", long_opts, NULL)) != -1) {
+        if (c == 'h') {
+            usage();
+            return OPTS_EXIT_OK;
+        }
+        if (c == 'V') {
+            (void)printf("estopd %u.%u\n", ESTOP_VERSION_MAJOR, ESTOP_VERSION_MINOR);
+            return OPTS_EXIT_OK;
+        }
+        if (c == '?' || c == ':') {
+            getopt_error(c, argv, err, errlen);
+            return OPTS_ERROR;
+        }
+        if (set_one(c, optarg, o, &warn_set, err, errlen) != 0) {
+            return OPTS_ERROR;
+        }
+    }
+    if (optind < argc) {
+        (void)snprintf(err, errlen, "unexpected argument '%s'", argv[optind]);
+        return OPTS_ERROR;
+    }
+    if (!warn_set) {
+        o->cfg.warn_us = o->cfg.timeout_us / 2u; /* PROTOCOL.md: half the timeout */
+    }
+    ce = estop_config_check(&o->cfg);
+    if (ce != ESTOP_OK) {
+        (void)snprintf(err, errlen, "invalid configuration (%s): %s", estop_err_name(ce),
+                       config_hint(ce));
+        return OPTS_ERROR;
+    }
+    return OPTS_RUN;
+}

@@ -1,0 +1,155 @@
+#include "setup.h"
+
+#include <errno.h>
+#include <signal.h>
+#include <stdio.h>
+#include <string.h>
+#include <sys/epoll.h>
+#include <sys/signalfd.h>
+#include <sys/timerfd.h>
+#include <unistd.h>
+
+#include "clients.h"
+#include "clock.h"
+#include "core_io.h"
+#include "log.h"
+#include "net.h"
+#include "outfd.h"
+
+static int fail(const char *what, char *err, size_t n)
+{
+    (void)snprintf(err, n, "%s: %s", what, strerror(errno));
+    return -1;
+}
+
+static int watch(daemon_t *d, int fd, uint64_t tag, char *err, size_t n)
+{
+    struct epoll_event ev;
+    memset(&ev, 0, sizeof ev);
+    ev.events = EPOLLIN;
+    ev.data.u64 = tag;
+    return epoll_ctl(d->epfd, EPOLL_CTL_ADD, fd, &ev) == 0 ? 0 : fail("epoll_ctl", err, n);
+}
+
+/* SIGTERM/SIGINT/SIGHUP arrive through a signalfd, so they are handled in the loop (and
+ * one that comes during start-up waits there). SIGPIPE is ignored: write errors are
+ * handled where they happen. */
+static int setup_signals(daemon_t *d, char *err, size_t n)
+{
+    sigset_t set;
+    struct sigaction sa;
+
+    memset(&sa, 0, sizeof sa);
+    sa.sa_handler = SIG_IGN;
+    if (sigemptyset(&sa.sa_mask) != 0 || sigaction(SIGPIPE, &sa, NULL) != 0) {
+        return fail("sigaction(SIGPIPE)", err, n);
+    }
+    if (sigemptyset(&set) != 0 || sigaddset(&set, SIGTERM) != 0 ||
+        sigaddset(&set, SIGINT) != 0 || sigaddset(&set, SIGHUP) != 0) {
+        return fail("sigset", err, n);
+    }
+    if (sigprocmask(SIG_BLOCK, &set, NULL) != 0) {
+        return fail("sigprocmask", err, n);
+    }
+    d->sigfd = signalfd(-1, &set, SFD_NONBLOCK | SFD_CLOEXEC);
+    if (d->sigfd < 0) {
+        return fail("signalfd", err, n);
+    }
+    return 0;
+}
+
+static int setup_fds(daemon_t *d, char *err, size_t n)
+{
+    d->epfd = epoll_create1(EPOLL_CLOEXEC);
+    if (d->epfd < 0) {
+        return fail("epoll_create1", err, n);
+    }
+    d->timerfd = timerfd_create(CLOCK_MONOTONIC, TFD_NONBLOCK | TFD_CLOEXEC);
+    if (d->timerfd < 0) {
+        return fail("timerfd_create", err, n);
+    }
+    if (watch(d, d->timerfd, TAG_TIMER, err, n) != 0 || watch(d, d->sigfd, TAG_SIGNAL, err, n) != 0) {
+        return -1;
+    }
+    d->udp_fd = net_udp_open(d->opt.bind, d->opt.udp_port, &d->udp_port, err, n);
+    if (d->udp_fd < 0) {
+        return -1;
+    }
+    d->tcp_fd = net_tcp_open(d->opt.bind, d->opt.tcp_port, &d->tcp_port, err, n);
+    if (d->tcp_fd < 0) {
+        return -1;
+    }
+    return (watch(d, d->udp_fd, TAG_UDP, err, n) != 0 || watch(d, d->tcp_fd, TAG_TCP, err, n) != 0)
+               ? -1
+               : 0;
+}
+
+/* Without --can the can-log is the output and defaults to stdout. */
+static int setup_can(daemon_t *d, char *err, size_t n)
+{
+    const char *iface = d->opt.can_iface != NULL ? d->opt.can_iface : "estop";
+    const char *path = d->opt.can_log;
+
+    if (path == NULL && d->opt.can_iface == NULL) {
+        path = "-";
+    }
+    if (canlog_open(&d->canlog, path, iface, err, n) != 0) {
+        return -1;
+    }
+    if (d->opt.can_iface == NULL) {
+        return 0;
+    }
+    d->can_on = 1;
+    return can_open(&d->can, d->opt.can_iface, d->opt.cfg.brake_can_id,
+                    d->opt.cfg.brake_period_us, &d->canlog, d->epfd, TAG_CAN, err, n);
+}
+
+static void log_start(const daemon_t *d)
+{
+    char udp[48];
+    char tcp[48];
+    char stop_id[16];
+    const char *can_log = d->opt.can_log != NULL ? d->opt.can_log
+                          : d->opt.can_iface == NULL ? "-" : "off";
+
+    (void)snprintf(udp, sizeof udp, "%s:%u", d->opt.bind_str, (unsigned)d->udp_port);
+    (void)snprintf(tcp, sizeof tcp, "%s:%u", d->opt.bind_str, (unsigned)d->tcp_port);
+    (void)snprintf(stop_id, sizeof stop_id, "0x%08X", (unsigned)d->opt.cfg.stop_id);
+    {
+        log_kv_t kv[] = {
+            KV_STR("udp", udp),
+            KV_STR("tcp", tcp),
+            KV_STR("can", d->opt.can_iface != NULL ? d->opt.can_iface : "-"),
+            KV_STR("can_log", can_log),
+            KV_NUM("timeout_ms", d->opt.cfg.timeout_us / 1000u),
+            KV_NUM("warn_ms", d->opt.cfg.warn_us / 1000u),
+            KV_STR("stop_id", stop_id),
+            KV_NUM("pid", getpid()),
+            KV_NUM("version_major", ESTOP_VERSION_MAJOR),
+            KV_NUM("version_minor", ESTOP_VERSION_MINOR),
+        };
+        log_event(clock_mono_us(), "start", NULL, kv, sizeof kv / sizeof kv[0]);
+    }
+}
+
+int setup(daemon_t *d, char *err, size_t errlen)
+{
+    d->epfd = d->timerfd = d->sigfd = d->udp_fd = d->tcp_fd = -1;
+    d->canlog.fd = -1;
+    d->can.fd = -1;
+    clients_init(d);
+    log_set_json(d->opt.log_json);
+    /* Best effort: on failure stderr merely stays blocking. */
+    (void)outfd_prepare(2);
+    if (setup_signals(d, err, errlen) != 0 || setup_fds(d, err, errlen) != 0 ||
+        setup_can(d, err, errlen) != 0) {
+        return -1;
+    }
+    /* The ports go out before the first frame: tests and supervisors read them here. */
+    log_start(d);
+    if (cio_boot(d) != 0) {
+        (void)snprintf(err, errlen, "the core failed to start");
+        return -1;
+    }
+    return 0;
+}

@@ -1,0 +1,231 @@
+"""The C entry points called directly through cffi: configuration checks, argument errors,
+the raw 32-bit tick (wrap, steps that look backwards) and the error names."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+from core_util import MS, STOP_ID, packet, reply_fields, request
+
+from estop.core import Config, CoreError, Watchdog, check_config, ffi, lib
+
+U32 = 0xFFFFFFFF
+
+
+class Raw:
+    """The core driven with raw uint32 ticks, as a microcontroller host would."""
+
+    def __init__(self, now: int = 0) -> None:
+        self.core = ffi.new("estop_core_t *")
+        self.out = ffi.new("estop_out_t *")
+        self.consumed = ffi.new("size_t *")
+        cfg = ffi.new("estop_config_t *")
+        lib.estop_config_default(cfg)
+        assert lib.estop_init(self.core, cfg, now & U32) == lib.ESTOP_OK
+
+    def tick(self, t: int) -> int:
+        assert lib.estop_tick(self.core, t & U32, self.out) == lib.ESTOP_OK
+        return self.out.state
+
+    def udp(self, data: bytes, t: int) -> None:
+        buf = ffi.from_buffer("uint8_t[]", data)
+        assert lib.estop_udp_rx(self.core, buf, len(data), t & U32, self.out) == lib.ESTOP_OK
+
+    def tcp(self, slot: int, data: bytes, t: int) -> int:
+        buf = ffi.from_buffer("uint8_t[]", data)
+        return lib.estop_tcp_rx(self.core, slot, buf, len(data), self.consumed, t & U32,
+                                self.out)
+
+    def release(self, t: int) -> tuple[int, int, int, int, int, int]:
+        assert lib.estop_tcp_open(self.core, 0, t & U32, self.out) == lib.ESTOP_OK
+        assert self.tcp(0, request(2), t) == lib.ESTOP_OK
+        return reply_fields(bytes(ffi.buffer(self.out.reply, 16)))
+
+    def state(self) -> tuple[int, int]:
+        st = ffi.new("estop_status_t *")
+        assert lib.estop_get_status(self.core, st) == lib.ESTOP_OK
+        return st.state, st.reason
+
+
+# -- configuration ----------------------------------------------------------------------------
+BAD_CONFIGS = [
+    ({"timeout_us": 999}, "bad_timeout"),
+    ({"timeout_us": 60_000_001}, "bad_timeout"),
+    ({"warn_us": 0}, "bad_warn_time"),
+    ({"warn_us": 200_000}, "bad_warn_time"),
+    ({"stop_id": 0}, "bad_stop_id"),
+    ({"stop_id": 1}, "bad_stop_id"),
+    ({"stop_id": 2}, "bad_stop_id"),
+    ({"brake_can_id": 0x800}, "bad_can_id"),
+    ({"status_can_id": 0x800}, "bad_can_id"),
+    ({"status_can_id": 0x050}, "bad_can_id"),
+    ({"status_data_id": 0x0E57}, "bad_data_id"),
+    ({"release_packets": 0}, "bad_release_count"),
+    ({"brake_period_us": 999}, "bad_brake_period"),
+    ({"brake_period_us": 25_001}, "bad_brake_period"),
+    ({"status_period_us": 9_999}, "bad_status_period"),
+    ({"status_period_us": 1_000_001}, "bad_status_period"),
+    ({"brake_period_us": 20_000, "status_period_us": 15_000}, "bad_status_period"),
+]
+
+
+@pytest.mark.parametrize(("change", "name"), BAD_CONFIGS)
+def test_bad_configuration_is_refused_with_a_named_error(change: dict[str, int], name: str) -> None:
+    cfg = dataclasses.replace(Config(), **change)
+    with pytest.raises(CoreError) as err:
+        check_config(cfg)
+    assert err.value.name == name
+    with pytest.raises(CoreError):
+        Watchdog(cfg)
+
+
+def test_failed_init_leaves_an_unusable_core() -> None:
+    core = ffi.new("estop_core_t *")
+    out = ffi.new("estop_out_t *")
+    cfg = ffi.new("estop_config_t *")
+    lib.estop_config_default(cfg)
+    assert lib.estop_init(core, cfg, 0) == lib.ESTOP_OK
+    cfg.stop_id = 0
+    assert lib.estop_init(core, cfg, 0) == lib.ESTOP_ERR_STOP_ID
+    for rc in (lib.estop_tick(core, 0, out), lib.estop_fault(core, 0, out),
+               lib.estop_udp_rx(core, ffi.NULL, 0, 0, out),
+               lib.estop_tcp_open(core, 0, 0, out),
+               lib.estop_get_status(core, ffi.new("estop_status_t *"))):
+        assert rc == lib.ESTOP_ERR_NOT_INIT
+
+
+def test_boundary_configurations_are_accepted() -> None:
+    for cfg in (Config(timeout_us=1000, warn_us=999), Config(timeout_us=60_000_000),
+                Config(brake_period_us=1000, status_period_us=10_000),
+                Config(brake_period_us=25_000, status_period_us=1_000_000),
+                Config(release_packets=1, brake_can_id=0x7FF, status_can_id=0)):
+        check_config(cfg)
+
+
+def test_null_arguments_are_refused() -> None:
+    raw = Raw()
+    out = ffi.new("estop_out_t *")
+    assert lib.estop_init(ffi.NULL, ffi.NULL, 0) == lib.ESTOP_ERR_NULL_ARG
+    assert lib.estop_init(ffi.new("estop_core_t *"), ffi.NULL, 0) == lib.ESTOP_ERR_NULL_ARG
+    assert lib.estop_config_check(ffi.NULL) == lib.ESTOP_ERR_NULL_ARG
+    lib.estop_config_default(ffi.NULL)  # must not crash
+    assert lib.estop_tick(ffi.NULL, 0, out) == lib.ESTOP_ERR_NULL_ARG
+    assert lib.estop_tick(raw.core, 0, ffi.NULL) == lib.ESTOP_ERR_NULL_ARG
+    assert lib.estop_get_status(raw.core, ffi.NULL) == lib.ESTOP_ERR_NULL_ARG
+    assert lib.estop_tcp_open(ffi.NULL, 0, 0, out) == lib.ESTOP_ERR_NULL_ARG
+    assert lib.estop_tcp_rx(raw.core, 0, ffi.NULL, 1, raw.consumed, 0, out) == \
+        lib.ESTOP_ERR_NULL_ARG
+    assert lib.estop_tcp_rx(raw.core, 0, ffi.NULL, 0, ffi.NULL, 0, out) == \
+        lib.ESTOP_ERR_NULL_ARG
+    raw.udp(b"", 0)  # a zero-length datagram is just invalid
+    assert lib.estop_udp_rx(raw.core, ffi.NULL, 0, 0, raw.out) == lib.ESTOP_OK
+
+
+def test_slot_errors() -> None:
+    raw = Raw()
+    out = raw.out
+    assert lib.estop_tcp_open(raw.core, 8, 0, out) == lib.ESTOP_ERR_SLOT
+    assert lib.estop_tcp_close(raw.core, 8, 0, out) == lib.ESTOP_ERR_SLOT
+    assert raw.tcp(8, request(1), 0) == lib.ESTOP_ERR_SLOT
+    assert raw.tcp(3, request(1), 0) == lib.ESTOP_ERR_SLOT_CLOSED
+    assert raw.consumed[0] == 0 and not out.has_reply
+    assert lib.estop_tcp_open(raw.core, 3, 0, out) == lib.ESTOP_OK
+    assert raw.tcp(3, request(1), 0) == lib.ESTOP_OK and out.has_reply
+    assert lib.estop_tcp_close(raw.core, 3, 0, out) == lib.ESTOP_OK
+    assert raw.tcp(3, request(1), 0) == lib.ESTOP_ERR_SLOT_CLOSED
+
+
+def test_reopened_slot_drops_a_half_frame() -> None:
+    raw = Raw()
+    lib.estop_tcp_open(raw.core, 0, 0, raw.out)
+    raw.tcp(0, request(1)[:7], 0)
+    lib.estop_tcp_open(raw.core, 0, 0, raw.out)
+    assert raw.tcp(0, request(1), 0) == lib.ESTOP_OK and raw.out.has_reply
+
+
+def test_names() -> None:
+    assert ffi.string(lib.estop_err_name(0)) == b"ok"
+    assert ffi.string(lib.estop_err_name(lib.ESTOP_ERR_SLOT_CLOSED)) == b"slot_closed"
+    assert ffi.string(lib.estop_err_name(-99)) == b"unknown_error"
+    assert ffi.string(lib.estop_err_name(5)) == b"unknown_error"
+    assert [ffi.string(lib.estop_state_name(i)) for i in range(3)] == [b"STOPPED", b"ARMED", b"?"]
+    assert [ffi.string(lib.estop_reason_name(i)) for i in range(6)] == [
+        b"none", b"boot", b"tcp_stop", b"udp_timeout", b"fault", b"?"]
+
+
+# -- the raw tick ---------------------------------------------------------------------------
+def arm_raw(raw: Raw, start: int) -> int:
+    t = start
+    for _ in range(5):
+        t += 20 * MS
+        raw.tick(t)
+        raw.udp(packet(), t)
+    assert raw.release(t)[2] == 1
+    return t
+
+
+@pytest.mark.parametrize("start", [0, 0x7FFFFFFF, 0xFFFFFFFF - 50 * MS, 0xFFFFFFFF])
+def test_timeout_is_exact_across_the_tick_wrap(start: int) -> None:
+    raw = Raw(start)
+    last = arm_raw(raw, start)
+    assert raw.tick(last + 200 * MS - 1) == 1
+    assert raw.out.next_call_us == (last + 200 * MS) & U32 or \
+        ((raw.out.next_call_us - (last & U32)) & U32) < 200 * MS
+    assert raw.tick(last + 200 * MS) == 0
+    assert raw.state() == (0, 3)
+
+
+def test_silent_link_past_the_tick_wrap_period_never_looks_alive_again() -> None:
+    """71.6 minutes of silence bring the 32-bit age back to 0; the link must stay dead."""
+    raw = Raw(0)
+    t = 0
+    for _ in range(5):
+        t += 20 * MS
+        raw.tick(t)
+        raw.udp(packet(), t)
+    last = t
+    # The host calls at least every half range: the core sees the link age out on the way.
+    for t in (last + 150 * MS, last + 250 * MS, last + 0x7FFFFFFF, last + 2**32 - 1,
+              last + 2**32, last + 2**32 + 10 * MS):
+        raw.tick(t)
+    st = ffi.new("estop_status_t *")
+    lib.estop_get_status(raw.core, st)
+    assert not st.link_live and st.link_age_us == U32
+    assert raw.release(last + 2**32 + 10 * MS)[5] == 2
+
+
+def test_wrapper_splits_long_gaps_so_the_link_stays_dead() -> None:
+    wd = Watchdog()
+    for k in range(1, 6):
+        wd.udp(packet(), k * 20 * MS)
+    wd.tcp_open(0, 100 * MS)
+    assert reply_fields(wd.tcp_data(0, request(2), 100 * MS)[0].reply)[2] == 1
+    later = 100 * MS + 2**32  # exactly one wrap later: the same 32-bit tick
+    step = wd.tick(later)
+    assert (step.state, step.reason) == (0, 3) and step.changed_by_clock
+    assert reply_fields(wd.tcp_data(0, request(2), later)[0].reply)[5] == 2
+
+
+def test_tick_that_goes_backwards_is_a_fault_stop() -> None:
+    raw = Raw(1_000_000)
+    last = arm_raw(raw, 1_000_000)
+    assert raw.tick(last - 1) == 0
+    assert raw.state() == (0, 4)
+    assert raw.out.state_changed and raw.out.changed_by_clock
+    st = ffi.new("estop_status_t *")
+    lib.estop_get_status(raw.core, st)
+    assert st.counters.faults == 1 and not st.link_live
+
+
+def test_wrapper_refuses_time_going_backwards() -> None:
+    wd = Watchdog(now_us=500)
+    with pytest.raises(ValueError, match="backwards"):
+        wd.tick(499)
+
+
+def test_reply_while_stopped_reports_state_reason_flags() -> None:
+    raw = Raw()
+    lib.estop_tcp_open(raw.core, 1, 0, raw.out)
+    raw.tcp(1, request(STOP_ID, 42), 0)
+    assert reply_fields(bytes(ffi.buffer(raw.out.reply, 16))) == (0x80, 42, 0, 1, 0, 0)

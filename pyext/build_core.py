@@ -1,9 +1,10 @@
 """cffi (API mode) build of the firmware core into ``estop._core``.
 
-The strict C99 warning gate runs on the core sources separately (see the Makefile); the
-generated wrapper is compiled with the compiler's defaults. The declarations are read from ``firmware/core/estop_core.h`` itself, so the header stays the
-only description of the interface: preprocessor lines are dropped and every ``#define`` constant
-is re-declared as ``#define NAME ...`` so that the C compiler supplies its value.
+The strict C99 warning gate runs on the core sources separately (see firmware/Makefile); the
+generated wrapper is compiled with the compiler's defaults. The declarations are read from
+``firmware/core/estop_core.h`` itself, so the header stays the only description of the
+interface: preprocessor lines are dropped, every ``#define`` constant is re-declared as
+``#define NAME ...`` and array lengths as ``[...]``, so that the C compiler supplies the values.
 
 ``make_builder`` also serves the instrumented builds (coverage, UndefinedBehaviorSanitizer),
 which compile the very same sources under another module name.

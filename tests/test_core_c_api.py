@@ -6,8 +6,8 @@ from __future__ import annotations
 import dataclasses
 
 import pytest
-from core_util import MS, STOP_ID, packet, reply_fields, request
 
+from core_util import MS, STOP_ID, packet, reply_fields, request
 from estop.core import Config, CoreError, Watchdog, check_config, ffi, lib
 
 U32 = 0xFFFFFFFF
@@ -229,3 +229,25 @@ def test_reply_while_stopped_reports_state_reason_flags() -> None:
     lib.estop_tcp_open(raw.core, 1, 0, raw.out)
     raw.tcp(1, request(STOP_ID, 42), 0)
     assert reply_fields(bytes(ffi.buffer(raw.out.reply, 16))) == (0x80, 42, 0, 1, 0, 0)
+
+
+def test_status_frame_counts_saturate_at_255() -> None:
+    wd = Watchdog()
+    wd.tick(0)
+    for _ in range(300):
+        wd.udp(packet(), 1000)
+        wd.udp(b"x", 1000)
+    for _ in range(300):
+        wd.tcp_open(0, 2000)
+        assert wd.tcp_data(0, b"\x00" * 16, 2000)[-1].close
+    status = [f.data for f in wd.tick(100 * MS).frames if f.can_id == 0x051]
+    assert status[0][:3] == bytes([255, 255, 255])
+    assert wd.status().counters.tcp_bad_crc == 300
+
+
+def test_null_status_read_out_and_empty_tcp_read() -> None:
+    raw = Raw()
+    assert lib.estop_get_status(ffi.NULL, ffi.new("estop_status_t *")) == lib.ESTOP_ERR_NULL_ARG
+    lib.estop_tcp_open(raw.core, 0, 0, raw.out)
+    assert lib.estop_tcp_rx(raw.core, 0, ffi.NULL, 0, raw.consumed, 0, raw.out) == lib.ESTOP_OK
+    assert raw.consumed[0] == 0 and not raw.out.has_reply

@@ -9,12 +9,12 @@ from __future__ import annotations
 import struct
 
 import hypothesis.strategies as st
-from core_util import ARMED, MS, STOPPED, UDP_TIMEOUT, Unit
 from hypothesis import given, settings
-from reference_model import parse_control
 
+from core_util import ARMED, MS, STOPPED, UDP_TIMEOUT, Unit
 from estop.core import MAX_SLOTS, Watchdog
 from estop.protocol.crc import e2e_crc8
+from reference_model import parse_control
 
 chunks = st.lists(st.tuples(st.booleans(), st.binary(max_size=64), st.integers(0, 50_000)),
                   max_size=40)

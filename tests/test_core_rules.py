@@ -7,6 +7,7 @@ import math
 import struct
 
 import pytest
+
 from core_util import (
     ARMED,
     BOOT,
@@ -24,7 +25,6 @@ from core_util import (
     reply_fields,
     request,
 )
-
 from estop.core import Config
 
 ACK, NAK = 0x80, 0x81

@@ -17,10 +17,10 @@ import struct
 import hypothesis.strategies as st
 from hypothesis import HealthCheck, event, settings
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
-from reference_model import ACK, RELEASE_ID, STATUS_ID, Model, ModelConfig
 
 from estop.core import MAX_SLOTS, Config, Step, Watchdog
 from estop.protocol.crc import crc32, e2e_crc8
+from reference_model import ACK, RELEASE_ID, STATUS_ID, Model, ModelConfig
 
 CFG = ModelConfig()
 BRAKE_ID, STATUS_CAN_ID = CFG.brake_can_id, CFG.status_can_id

@@ -4,8 +4,8 @@ through the independent Python codecs."""
 from __future__ import annotations
 
 import pytest
-from core_util import ARMED, BOOT, STOPPED, TCP_STOP, UDP_TIMEOUT, Unit, reply_fields
 
+from core_util import ARMED, BOOT, STOPPED, TCP_STOP, UDP_TIMEOUT, Unit, reply_fields
 from estop.protocol.can import BrakeFrame
 from estop.protocol.tcp import Reply, Request, release_request, stop_request
 from estop.protocol.udp import ControlPacket

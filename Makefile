@@ -29,6 +29,7 @@ test: setup
 	$(MAKE) hil
 
 check: setup
+	scripts/ensure-debs clang
 	$(MAKE) -C firmware strict
 	$(VENV)/bin/ruff check src tests hil bench pyext
 

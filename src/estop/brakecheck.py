@@ -1,0 +1,197 @@
+"""What a brake controller checks on ESTOP_BRAKE (and ESTOP_STATUS) frames.
+
+A brake controller accepts an ESTOP_BRAKE frame only if it is 8 bytes, its CRC-8 (data ID
+0x0E57) is right, its alive counter is legal and new (not a repeat), and its fields agree with
+each other. It brakes when the accepted frame asks for it, and by itself when no accepted
+frame arrived for 50 ms (``timeout``), and before the first one.
+
+:class:`BrakeFrameChecker` is that logic without the brake: feed it frames with their times,
+read back verdicts and events. ``estop monitor`` prints them; the HIL harness's brake
+controller emulator uses :meth:`BrakeFrameChecker.brake_applied`.
+
+Event kinds: ``bad_length``, ``bad_crc``, ``bad_counter``, ``bad_content``,
+``counter_repeat``, ``counter_jump`` (frames lost in between), ``gap`` (two accepted frames
+``timeout`` or more apart; reported when the second arrives) and ``timeout`` (reported by
+:meth:`BrakeFrameChecker.poll` while the silence lasts; live use only).
+"""
+
+from __future__ import annotations
+
+from collections import Counter
+from dataclasses import dataclass, field
+
+from estop.protocol.can import (
+    BRAKE_ID,
+    STATUS_ID,
+    BrakeFrame,
+    CounterChecker,
+    CounterResult,
+    CrcError,
+    LengthError,
+    StatusFrame,
+)
+
+__all__ = ["BRAKE_TIMEOUT", "EVENT_KINDS", "BrakeFrameChecker", "CheckEvent", "Verdict"]
+
+BRAKE_TIMEOUT = 0.050  # seconds without an accepted ESTOP_BRAKE before a controller brakes
+EVENT_KINDS = ("bad_length", "bad_crc", "bad_counter", "bad_content", "counter_repeat",
+               "counter_jump", "gap", "timeout")
+
+
+@dataclass(frozen=True, slots=True)
+class CheckEvent:
+    t: float  # seconds, on the clock the frames were fed with
+    can_id: int
+    kind: str  # one of EVENT_KINDS
+    message: str  # one line
+
+    def __str__(self) -> str:
+        return f"{self.kind}: {self.message}"
+
+
+@dataclass(frozen=True, slots=True)
+class Verdict:
+    """The outcome for one fed frame."""
+
+    t: float
+    can_id: int
+    data: bytes
+    frame: BrakeFrame | StatusFrame | None  # fields as read (None if the length was wrong)
+    accepted: bool  # a receiver would use this frame
+    events: tuple[CheckEvent, ...] = field(default=())
+    state_changed: bool = False  # accepted ESTOP_BRAKE whose state/reason differs from before
+
+
+class _Stream:
+    """Counter and time of one frame type."""
+
+    def __init__(self) -> None:
+        self.counter = CounterChecker()
+        self.last_accepted_t: float | None = None
+        self.timeout_reported = False
+
+
+class BrakeFrameChecker:
+    """Check a stream of ESTOP_BRAKE / ESTOP_STATUS frames as a brake controller would.
+
+    Times are seconds on any one clock (log timestamps, ``time.monotonic()``...), fed in order.
+    Frames with other IDs are ignored (``feed`` returns None).
+    """
+
+    def __init__(self, *, brake_id: int = BRAKE_ID, status_id: int | None = STATUS_ID,
+                 timeout: float = BRAKE_TIMEOUT) -> None:
+        if timeout <= 0:
+            raise ValueError("timeout must be > 0")
+        self.brake_id = brake_id
+        self.status_id = status_id
+        self.timeout = timeout
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything seen so far (counters, times, tallies)."""
+        self._brake = _Stream()
+        self._status = _Stream()
+        self.last_brake: BrakeFrame | None = None  # last accepted ESTOP_BRAKE
+        self.last_status: StatusFrame | None = None  # last accepted ESTOP_STATUS
+        self.counts: Counter[str] = Counter()  # events by kind
+        self.frames = 0
+        self.accepted = 0
+
+    # --------------------------------------------------------------------------- feeding
+
+    def feed(self, t: float, can_id: int, data: bytes | bytearray | memoryview) -> Verdict | None:
+        """Check one frame received at time ``t``; None if ``can_id`` is neither frame's."""
+        raw = bytes(data)
+        if can_id == self.brake_id:
+            verdict = self._feed(t, can_id, raw, BrakeFrame, self._brake, gap_check=True)
+            if verdict.accepted:
+                frame = verdict.frame
+                assert isinstance(frame, BrakeFrame)
+                prev = self.last_brake
+                changed = prev is not None and (prev.state, prev.reason) != (frame.state,
+                                                                             frame.reason)
+                self.last_brake = frame
+                if changed:
+                    verdict = Verdict(verdict.t, can_id, raw, frame, True, verdict.events, True)
+        elif self.status_id is not None and can_id == self.status_id:
+            verdict = self._feed(t, can_id, raw, StatusFrame, self._status, gap_check=False)
+            if verdict.accepted:
+                assert isinstance(verdict.frame, StatusFrame)
+                self.last_status = verdict.frame
+        else:
+            return None
+        self.frames += 1
+        self.accepted += verdict.accepted
+        for ev in verdict.events:
+            self.counts[ev.kind] += 1
+        return verdict
+
+    def _feed(self, t: float, can_id: int, raw: bytes,
+              kind: type[BrakeFrame] | type[StatusFrame], stream: _Stream,
+              gap_check: bool) -> Verdict:
+        events: list[CheckEvent] = []
+        problems = kind.check(raw)
+        for p in problems:
+            events.append(CheckEvent(t, can_id, p.kind, str(p)))
+        if any(isinstance(p, LengthError) for p in problems):
+            return Verdict(t, can_id, raw, None, False, tuple(events))
+        frame = kind.parse(raw)
+        crc_ok = not any(isinstance(p, CrcError) for p in problems)
+        accepted = not problems
+        if crc_ok and not any(p.kind == "bad_counter" for p in problems):
+            # the frame really was sent: follow its counter even if its content is bad
+            status = stream.counter.check(frame.counter)
+            if status.result is CounterResult.REPEAT:
+                events.append(CheckEvent(t, can_id, "counter_repeat",
+                                         f"counter {frame.counter} repeated"))
+                accepted = False
+            elif status.result is CounterResult.JUMP:
+                events.append(CheckEvent(t, can_id, "counter_jump",
+                                         f"counter {status.expected} expected, got "
+                                         f"{frame.counter} ({status.lost} lost)"))
+        if accepted:
+            last = stream.last_accepted_t
+            if gap_check and last is not None and t - last >= self.timeout:
+                events.append(CheckEvent(t, can_id, "gap",
+                                         f"{(t - last) * 1000:.1f} ms without a good frame "
+                                         f"(limit {self.timeout * 1000:g} ms)"))
+            stream.last_accepted_t = t
+            stream.timeout_reported = False
+        return Verdict(t, can_id, raw, frame, accepted, tuple(events))
+
+    def poll(self, now: float) -> list[CheckEvent]:
+        """Live use: a ``timeout`` event once when ``timeout`` passes without a good
+        ESTOP_BRAKE frame (again only after good frames came back)."""
+        stream = self._brake
+        if stream.timeout_reported:
+            return []
+        last = stream.last_accepted_t
+        if last is None or now - last < self.timeout:
+            return []
+        stream.timeout_reported = True
+        ev = CheckEvent(now, self.brake_id, "timeout",
+                        f"no good ESTOP_BRAKE for {(now - last) * 1000:.1f} ms: a brake "
+                        f"controller brakes now")
+        self.counts["timeout"] += 1
+        return [ev]
+
+    # ------------------------------------------------------------------------- reading
+
+    def brake_applied(self, now: float) -> bool:
+        """What a brake controller does at ``now``: brake unless the last accepted
+        ESTOP_BRAKE asked for release and is younger than ``timeout``."""
+        last = self._brake.last_accepted_t
+        if last is None or self.last_brake is None:
+            return True
+        if now - last >= self.timeout:
+            return True
+        return self.last_brake.brakes
+
+    @property
+    def last_brake_time(self) -> float | None:
+        return self._brake.last_accepted_t
+
+    @property
+    def problems(self) -> int:
+        """Number of events flagged so far (all kinds)."""
+        return sum(self.counts[k] for k in EVENT_KINDS)

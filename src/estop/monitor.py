@@ -1,0 +1,206 @@
+"""``estop monitor``: decode ESTOP_BRAKE / ESTOP_STATUS and flag what a brake controller would.
+
+Sources: any python-can bus (``--interface socketcan --channel vcan0``, ``--interface
+virtual``, ...), or a can-utils log file, or standard input (``--log FILE`` / ``--log -``,
+e.g. ``candump -L vcan0 | estop monitor --log -``).
+
+Flags bad lengths, bad CRCs, illegal or repeated alive counters, counter jumps, fields that
+contradict each other, and gaps of 50 ms (``--timeout-ms``) or more between good ESTOP_BRAKE
+frames (live buses also get a ``timeout`` line while the silence lasts).
+
+Exit code: 0 no problem flagged, 1 problems flagged, 2 usage error or a malformed log line,
+3 the bus or file could not be opened.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Iterable
+from typing import TextIO
+
+from estop.brakecheck import EVENT_KINDS, BrakeFrameChecker, CheckEvent, Verdict
+from estop.cliutil import (
+    EXIT_OK,
+    EXIT_PROBLEM,
+    ConnectionFailure,
+    UsageError,
+    non_negative_float,
+    out,
+    parse_u32,
+    positive_float,
+)
+from estop.protocol.can import (
+    BRAKE_ID,
+    STATUS_ID,
+    BrakeFrame,
+    StatusFrame,
+    flag_names,
+    reason_name,
+    state_name,
+)
+from estop.protocol.canlog import CanLogError, read_log
+
+DESCRIPTION = ("Decode ESTOP_BRAKE / ESTOP_STATUS from a python-can bus or a can-utils log and "
+               "flag what a brake controller would: bad length, CRC or counter, "
+               "contradictory fields, counter jumps/repeats, gaps of 50 ms or more.")
+
+__all__ = ["DESCRIPTION", "Monitor", "add_arguments", "format_frame", "run"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    src = parser.add_mutually_exclusive_group(required=True)
+    src.add_argument("--log", metavar="FILE", help="read a can-utils log file ('-': stdin)")
+    src.add_argument("--interface", metavar="IF",
+                     help="python-can interface (socketcan, virtual, ...)")
+    parser.add_argument("--channel", help="python-can channel (vcan0, can0, ...)")
+    parser.add_argument("--brake-id", type=parse_u32, default=BRAKE_ID,
+                        help=f"ESTOP_BRAKE CAN ID (default {BRAKE_ID:#05x})")
+    parser.add_argument("--status-id", type=parse_u32, default=STATUS_ID,
+                        help=f"ESTOP_STATUS CAN ID (default {STATUS_ID:#05x})")
+    parser.add_argument("--timeout-ms", type=positive_float, default=50.0,
+                        help="flag gaps of this many ms between good ESTOP_BRAKE frames "
+                             "(default 50, the brake controller's limit)")
+    parser.add_argument("--duration", type=non_negative_float, default=None,
+                        help="live bus: stop after this many seconds")
+    parser.add_argument("--count", type=int, default=None,
+                        help="stop after this many ESTOP frames")
+    parser.add_argument("-q", "--quiet", action="store_true",
+                        help="print only problems, state changes and the summary")
+
+
+def format_frame(frame: BrakeFrame | StatusFrame) -> str:
+    """Decoded fields of one frame, e.g. ``ESTOP_BRAKE STOPPED reason=boot brake=1 ...``."""
+    if isinstance(frame, BrakeFrame):
+        flags = f"{frame.flags:#04x}"
+        names = flag_names(frame.flags)
+        if names:
+            flags += "(" + ",".join(names) + ")"
+        return (f"ESTOP_BRAKE {state_name(frame.state)} reason={reason_name(frame.reason)} "
+                f"brake={frame.brake_request} level={frame.brake_level} flags={flags} "
+                f"ctr={frame.counter}")
+    age = "none" if frame.link_age is None else f"{frame.link_age}ms"
+    return (f"ESTOP_STATUS valid={frame.valid_packets} invalid={frame.invalid_packets} "
+            f"tcp_bad_crc={frame.tcp_bad_crc} stops={frame.stops} link_age={age} "
+            f"ctr={frame.counter}")
+
+
+class Monitor:
+    """Feeds a :class:`BrakeFrameChecker` and writes the monitor's lines to ``write``."""
+
+    def __init__(self, checker: BrakeFrameChecker, *, quiet: bool = False,
+                 stream: TextIO | None = None) -> None:
+        self.checker = checker
+        self.quiet = quiet
+        self._stream = stream
+
+    def _line(self, text: str) -> None:
+        if self._stream is None:
+            out(text)
+        else:
+            self._stream.write(text + "\n")
+
+    @staticmethod
+    def _stamp(t: float) -> str:
+        return f"({t:.6f})"
+
+    def frame(self, t: float, can_id: int, data: bytes) -> Verdict | None:
+        verdict = self.checker.feed(t, can_id, data)
+        if verdict is None:
+            return None
+        head = f"{self._stamp(t)} {can_id:03X}"
+        if verdict.frame is not None and (not self.quiet or verdict.state_changed):
+            mark = "" if verdict.accepted else "  [rejected]"
+            if verdict.state_changed:
+                mark += "  <- state change"
+            self._line(f"{head} {format_frame(verdict.frame)}{mark}")
+        elif verdict.frame is None and not self.quiet:
+            self._line(f"{head} {data.hex().upper()}  [rejected]")
+        for ev in verdict.events:
+            self.event(ev)
+        return verdict
+
+    def event(self, ev: CheckEvent) -> None:
+        self._line(f"{self._stamp(ev.t)} {ev.can_id:03X} ! {ev.kind}: {ev.message}")
+
+    def summary(self) -> str:
+        c = self.checker
+        found = [f"{k} {c.counts[k]}" for k in EVENT_KINDS if c.counts[k]]
+        return (f"summary: {c.frames} frames, {c.accepted} accepted; problems: "
+                + (", ".join(found) if found else "none"))
+
+
+def _run_log(monitor: Monitor, lines: Iterable[str], count: int | None) -> None:
+    seen = 0
+    try:
+        for rec in read_log(lines):
+            if rec.extended:
+                continue
+            if monitor.frame(rec.timestamp, rec.can_id, rec.data) is not None:
+                seen += 1
+                if count is not None and seen >= count:
+                    return
+    except CanLogError as exc:
+        raise UsageError(f"--log: {exc}") from None
+
+
+def _run_bus(monitor: Monitor, interface: str, channel: str | None, duration: float | None,
+             count: int | None) -> None:
+    import can  # python-can, imported only when a bus is used
+
+    try:
+        bus = can.Bus(interface=interface, channel=channel)
+    except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
+        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ConnectionFailure(f"cannot open {interface} bus {channel or ''}: {msg}") from None
+    end = None if duration is None else time.monotonic() + duration
+    seen = 0
+    try:
+        while end is None or time.monotonic() < end:
+            try:
+                msg = bus.recv(timeout=0.005)
+            except can.CanError as exc:
+                raise ConnectionFailure(f"reading the bus failed: {exc}") from None
+            now = time.time()
+            if msg is not None and not (msg.is_error_frame or msg.is_remote_frame
+                                        or msg.is_extended_id):
+                t = msg.timestamp or now
+                if monitor.frame(t, msg.arbitration_id, bytes(msg.data)) is not None:
+                    seen += 1
+                    if count is not None and seen >= count:
+                        return
+            for ev in monitor.checker.poll(now):
+                monitor.event(ev)
+    finally:
+        bus.shutdown()
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.count is not None and args.count <= 0:
+        raise UsageError("--count must be > 0")
+    if args.interface is None and args.channel is not None:
+        raise UsageError("--channel needs --interface")
+    if args.brake_id > 0x7FF or args.status_id > 0x7FF:
+        raise UsageError("CAN IDs must be 11-bit (0..0x7FF)")
+    checker = BrakeFrameChecker(brake_id=args.brake_id, status_id=args.status_id,
+                                timeout=args.timeout_ms / 1000.0)
+    monitor = Monitor(checker, quiet=args.quiet)
+    try:
+        if args.log is not None:
+            if args.log == "-":
+                _run_log(monitor, sys.stdin, args.count)
+            else:
+                try:
+                    stream = open(args.log, encoding="utf-8", errors="replace")
+                except OSError as exc:
+                    raise ConnectionFailure(f"cannot read {args.log}: "
+                                            f"{exc.strerror or exc}") from None
+                with stream:
+                    _run_log(monitor, stream, args.count)
+        else:
+            _run_bus(monitor, args.interface, args.channel, args.duration, args.count)
+    except KeyboardInterrupt:
+        pass
+    out(monitor.summary())
+    return EXIT_PROBLEM if checker.problems else EXIT_OK

@@ -1,0 +1,77 @@
+"""``estop stop | release | status``: one request over the TCP stop channel.
+
+Opens a connection, sends one frame, prints the decoded reply and exits with:
+
+- 0: ACK
+- 1: NAK (the reply line says why, e.g. ``nak=no_live_link``)
+- 2: usage error (bad options)
+- 3: connection refused or closed, timeout, or a malformed reply (bad CRC, wrong seq)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from estop.cliutil import (
+    EXIT_ACK,
+    EXIT_NAK,
+    ConnectionFailure,
+    UsageError,
+    out,
+    parse_u32,
+    port,
+    positive_float,
+)
+from estop.protocol import tcp
+from estop.stopchannel import StopChannel, StopChannelError, format_reply, reply_dict
+
+__all__ = ["COMMANDS", "add_arguments", "run", "send_once"]
+
+COMMANDS = {
+    "stop": "send STOP (the vehicle's stop ID) and print the reply",
+    "release": "ask the unit to leave the stopped state (RELEASE) and print the reply",
+    "status": "ask for the unit's state (STATUS, changes nothing) and print the reply",
+}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--host", required=True, help="the unit's address")
+    parser.add_argument("--port", type=port, default=tcp.DEFAULT_PORT,
+                        help=f"TCP stop port (default {tcp.DEFAULT_PORT})")
+    parser.add_argument("--seq", type=parse_u32, default=1,
+                        help="sequence number echoed in the reply (default 1)")
+    parser.add_argument("--stop-id", type=parse_u32, default=tcp.DEFAULT_STOP_ID,
+                        help=f"the vehicle's stop ID (default {tcp.DEFAULT_STOP_ID:#010X})")
+    parser.add_argument("--timeout", type=positive_float, default=2.0,
+                        help="seconds to wait for connect and reply (default 2)")
+    parser.add_argument("--json", action="store_true", help="print the reply as one JSON line")
+
+
+def send_once(kind: str, host: str, port: int = tcp.DEFAULT_PORT, *, seq: int = 1,
+              stop_id: int = tcp.DEFAULT_STOP_ID, timeout: float = 2.0) -> tcp.Reply:
+    """Send one ``stop``/``release``/``status`` request on a fresh connection; return the reply.
+
+    Raises :class:`estop.stopchannel.StopChannelError` on connection/timeout/reply errors.
+    """
+    msg_id = {"stop": stop_id, "release": tcp.RELEASE, "status": tcp.STATUS}[kind]
+    with StopChannel(host, port, timeout=timeout, stop_id=stop_id) as channel:
+        return channel.request(msg_id, seq)
+
+
+def run(args: argparse.Namespace) -> int:
+    kind: str = args.command
+    try:
+        tcp.check_stop_id(args.stop_id)
+    except ValueError as exc:
+        raise UsageError(f"--stop-id: {exc}") from None
+    try:
+        reply = send_once(kind, args.host, args.port, seq=args.seq, stop_id=args.stop_id,
+                          timeout=args.timeout)
+    except StopChannelError as exc:
+        raise ConnectionFailure(str(exc)) from None
+    if args.json:
+        out(json.dumps({"request": kind, **reply_dict(reply)}, sort_keys=True))
+    else:
+        out(format_reply(reply))
+    return EXIT_ACK if reply.ack else EXIT_NAK

@@ -1,0 +1,124 @@
+"""BrakeFrameChecker: what a brake controller accepts, and when it brakes."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+
+from estop.brakecheck import BRAKE_TIMEOUT, BrakeFrameChecker
+from estop.protocol.can import BrakeFrame, StatusFrame
+
+
+def armed(counter: int) -> bytes:
+    return BrakeFrame.for_state(1, 0, 0, counter % 15).encode()
+
+
+def stopped(counter: int, reason: int = 2) -> bytes:
+    return BrakeFrame.for_state(0, reason, 0, counter % 15).encode()
+
+
+def test_defaults() -> None:
+    chk = BrakeFrameChecker()
+    assert (chk.brake_id, chk.status_id, chk.timeout) == (0x050, 0x051, BRAKE_TIMEOUT)
+    assert BRAKE_TIMEOUT == 0.050
+    with pytest.raises(ValueError):
+        BrakeFrameChecker(timeout=0)
+
+
+def test_brakes_before_first_frame_and_after_silence() -> None:
+    chk = BrakeFrameChecker()
+    assert chk.brake_applied(0.0)
+    v = chk.feed(1.000, 0x050, armed(0))
+    assert v is not None and v.accepted and v.events == ()
+    assert not chk.brake_applied(1.049)
+    assert chk.brake_applied(1.050)  # 50 ms without a good frame: brake
+    chk.feed(1.010, 0x050, stopped(1))
+    assert chk.brake_applied(1.011)  # the frame asks for the brake
+
+
+def test_bad_frames_do_not_count_as_alive() -> None:
+    chk = BrakeFrameChecker()
+    chk.feed(0.00, 0x050, armed(0))
+    bad = bytearray(armed(1))
+    bad[7] ^= 0xFF
+    v = chk.feed(0.04, 0x050, bytes(bad))
+    assert v is not None and not v.accepted and [e.kind for e in v.events] == ["bad_crc"]
+    assert chk.brake_applied(0.06)  # the last *good* frame is 60 ms old
+    assert chk.last_brake_time == 0.00
+
+
+def test_repeat_is_rejected_jump_is_accepted_but_flagged() -> None:
+    chk = BrakeFrameChecker()
+    chk.feed(0.00, 0x050, armed(3))
+    v = chk.feed(0.01, 0x050, armed(3))
+    assert v is not None and not v.accepted and [e.kind for e in v.events] == ["counter_repeat"]
+    v = chk.feed(0.02, 0x050, armed(6))
+    assert v is not None and v.accepted and [e.kind for e in v.events] == ["counter_jump"]
+    assert "2 lost" in v.events[0].message
+    assert chk.counts["counter_repeat"] == 1 and chk.counts["counter_jump"] == 1
+    assert chk.problems == 2 and chk.frames == 3 and chk.accepted == 2
+
+
+def test_gap_and_poll_timeout() -> None:
+    chk = BrakeFrameChecker()
+    assert chk.poll(5.0) == []  # nothing seen yet: nothing to time out
+    chk.feed(0.000, 0x050, armed(0))
+    assert chk.poll(0.049) == []
+    events = chk.poll(0.050)
+    assert [e.kind for e in events] == ["timeout"]
+    assert chk.poll(0.2) == []  # reported once per silence
+    v = chk.feed(0.300, 0x050, armed(1))
+    assert v is not None and [e.kind for e in v.events] == ["gap"]
+    assert "300.0 ms" in v.events[0].message
+    assert chk.poll(0.340) == [] and len(chk.poll(0.351)) == 1
+
+
+def test_state_change_and_contradictory_content() -> None:
+    chk = BrakeFrameChecker()
+    chk.feed(0.00, 0x050, stopped(0, reason=1))
+    v = chk.feed(0.01, 0x050, armed(1))
+    assert v is not None and v.state_changed and chk.last_brake is not None
+    bad = BrakeFrame(0, 100, 1, 0, 0, 2).encode(validate=False)  # released, level 100
+    v = chk.feed(0.02, 0x050, bad)
+    assert v is not None and not v.accepted and [e.kind for e in v.events] == ["bad_content"]
+    v = chk.feed(0.03, 0x050, armed(3))  # the bad frame's counter was followed: no jump
+    assert v is not None and v.accepted and v.events == ()
+
+
+def test_status_frames_and_other_ids() -> None:
+    chk = BrakeFrameChecker()
+    assert chk.feed(0.0, 0x123, b"\x00") is None
+    v = chk.feed(0.0, 0x051, StatusFrame(1, 2, 3, 4, 5, 0).encode())
+    assert v is not None and v.accepted and chk.last_status == StatusFrame(1, 2, 3, 4, 5, 0)
+    v = chk.feed(0.5, 0x051, StatusFrame(1, 2, 3, 4, 5, 2).encode())
+    assert v is not None and [e.kind for e in v.events] == ["counter_jump"]  # no gap check
+    v = chk.feed(0.6, 0x051, b"\x00" * 7)
+    assert v is not None and v.frame is None and [e.kind for e in v.events] == ["bad_length"]
+    assert chk.brake_applied(0.6)  # status frames never release the brake
+    chk.reset()
+    assert chk.frames == 0 and chk.last_status is None
+    no_status = BrakeFrameChecker(status_id=None)
+    assert no_status.feed(0.0, 0x051, StatusFrame(0, 0, 0, 0, 0, 0).encode()) is None
+
+
+@given(st.lists(st.integers(1, 9), min_size=1, max_size=300), st.integers(0, 14))
+def test_clean_stream_at_up_to_45ms_has_no_events(steps_ms: list[int], start: int) -> None:
+    chk = BrakeFrameChecker()
+    t = 0.0
+    for i, step in enumerate([0, *steps_ms]):
+        t += step * 0.005  # 0..45 ms apart
+        v = chk.feed(t, 0x050, armed(start + i))
+        assert v is not None and v.accepted and v.events == ()
+        assert not chk.brake_applied(t)
+    assert chk.problems == 0
+
+
+@given(st.binary(min_size=0, max_size=10))
+def test_random_bytes_never_release_the_brake_unless_valid(data: bytes) -> None:
+    chk = BrakeFrameChecker()
+    v = chk.feed(0.0, 0x050, data)
+    assert v is not None
+    assert v.accepted == (BrakeFrame.check(data) == [])
+    if not chk.brake_applied(0.0):
+        assert v.accepted and not BrakeFrame.decode(data).brakes

@@ -1,0 +1,292 @@
+"""Pure logic of the HIL harness (no sockets, no threads, no vcan): testable on any host.
+
+- :class:`BrakeController` emulates the brake controller that receives ESTOP_BRAKE (spec
+  section 4): it accepts only frames with a good CRC, a legal alive counter that moved on, and
+  consistent fields, and it brakes by itself when no good frame has arrived for 50 ms.
+  Frame checks use the project's codecs in ``estop.protocol.can`` (``BrakeFrame.check``,
+  ``StatusFrame.check``, ``CounterChecker``), which are written independently of the C core.
+- :func:`crosscheck` compares the candump log with what python-can saw.
+- :func:`summary` and :func:`frame_gaps` turn samples into the figures of the test protocol.
+
+Times are float seconds on the wall clock (CLOCK_REALTIME) that SocketCAN uses to timestamp
+frames, so frame times and the harness's own send times can be subtracted directly.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, field
+
+from estop.protocol.can import (
+    BRAKE_ID,
+    STATUS_ID,
+    BrakeFrame,
+    CounterChecker,
+    CounterResult,
+    StatusFrame,
+)
+from estop.protocol.canlog import CanLogError, parse_line
+
+BRAKE_SILENCE_S = 0.050  # spec section 4: brake when no good ESTOP_BRAKE for 50 ms
+_EPS = 1e-6  # float seconds near 1.7e9 carry ~0.2 us of rounding
+
+
+@dataclass(frozen=True, slots=True)
+class Frame:
+    """One CAN frame as a receiver saw it (kernel timestamp, seconds)."""
+
+    ts: float
+    can_id: int
+    data: bytes
+
+
+@dataclass(frozen=True, slots=True)
+class Issue:
+    """A frame a brake controller must not accept, or a counter anomaly."""
+
+    ts: float
+    can_id: int
+    kind: str  # bad_length, bad_crc, bad_counter, bad_content, repeat, jump
+    detail: str
+
+
+@dataclass(frozen=True, slots=True)
+class Trip:
+    """The 50 ms silence watchdog fired: no good frame since ``last_good``."""
+
+    last_good: float
+    detected: float  # when the emulator noticed (live: its own clock; offline: deadline)
+
+    @property
+    def deadline(self) -> float:
+        return self.last_good + BRAKE_SILENCE_S
+
+
+@dataclass(frozen=True, slots=True)
+class BrakeChange:
+    ts: float
+    braking: bool
+    cause: str  # "frame" (brake_request of a good frame) or "silence" (watchdog)
+
+
+@dataclass
+class BrakeController:
+    """Brake-controller emulator for ESTOP_BRAKE (and an integrity checker for ESTOP_STATUS).
+
+    Feed it every frame with :meth:`on_frame` (in time order) and call :meth:`on_tick` with the
+    current time whenever possible; it brakes when no good ESTOP_BRAKE frame arrived for
+    ``silence_s``. It powers up braking, as a real one would.
+    """
+
+    silence_s: float = BRAKE_SILENCE_S
+    braking: bool = True
+    last_good: float | None = None
+    last_frame: BrakeFrame | None = None
+    good: int = 0
+    status_good: int = 0
+    issues: list[Issue] = field(default_factory=list)
+    trips: list[Trip] = field(default_factory=list)
+    changes: list[BrakeChange] = field(default_factory=list)
+    tripped: bool = False
+    _brake_ctr: CounterChecker = field(default_factory=CounterChecker)
+    _status_ctr: CounterChecker = field(default_factory=CounterChecker)
+
+    def expect_new_sender(self) -> None:
+        """A new daemon starts: its counters start over, so no continuity is expected."""
+        self._brake_ctr.reset()
+        self._status_ctr.reset()
+
+    def _set(self, ts: float, braking: bool, cause: str) -> None:
+        if braking != self.braking:
+            self.braking = braking
+            self.changes.append(BrakeChange(ts, braking, cause))
+
+    def on_frame(self, frame: Frame) -> None:
+        """Any frame (of any ID) proves that time has reached ``frame.ts`` on the bus."""
+        self.on_tick(frame.ts)
+        if frame.can_id == BRAKE_ID:
+            self._on_brake(frame)
+        elif frame.can_id == STATUS_ID:
+            self._on_status(frame)
+
+    def _counter(self, checker: CounterChecker, frame: Frame, counter: int) -> bool:
+        status = checker.check(counter)
+        if status.result is CounterResult.REPEAT:
+            self.issues.append(Issue(frame.ts, frame.can_id, "repeat",
+                                     f"counter {counter} repeated (stale frame)"))
+            return False
+        if status.result is CounterResult.JUMP:
+            self.issues.append(Issue(frame.ts, frame.can_id, "jump",
+                                     f"counter {counter}, expected {status.expected} "
+                                     f"({status.lost} lost)"))
+        return True
+
+    def _on_brake(self, frame: Frame) -> None:
+        problems = BrakeFrame.check(frame.data)
+        if problems:
+            for p in problems:
+                self.issues.append(Issue(frame.ts, frame.can_id, p.kind, str(p)))
+            return
+        parsed = BrakeFrame.parse(frame.data)
+        if not self._counter(self._brake_ctr, frame, parsed.counter):
+            return
+        self.good += 1
+        self.last_good = frame.ts
+        self.last_frame = parsed
+        self.tripped = False
+        self._set(frame.ts, parsed.brakes, "frame")
+
+    def _on_status(self, frame: Frame) -> None:
+        problems = StatusFrame.check(frame.data)
+        if problems:
+            for p in problems:
+                self.issues.append(Issue(frame.ts, frame.can_id, p.kind, str(p)))
+            return
+        if self._counter(self._status_ctr, frame, StatusFrame.parse(frame.data).counter):
+            self.status_good += 1
+
+    def on_tick(self, now: float) -> None:
+        """Apply the silence watchdog at time ``now`` (live: the emulator's clock)."""
+        if self.last_good is None or self.tripped:
+            return
+        if now - self.last_good >= self.silence_s - _EPS:
+            self.tripped = True
+            self.trips.append(Trip(self.last_good, now))
+            self._set(now, True, "silence")
+
+
+def replay(frames: Iterable[Frame], silence_s: float = BRAKE_SILENCE_S,
+           end: float | None = None) -> BrakeController:
+    """Offline emulator run: watchdog trips are placed exactly at their deadlines."""
+    ctl = BrakeController(silence_s=silence_s)
+    for fr in frames:
+        if ctl.last_good is not None and fr.ts - ctl.last_good >= silence_s - _EPS:
+            ctl.on_tick(ctl.last_good + silence_s)
+        ctl.on_frame(fr)
+    if end is not None and ctl.last_good is not None and end - ctl.last_good >= silence_s - _EPS:
+        ctl.on_tick(ctl.last_good + silence_s)
+    return ctl
+
+
+# --------------------------------------------------------------------------- statistics
+
+def percentile(values: Sequence[float], q: float) -> float:
+    """Nearest-rank-with-interpolation percentile (q in 0..100) of a non-empty sequence."""
+    if not values:
+        raise ValueError("percentile of no values")
+    xs = sorted(values)
+    if len(xs) == 1:
+        return xs[0]
+    pos = (len(xs) - 1) * q / 100.0
+    lo = math.floor(pos)
+    hi = min(lo + 1, len(xs) - 1)
+    return xs[lo] + (xs[hi] - xs[lo]) * (pos - lo)
+
+
+def summary(values: Sequence[float], digits: int = 3) -> dict[str, float | int]:
+    """n, min, p50, p90, max, mean of ``values`` (empty: n 0 only)."""
+    if not values:
+        return {"n": 0}
+    return {
+        "n": len(values),
+        "min": round(min(values), digits),
+        "p50": round(percentile(values, 50), digits),
+        "p90": round(percentile(values, 90), digits),
+        "max": round(max(values), digits),
+        "mean": round(sum(values) / len(values), digits),
+    }
+
+
+def frame_gaps(frames: Sequence[Frame], can_id: int = BRAKE_ID) -> list[float]:
+    """Gaps in seconds between consecutive frames with ``can_id``."""
+    ts = [f.ts for f in frames if f.can_id == can_id]
+    return [b - a for a, b in zip(ts, ts[1:], strict=False)]
+
+
+def in_windows(t: float, windows: Iterable[tuple[float, float]]) -> bool:
+    return any(a <= t <= b for a, b in windows)
+
+
+# --------------------------------------------------------------------------- candump check
+
+def read_candump(lines: Iterable[str]) -> tuple[list[Frame], list[str]]:
+    """Frames of a ``candump -L`` log, and the lines that are not frames (reported, not fatal:
+    candump also prints e.g. ``interface down`` notices on stderr, never on stdout)."""
+    frames: list[Frame] = []
+    bad: list[str] = []
+    for line in lines:
+        if not line.strip():
+            continue
+        try:
+            rec = parse_line(line)
+        except CanLogError:
+            bad.append(line.rstrip("\n"))
+            continue
+        frames.append(Frame(rec.timestamp_us / 1e6, rec.can_id, rec.data))
+    return frames, bad
+
+
+@dataclass
+class CrossCheck:
+    window: tuple[float, float] | None
+    matched: int = 0
+    only_candump: list[Frame] = field(default_factory=list)
+    only_pycan: list[Frame] = field(default_factory=list)
+    data_mismatch: list[tuple[Frame, Frame]] = field(default_factory=list)
+    candump_total: int = 0
+    pycan_total: int = 0
+
+    @property
+    def ok(self) -> bool:
+        return (self.window is not None and self.matched > 0 and not self.only_candump
+                and not self.only_pycan and not self.data_mismatch)
+
+    def figures(self) -> dict[str, object]:
+        return {
+            "candump_frames": self.candump_total,
+            "pycan_frames": self.pycan_total,
+            "matched_in_window": self.matched,
+            "only_candump": len(self.only_candump),
+            "only_pycan": len(self.only_pycan),
+            "data_mismatch": len(self.data_mismatch),
+        }
+
+
+def crosscheck(candump: Sequence[Frame], pycan: Sequence[Frame],
+               window: tuple[float, float] | None = None,
+               tol_s: float = 2e-6) -> CrossCheck:
+    """Same frames in the same order? Both receivers read the kernel timestamp of the same skb,
+    so a frame has the same time (to the microsecond candump prints) in both records.
+
+    Only frames inside ``window`` are compared (default: the span both receivers covered), so
+    frames at the start/stop edges, seen by one receiver only, do not count.
+    """
+    res = CrossCheck(None, candump_total=len(candump), pycan_total=len(pycan))
+    if not candump or not pycan:
+        return res
+    if window is None:
+        window = (max(candump[0].ts, pycan[0].ts), min(candump[-1].ts, pycan[-1].ts))
+    res.window = window
+    lo, hi = window[0] - tol_s, window[1] + tol_s
+    a = [f for f in candump if lo <= f.ts <= hi]
+    b = [f for f in pycan if lo <= f.ts <= hi]
+    i = j = 0
+    while i < len(a) and j < len(b):
+        fa, fb = a[i], b[j]
+        if abs(fa.ts - fb.ts) <= tol_s:
+            if fa.can_id == fb.can_id and fa.data == fb.data:
+                res.matched += 1
+            else:
+                res.data_mismatch.append((fa, fb))
+            i += 1
+            j += 1
+        elif fa.ts < fb.ts:
+            res.only_candump.append(fa)
+            i += 1
+        else:
+            res.only_pycan.append(fb)
+            j += 1
+    res.only_candump.extend(a[i:])
+    res.only_pycan.extend(b[j:])
+    return res

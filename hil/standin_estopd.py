@@ -1,0 +1,274 @@
+"""Stand-in for estopd, used ONLY to self-test the HIL harness (``hil/run --dut-standin``).
+
+It follows spec sections 1-5 and docs/DESIGN.md closely enough for the harness to exercise
+every scenario, so the harness can be checked without the real daemon. It is not the product:
+test protocols made with it say so in their header. ``--bug NAME`` injects a known defect so
+that one can see the harness catch it:
+
+- ``tick``: the udp timeout is only noticed on the 10 ms tick (not at the deadline)
+- ``invalid-alive``: invalid UDP packets also keep the link alive
+- ``no-fault``: CAN transmit errors are ignored (no fault, no stop)
+- ``bad-crc``: every 50th ESTOP_BRAKE frame carries a wrong CRC
+"""
+
+from __future__ import annotations
+
+import argparse
+import errno
+import json
+import os
+import select
+import signal
+import socket
+import struct
+import sys
+import time
+
+from estop.protocol import tcp, udp
+from estop.protocol.can import BrakeFrame, StatusFrame
+
+PERIOD_US = 10_000
+STATUS_PERIOD_US = 100_000
+FAULT_AFTER_US = 50_000  # CAN sends failing this long: fault
+REASONS = ["none", "boot", "tcp_stop", "udp_timeout", "fault"]
+STATES = ["STOPPED", "ARMED"]
+
+
+def now_us() -> int:
+    return time.monotonic_ns() // 1000
+
+
+class Daemon:
+    def __init__(self, args: argparse.Namespace) -> None:
+        self.a = args
+        self.bugs = set(args.bug or [])
+        self.timeout_us = args.timeout_ms * 1000
+        self.warn_us = self.timeout_us // 2
+        self.state, self.reason = 0, 1
+        self.last_valid: int | None = None
+        self.valid_since_stop = 0
+        self.neutral = False
+        self.ctr_b = self.ctr_s = 0
+        self.n_valid = self.n_invalid = self.n_badcrc = self.n_stops = 0
+        self.fail_since: int | None = None
+        self.fault_latched = False
+        self.sent_brake = 0
+        self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.udp.bind((args.bind, args.udp_port))
+        self.udp.setblocking(False)
+        self.lsn = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.lsn.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.lsn.bind((args.bind, args.tcp_port))
+        self.lsn.listen(8)
+        self.lsn.setblocking(False)
+        self.clients: dict[socket.socket, tuple[tcp.FrameAssembler, str]] = {}
+        self.can = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
+        self.can.bind((args.can,))
+        self.can.setblocking(False)
+        self.running = True
+        t = now_us()
+        self.log("start", can=args.can, udp_port=args.udp_port, tcp_port=args.tcp_port)
+        self.next_b = t
+        self.next_s = t
+
+    def log(self, event: str, **kv: object) -> None:
+        rec = {"t_mono": time.monotonic(), "event": event, **kv}
+        sys.stderr.write(json.dumps(rec) + "\n")
+        sys.stderr.flush()
+
+    # ---- CAN
+    def send(self, can_id: int, data: bytes, t: int) -> None:
+        try:
+            self.can.send(struct.pack("=IB3x8s", can_id, 8, data))
+            self.fail_since = None
+        except OSError as exc:
+            name = errno.errorcode.get(exc.errno or 0, str(exc.errno))
+            self.log("can_error", errno=name)
+            if "no-fault" in self.bugs:
+                return
+            if self.fail_since is None:
+                self.fail_since = t
+            elif t - self.fail_since >= FAULT_AFTER_US and not self.fault_latched:
+                self.fault_latched = True
+                self.log("fault", cause="can_tx")
+                self.stop(4, t, "-")
+
+    def send_brake(self, t: int, periodic: bool = False) -> None:
+        flags = 0
+        if self.state == 1 and self.last_valid is not None and t - self.last_valid >= self.warn_us:
+            flags = 1
+        data = BrakeFrame.for_state(self.state, self.reason, flags, self.ctr_b).encode()
+        self.sent_brake += 1
+        if "bad-crc" in self.bugs and self.sent_brake % 50 == 0:
+            data = data[:7] + bytes((data[7] ^ 0x5A,))
+        self.ctr_b = (self.ctr_b + 1) % 15
+        # periodic: keep the 10 ms grid; a state change restarts it from now (spec 4)
+        self.next_b = self.next_b + PERIOD_US if periodic else t + PERIOD_US
+        if self.next_b <= t:  # fell behind (stalled): no burst of catch-up frames
+            self.next_b = t + PERIOD_US
+        self.send(0x050, data, t)
+
+    def send_status(self, t: int) -> None:
+        age = 0xFFFF
+        if self.last_valid is not None and t - self.last_valid < self.timeout_us:
+            age = min((t - self.last_valid) // 1000, 0xFFFE)
+        data = StatusFrame(min(self.n_valid, 255), min(self.n_invalid, 255),
+                           min(self.n_badcrc, 255), min(self.n_stops, 255), age,
+                           self.ctr_s).encode()
+        self.n_valid = self.n_invalid = 0
+        self.ctr_s = (self.ctr_s + 1) % 15
+        self.next_s += STATUS_PERIOD_US
+        self.send(0x051, data, t)
+
+    # ---- state
+    def stop(self, reason: int, t: int, src: str) -> None:
+        self.valid_since_stop = 0
+        if self.state == 0:
+            return
+        self.n_stops += 1
+        self.state, self.reason = 0, reason
+        self.log("state", **{"from": "ARMED", "to": "STOPPED", "reason": REASONS[reason],
+                             "src": src})
+        self.send_brake(t)
+
+    def live(self, t: int) -> bool:
+        return (self.last_valid is not None and t - self.last_valid < self.timeout_us
+                and self.valid_since_stop >= 5)
+
+    def on_udp(self, t: int) -> None:
+        while True:
+            try:
+                data = self.udp.recv(64)
+            except BlockingIOError:
+                return
+            if udp.is_valid(data) or "invalid-alive" in self.bugs:
+                ok = udp.is_valid(data)
+                self.last_valid = t
+                if ok:
+                    self.n_valid += 1
+                    self.valid_since_stop += 1
+                    self.neutral = udp.decode(data).is_neutral
+            else:
+                self.n_invalid += 1
+
+    def reply(self, sock: socket.socket, req: tcp.Request, nak: int, t: int) -> None:
+        flags = 1 if (self.state == 1 and self.last_valid is not None
+                      and t - self.last_valid >= self.warn_us) else 0
+        rep = tcp.Reply(nak == 0, req.seq, self.state, self.reason, flags, nak)
+        sock.sendall(rep.encode())
+
+    def on_client(self, sock: socket.socket, t: int) -> None:
+        asm, peer = self.clients[sock]
+        try:
+            data = sock.recv(4096)
+        except OSError:
+            data = b""
+        if not data:
+            self.close(sock)
+            return
+        for raw in asm.feed(data):
+            try:
+                req = tcp.Request.decode(raw)
+            except tcp.FrameError:
+                self.n_badcrc += 1
+                self.log("bad_crc", src=peer)
+                self.close(sock)
+                return
+            kind = req.kind(self.a.stop_id)
+            if kind == "stop":
+                self.stop(2, t, peer)
+                self.reply(sock, req, 0, t)
+            elif kind == "status":
+                self.reply(sock, req, 0, t)
+            elif kind == "release":
+                if self.state == 1:
+                    self.reply(sock, req, 0, t)
+                elif not self.live(t):
+                    self.reply(sock, req, 2, t)
+                elif not self.neutral:
+                    self.reply(sock, req, 3, t)
+                else:
+                    self.state, self.reason = 1, 0
+                    self.log("state", **{"from": "STOPPED", "to": "ARMED", "reason": "none",
+                                         "src": peer})
+                    self.send_brake(t)
+                    self.reply(sock, req, 0, t)
+            else:
+                self.reply(sock, req, 1, t)
+
+    def close(self, sock: socket.socket) -> None:
+        _, peer = self.clients.pop(sock)
+        self.log("client_close", src=peer)
+        sock.close()
+
+    def deadline(self) -> int | None:
+        if self.state != 1 or self.last_valid is None:
+            return None
+        return self.last_valid + self.timeout_us
+
+    def run(self) -> None:
+        while self.running:
+            t = now_us()
+            dl = self.deadline()
+            if dl is not None and t >= dl and "tick" not in self.bugs:
+                self.stop(3, dl, "-")
+            if t >= self.next_b:
+                if dl is not None and t >= dl and "tick" in self.bugs:
+                    self.stop(3, t, "-")
+                if t >= self.next_b:
+                    self.send_brake(t, periodic=True)
+            if t >= self.next_s:
+                self.send_status(t)
+            dl = self.deadline()
+            due = min(x for x in (self.next_b, self.next_s, dl if "tick" not in self.bugs
+                                  else None) if x is not None)
+            wait = max(0, due - now_us()) / 1e6
+            socks = [self.udp, self.lsn, *self.clients]
+            try:
+                ready, _, _ = select.select(socks, [], [], wait)
+            except InterruptedError:
+                continue
+            t = now_us()
+            for s in ready:
+                if s is self.udp:
+                    self.on_udp(t)
+                elif s is self.lsn:
+                    c, addr = self.lsn.accept()
+                    peer = f"{addr[0]}:{addr[1]}"
+                    self.clients[c] = (tcp.FrameAssembler(), peer)
+                    self.log("client_open", src=peer)
+                elif s in self.clients:
+                    self.on_client(s, t)
+        t = now_us()
+        self.state = 0
+        self.reason = self.reason or 1
+        self.send_brake(t)
+        self.log("exit", code=0)
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(prog="standin_estopd")
+    p.add_argument("--can", required=True)
+    p.add_argument("--can-log")
+    p.add_argument("--udp-port", type=int, default=5700)
+    p.add_argument("--tcp-port", type=int, default=5701)
+    p.add_argument("--bind", default="0.0.0.0")
+    p.add_argument("--timeout-ms", type=int, default=200)
+    p.add_argument("--stop-id", type=lambda s: int(s, 0), default=tcp.DEFAULT_STOP_ID)
+    p.add_argument("--log-json", action="store_true")
+    p.add_argument("--bug", action="append", choices=["tick", "invalid-alive", "no-fault",
+                                                        "bad-crc"])
+    d = Daemon(p.parse_args())
+
+    def on_signal(_sig: int, _frm: object) -> None:
+        d.running = False
+
+    signal.signal(signal.SIGTERM, on_signal)
+    signal.signal(signal.SIGINT, on_signal)
+    os.environ.setdefault("PYTHONUNBUFFERED", "1")
+    d.run()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -14,6 +14,9 @@
 
 #define ACCEPT_BATCH 16
 #define TCP_READ_MAX 256u /* per wakeup and client: a firehose gets no more than its share */
+/* Replies a client has not read yet stay below this (the kernel doubles it): an honest
+ * client has one or two outstanding, one that never reads is dropped soon. */
+#define TCP_SNDBUF 4096
 
 void clients_init(daemon_t *d)
 {
@@ -92,6 +95,7 @@ void clients_accept(daemon_t *d)
         struct sockaddr_in peer;
         socklen_t len = sizeof peer;
         int one = 1;
+        int sndbuf = TCP_SNDBUF;
         int slot;
         int fd = accept4(d->tcp_fd, (struct sockaddr *)&peer, &len, SOCK_NONBLOCK | SOCK_CLOEXEC);
 
@@ -112,9 +116,10 @@ void clients_accept(daemon_t *d)
             (void)close(fd);
             continue;
         }
-        /* Replies are single small frames: send them at once. Failing here only costs
-         * latency, so the result does not matter. */
+        /* Replies are single small frames: send them at once, and keep few unread ones.
+         * Failing here only costs latency or memory, so the results do not matter. */
         (void)setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
+        (void)setsockopt(fd, SOL_SOCKET, SO_SNDBUF, &sndbuf, sizeof sndbuf);
         if (client_start(d, fd, slot, &peer) != 0) {
             (void)close(fd);
         }

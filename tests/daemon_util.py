@@ -1,0 +1,312 @@
+"""Runs the real ``estopd`` for the integration tests (tests/test_estopd_*.py).
+
+The daemon is started on loopback with free ports (``--udp-port 0 --tcp-port 0 --bind
+127.0.0.1``), its can-log on stdout and its event log on stderr, both redirected to files (a
+file never fills up, so the daemon can never block on a test that is busy elsewhere). The
+ports come from the ``start`` line. :class:`Daemon` is a context manager that always kills
+the process on exit.
+
+Packets are encoded here with struct/zlib directly, independently of ``estop.protocol``, so the
+daemon is checked against a second reading of PROTOCOL.md.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import signal
+import socket
+import struct
+import subprocess
+import time
+import zlib
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+STOP_ID = 0xE570E570
+MSG_STATUS = 1
+MSG_RELEASE = 2
+ACK = 0x80
+NAK = 0x81
+STOPPED, ARMED = 0, 1
+R_NONE, R_BOOT, R_TCP_STOP, R_UDP_TIMEOUT, R_FAULT = range(5)
+BRAKE_ID = 0x050
+STATUS_ID = 0x051
+BRAKE_DATA_ID = 0x0E57
+STATUS_DATA_ID = 0x0E58
+
+# Text `start ... udp=127.0.0.1:41234 tcp=127.0.0.1:41235 ...` or the JSON form of it.
+START_RE = re.compile(r'\bstart\b.*\budp"?[=:]"?(?P<uhost>[\d.]+):(?P<uport>\d+)\b'
+                      r'.*\btcp"?[=:]"?(?P<thost>[\d.]+):(?P<tport>\d+)\b')
+CANLOG_RE = re.compile(r"^\((?P<sec>\d+)\.(?P<usec>\d{6})\) (?P<iface>\S+) "
+                       r"(?P<id>[0-9A-F]{3})#(?P<data>(?:[0-9A-F]{2})*)$")
+
+
+# ---- encoding (PROTOCOL.md 1, 2, 4) ---------------------------------------------------------
+
+def udp_packet(gas: float = 0.0, steer: float = 0.0, gear: int = 4, turn: int = 0,
+               horn: int = 0) -> bytes:
+    return struct.pack("<ffiii", gas, steer, gear, turn, horn)
+
+
+def tcp_frame(msg_id: int, seq: int, arg: int = 0) -> bytes:
+    body = struct.pack("<III", msg_id, seq, arg)
+    return body + struct.pack("<I", zlib.crc32(body))
+
+
+@dataclass(frozen=True)
+class Reply:
+    msg: int
+    seq: int
+    state: int
+    reason: int
+    flags: int
+    nak: int
+
+
+def parse_reply(raw: bytes) -> Reply:
+    assert len(raw) == 16, raw
+    msg, seq, state, reason, flags, nak, crc = struct.unpack("<IIBBBBI", raw)
+    assert crc == zlib.crc32(raw[:12]), f"bad reply crc: {raw.hex()}"
+    assert msg in (ACK, NAK), hex(msg)
+    assert (nak == 0) == (msg == ACK), raw.hex()
+    return Reply(msg, seq, state, reason, flags, nak)
+
+
+def crc8_j1850(data: bytes) -> int:
+    crc = 0xFF
+    for b in data:
+        crc ^= b
+        for _ in range(8):
+            crc = ((crc << 1) ^ 0x1D) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
+    return crc ^ 0xFF
+
+
+@dataclass(frozen=True)
+class Frame:
+    t: float  # CLOCK_REALTIME seconds
+    iface: str
+    can_id: int
+    data: bytes
+
+    @property
+    def state(self) -> int:
+        return self.data[2]
+
+    @property
+    def reason(self) -> int:
+        return self.data[3]
+
+    @property
+    def counter(self) -> int:
+        return self.data[6] & 0x0F
+
+    def crc_ok(self) -> bool:
+        data_id = BRAKE_DATA_ID if self.can_id == BRAKE_ID else STATUS_DATA_ID
+        expect = crc8_j1850(bytes([data_id & 0xFF, data_id >> 8]) + self.data[:7])
+        return len(self.data) == 8 and self.data[7] == expect
+
+    def is_brake(self) -> bool:
+        return self.can_id == BRAKE_ID
+
+
+def parse_canlog_line(line: str) -> Frame:
+    m = CANLOG_RE.match(line)
+    assert m is not None, f"not a can-utils log line: {line!r}"
+    t = int(m["sec"]) + int(m["usec"]) / 1e6
+    return Frame(t, m["iface"], int(m["id"], 16), bytes.fromhex(m["data"]))
+
+
+def check_frames(frames: list[Frame]) -> None:
+    """Every frame: DLC 8, good CRC, alive counters 0..14 in sequence per ID, brake layout."""
+    last: dict[int, int] = {}
+    for f in frames:
+        assert f.can_id in (BRAKE_ID, STATUS_ID), f
+        assert f.crc_ok(), f"bad CRC-8: {f}"
+        assert f.data[6] >> 4 == 0 and f.counter <= 14, f
+        if f.can_id in last:
+            assert f.counter == (last[f.can_id] + 1) % 15, f"counter jump {last[f.can_id]} -> {f}"
+        last[f.can_id] = f.counter
+        if f.is_brake():
+            stopped = f.state == STOPPED
+            assert f.data[0] == (1 if stopped else 0), f
+            assert f.data[1] == (100 if stopped else 0), f
+            assert f.data[5] == 0, f
+            assert (f.reason == R_NONE) == (not stopped), f
+
+
+# ---- the daemon -----------------------------------------------------------------------------
+
+def find_estopd() -> str:
+    """$ESTOPD, the repo's firmware/build/estopd, or estopd on PATH."""
+    for cand in (os.environ.get("ESTOPD"), str(ROOT / "firmware" / "build" / "estopd"),
+                 shutil.which("estopd")):
+        if cand and os.access(cand, os.X_OK):
+            return cand
+    pytest.fail("estopd binary not found: build it with `make -C firmware` (or set $ESTOPD)")
+
+
+def run_estopd(args: Iterable[str], timeout: float = 10.0) -> subprocess.CompletedProcess[str]:
+    """Runs estopd to completion (for options that end it at once)."""
+    return subprocess.run([find_estopd(), *args], capture_output=True, text=True,
+                          timeout=timeout, stdin=subprocess.DEVNULL, check=False)
+
+
+class _Tail:
+    """Complete lines of a file that another process appends to."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._buf = b""
+        self._pos = 0
+        self.lines: list[str] = []
+
+    def poll(self) -> list[str]:
+        with self.path.open("rb") as fh:
+            fh.seek(self._pos)
+            chunk = fh.read()
+        self._pos += len(chunk)
+        self._buf += chunk
+        *done, self._buf = self._buf.split(b"\n")
+        new = [d.decode() for d in done]
+        self.lines.extend(new)
+        return new
+
+
+class Daemon:
+    """One estopd process on loopback; use as a context manager (always killed on exit)."""
+
+    def __init__(self, tmp_path: Path, *extra: str) -> None:
+        self.argv = [find_estopd(), "--udp-port", "0", "--tcp-port", "0", "--bind",
+                     "127.0.0.1", "--can-log", "-", *extra]
+        self.out_path = tmp_path / f"canlog-{id(self)}.log"
+        self.err_path = tmp_path / f"stderr-{id(self)}.log"
+        self.proc: subprocess.Popen[bytes] | None = None
+        self.udp_port = 0
+        self.tcp_port = 0
+        self.start_line = ""
+        self._out = _Tail(self.out_path)
+        self._err = _Tail(self.err_path)
+        self._udp: socket.socket | None = None
+
+    # -- life cycle
+    def start(self, wait_s: float = 10.0) -> Daemon:
+        with self.out_path.open("wb") as out, self.err_path.open("wb") as err:
+            self.proc = subprocess.Popen(self.argv, stdin=subprocess.DEVNULL, stdout=out,
+                                         stderr=err)
+        deadline = time.monotonic() + wait_s
+        while time.monotonic() < deadline:
+            for line in self._err.poll():
+                m = START_RE.search(line)
+                if m:
+                    self.start_line = line
+                    self.udp_port, self.tcp_port = int(m["uport"]), int(m["tport"])
+                    return self
+            if self.proc.poll() is not None:
+                raise AssertionError(f"estopd exited {self.proc.returncode}: {self.log()}")
+            time.sleep(0.005)
+        raise AssertionError(f"estopd printed no start line: {self.log()}")
+
+    def __enter__(self) -> Daemon:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.kill()
+
+    def kill(self) -> None:
+        if self._udp is not None:
+            self._udp.close()
+            self._udp = None
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait(timeout=10)
+
+    def signal(self, sig: int = signal.SIGTERM, timeout: float = 10.0) -> int:
+        """Sends sig and waits for the exit code."""
+        assert self.proc is not None
+        self.proc.send_signal(sig)
+        return self.proc.wait(timeout=timeout)
+
+    # -- output
+    def log(self) -> list[str]:
+        self._err.poll()
+        return list(self._err.lines)
+
+    def frames(self) -> list[Frame]:
+        self._out.poll()
+        return [parse_canlog_line(line) for line in self._out.lines]
+
+    def wait_log(self, pred: Callable[[str], bool], timeout: float = 5.0) -> str:
+        deadline = time.monotonic() + timeout
+        while True:
+            for line in self.log():
+                if pred(line):
+                    return line
+            if time.monotonic() > deadline:
+                raise AssertionError(f"no matching log line in {timeout}s: {self.log()}")
+            time.sleep(0.005)
+
+    def wait_frame(self, pred: Callable[[Frame], bool], timeout: float = 5.0,
+                   after: int = 0) -> Frame:
+        """First frame from index `after` on that matches."""
+        deadline = time.monotonic() + timeout
+        while True:
+            for f in self.frames()[after:]:
+                if pred(f):
+                    return f
+            if time.monotonic() > deadline:
+                raise AssertionError(f"no matching frame in {timeout}s")
+            time.sleep(0.005)
+
+    # -- inputs
+    def send_udp(self, payload: bytes) -> None:
+        if self._udp is None:
+            self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self._udp.sendto(payload, ("127.0.0.1", self.udp_port))
+
+    def connect(self, timeout: float = 5.0) -> socket.socket:
+        return socket.create_connection(("127.0.0.1", self.tcp_port), timeout=timeout)
+
+    def request(self, msg_id: int, seq: int, sock: socket.socket | None = None) -> Reply:
+        """One request on a connection (a fresh one when sock is None), its reply."""
+        own = sock is None
+        s = self.connect() if sock is None else sock
+        try:
+            s.sendall(tcp_frame(msg_id, seq))
+            return parse_reply(recv_exact(s, 16))
+        finally:
+            if own:
+                s.close()
+
+    def make_live(self, n: int = 6, gas: float = 0.0) -> None:
+        """Enough valid packets, quickly, for the link to count as live."""
+        for _ in range(n):
+            self.send_udp(udp_packet(gas=gas))
+
+    def arm(self) -> Reply:
+        """Link live, neutral, RELEASE: the unit goes ARMED."""
+        self.make_live()
+        time.sleep(0.01)  # let the packets arrive before the TCP request overtakes them
+        reply = self.request(MSG_RELEASE, 1)
+        assert reply.msg == ACK and reply.state == ARMED, reply
+        return reply
+
+
+def recv_exact(s: socket.socket, n: int) -> bytes:
+    buf = b""
+    while len(buf) < n:
+        chunk = s.recv(n - len(buf))
+        if not chunk:
+            raise ConnectionError(f"closed after {len(buf)} of {n} bytes")
+        buf += chunk
+    return buf
+
+
+def state_lines(lines: list[str]) -> list[str]:
+    return [line for line in lines if " state " in line]

@@ -439,9 +439,16 @@ def test_monitor_virtual_bus(capsys) -> None:
     can = pytest.importorskip("can")
     channel = f"estop_test_{os.getpid()}_{time.monotonic_ns()}"
 
+    def monitor_listening() -> bool:
+        # python-can's virtual bus keeps one queue per open end, by channel
+        from can.interfaces import virtual
+        return len(getattr(virtual, "channels", {}).get(channel, ())) >= 2
+
     def send() -> None:
         with can.Bus(interface="virtual", channel=channel) as bus:
-            time.sleep(0.2)  # let the monitor open its end
+            deadline = time.monotonic() + 5
+            while not monitor_listening() and time.monotonic() < deadline:
+                time.sleep(0.01)
             for i in range(5):
                 bus.send(can.Message(arbitration_id=0x050, is_extended_id=False,
                                      data=BrakeFrame.for_state(1, 0, 0, i).encode()))
@@ -452,7 +459,7 @@ def test_monitor_virtual_bus(capsys) -> None:
     sender.start()
     try:
         code, out, _ = run_cli(capsys, "monitor", "--interface", "virtual", "--channel", channel,
-                               "--duration", "0.6")
+                               "--duration", "0.8")
     finally:
         sender.join(timeout=5)
     assert code == 1
@@ -473,10 +480,10 @@ def test_remote_script_sends_at_rate_with_exact_content(unit: FakeUnit, capsys) 
     assert code == 0
     time.sleep(0.05)
     datas = [d for _, d in unit.packets]
-    assert 40 <= len(datas) <= 56  # 50 Hz for 1 s, roughly
+    assert 35 <= len(datas) <= 60  # 50 Hz for 1 s, roughly
     assert set(datas) == {bytes.fromhex("00000000 00000000 04000000 00000000 00000000")}
     gaps = intervals([t for t, _ in unit.packets])
-    assert 0.017 <= statistics.median(gaps) <= 0.023
+    assert 0.016 <= statistics.median(gaps) <= 0.024
     assert f"summary: {len(datas)} packets sent, {len(datas)} delivered, 0 lost" in out
 
 

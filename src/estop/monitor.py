@@ -152,8 +152,8 @@ def _run_bus(monitor: Monitor, interface: str, channel: str | None, duration: fl
     try:
         bus = can.Bus(interface=interface, channel=channel)
     except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
-        msg = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise ConnectionFailure(f"cannot open {interface} bus {channel or ''}: {msg}") from None
+        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ConnectionFailure(f"cannot open {interface} bus {channel or ''}: {why}") from None
     end = None if duration is None else time.monotonic() + duration
     seen = 0
     try:

@@ -62,6 +62,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
+from typing import Any
 
 from estop.cliutil import (
     EXIT_OK,
@@ -247,7 +248,7 @@ class Remote:
     def control(self) -> ControlPacket:
         return self._control
 
-    def set_control(self, packet: ControlPacket | None = None, **fields: float) -> ControlPacket:
+    def set_control(self, packet: ControlPacket | None = None, **fields: Any) -> ControlPacket:
         """Replace the packet sent from now on, or change some of its fields
         (``gas_brake``, ``steering``, ``gear``, ``turn_signal``, ``horn``). Raises
         :class:`~estop.protocol.udp.InvalidPacket` for values the unit would reject."""
@@ -350,13 +351,17 @@ class Step:
     text: str = ""
 
 
-_GEARS = {"park": Gear.PARK, "p": Gear.PARK, "reverse": Gear.REVERSE, "r": Gear.REVERSE,
-          "neutral": Gear.NEUTRAL, "n": Gear.NEUTRAL, "drive": Gear.DRIVE, "d": Gear.DRIVE,
-          "1": Gear.PARK, "2": Gear.REVERSE, "4": Gear.NEUTRAL, "8": Gear.DRIVE}
-_SIGNALS = {"off": TurnSignal.OFF, "left": TurnSignal.LEFT, "right": TurnSignal.RIGHT,
-            "both": TurnSignal.BOTH, "0": TurnSignal.OFF, "1": TurnSignal.LEFT,
-            "2": TurnSignal.RIGHT, "3": TurnSignal.BOTH}
-_HORN = {"on": 1, "1": 1, "off": 0, "0": 0}
+_GEARS: dict[str, int] = {
+    "park": Gear.PARK, "p": Gear.PARK, "reverse": Gear.REVERSE, "r": Gear.REVERSE,
+    "neutral": Gear.NEUTRAL, "n": Gear.NEUTRAL, "drive": Gear.DRIVE, "d": Gear.DRIVE,
+    "1": Gear.PARK, "2": Gear.REVERSE, "4": Gear.NEUTRAL, "8": Gear.DRIVE,
+}
+_SIGNALS: dict[str, int] = {
+    "off": TurnSignal.OFF, "left": TurnSignal.LEFT, "right": TurnSignal.RIGHT,
+    "both": TurnSignal.BOTH, "0": TurnSignal.OFF, "1": TurnSignal.LEFT,
+    "2": TurnSignal.RIGHT, "3": TurnSignal.BOTH,
+}
+_HORN: dict[str, int] = {"on": 1, "1": 1, "off": 0, "0": 0}
 _EXPECT_WORDS = ({"ack", "nak", "link_degraded", "link_ok"}
                  | {n.lower() for n in STATE_NAMES.values()} | set(REASON_NAMES.values())
                  | {v for k, v in tcp.NAK_NAMES.items() if k})
@@ -396,8 +401,8 @@ def _arg(kind: str, word: str, op: str) -> float:
         return _number(word, op, -1.0, 1.0)
     if kind == "rate":
         return _number(word, op, 0.1, 10000.0)
-    table: dict[str, int] = {"gear": _GEARS, "signal": _SIGNALS, "horn": _HORN}[kind]
-    return _code(word, op, table)
+    tables = {"gear": _GEARS, "signal": _SIGNALS, "horn": _HORN}
+    return _code(word, op, tables[kind])
 
 
 def _parts(text: str) -> Iterator[str]:

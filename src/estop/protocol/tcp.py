@@ -59,7 +59,7 @@ class NakCode(IntEnum):
     NOT_NEUTRAL = 3
 
 
-NAK_NAMES = {
+NAK_NAMES: dict[int, str] = {
     NakCode.NONE: "none",
     NakCode.UNKNOWN_MSG_ID: "unknown_msg_id",
     NakCode.NO_LIVE_LINK: "no_live_link",

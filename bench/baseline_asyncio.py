@@ -48,8 +48,8 @@ class Unit:
         self.warn_s = timeout_s / 2.0
         self.stop_id = stop_id
         self.check_s = check_s
-        self.state = STOPPED
-        self.reason = R_BOOT
+        self.state: int = STOPPED
+        self.reason: int = R_BOOT
         self.last_valid = 0.0  # monotonic time of the latest valid packet (0: none)
         self.last_neutral = False
         self.valid_since_stop = 0

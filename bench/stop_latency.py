@@ -52,6 +52,7 @@ METRIC_TITLES = {"overshoot": "timeout overshoot", "tcp_stop": "TCP stop latency
 GOAL_FLOOD_RATE = 50_000.0
 GOAL_P999_MS = {"idle": 1.0, "flood": 2.0}
 GOAL_AHEAD_FACTOR = 5.0
+BUSY_CORES = 0.25  # other processes' CPU during a run above which the report warns
 
 
 # --------------------------------------------------------------------------------------------
@@ -181,9 +182,13 @@ class Flood:
         self.port = port
         self.stats = FloodStats(rate)
         self._drops0 = udp_drops(port)
-        self._proc = subprocess.Popen(
+        self._proc: subprocess.Popen[str] = subprocess.Popen(
             [sys.executable, str(Path(__file__).resolve()), "--flood-child", str(port),
              str(rate), str(max_s)], stdout=subprocess.PIPE, text=True)
+
+    @property
+    def pid(self) -> int:
+        return self._proc.pid
 
     def stop(self) -> FloodStats:
         if self._proc.poll() is None:
@@ -205,6 +210,62 @@ class Flood:
 
 
 # --------------------------------------------------------------------------------------------
+# How busy the machine was with other work during a run
+
+
+def _cpu_jiffies() -> tuple[int, int, int] | None:
+    """(busy, steal, total) jiffies of all CPUs from /proc/stat."""
+    try:
+        first = Path("/proc/stat").read_text().splitlines()[0].split()
+    except (OSError, IndexError):
+        return None
+    v = [int(x) for x in first[1:9]]  # user nice system idle iowait irq softirq steal
+    total = sum(v)
+    return total - v[3] - v[4], v[7], total
+
+
+def _proc_jiffies(pid: int | None) -> int:
+    """utime + stime of a process (all its threads); 0 when it is gone."""
+    if pid is None:
+        return 0
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return 0
+    f = stat.rsplit(")", 1)[1].split()
+    return int(f[11]) + int(f[12])
+
+
+class CpuMeter:
+    """CPU used during a run by processes other than the bench, its daemon and its flooder
+    (in cores, averaged), and the hypervisor's steal. Linux /proc only; None elsewhere."""
+
+    def __init__(self) -> None:
+        self.tck = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+        self.start = _cpu_jiffies()
+        self.own_start = _proc_jiffies(os.getpid())
+        self.pids: dict[int, int] = {}  # pid -> jiffies when first seen
+
+    def watch(self, pid: int | None) -> None:
+        if pid is not None and pid not in self.pids:
+            self.pids[pid] = _proc_jiffies(pid)
+
+    def sample_children(self) -> int:
+        return sum(_proc_jiffies(p) - j0 for p, j0 in self.pids.items())
+
+    def finish(self, children_used: int) -> tuple[float | None, float | None]:
+        end = _cpu_jiffies()
+        if self.start is None or end is None or end[2] <= self.start[2]:
+            return None, None
+        ncpu = os.cpu_count() or 1
+        span = (end[2] - self.start[2]) / ncpu  # wall jiffies
+        own = _proc_jiffies(os.getpid()) - self.own_start + children_used
+        other = max(0.0, (end[0] - self.start[0] - own) / span)
+        steal = (end[1] - self.start[1]) / span
+        return other, steal
+
+
+# --------------------------------------------------------------------------------------------
 # Trials
 
 
@@ -219,8 +280,12 @@ class RunResult:
     discarded: dict[str, int] = field(default_factory=lambda: {m: 0 for m in METRICS})
     release_failures: int = 0
     release_naks: int = 0
+    status_frames: int = 0
+    status_invalid_saturated: int = 0  # STATUS frames counting >= 255 invalid packets / 100 ms
     wall_s: float = 0.0
     flood: FloodStats | None = None
+    other_cpu: float | None = None  # cores used by other processes during the run
+    steal_cpu: float | None = None  # cores stolen by the hypervisor during the run
     error: str | None = None
 
     def early(self, metric: str) -> int:
@@ -275,7 +340,11 @@ class Trials:
                 if not self.d.alive():
                     raise DaemonError("the daemon died") from None
                 continue
-            if is_stop_frame(rec) and stamp(rec) >= after:
+            if rec.can_id == can.STATUS_ID and len(rec.data) == can.DLC:
+                self.r.status_frames += 1
+                if can.StatusFrame.parse(rec.data).invalid_packets == 255:
+                    self.r.status_invalid_saturated += 1
+            elif is_stop_frame(rec) and stamp(rec) >= after:
                 return stamp(rec), can.BrakeFrame.parse(rec.data).reason
 
     def timeout_trial(self) -> bool:
@@ -350,13 +419,17 @@ def run_one(name: str, command: list[str], load: str, args: argparse.Namespace,
     res = RunResult(name, load, args.timeout_ms)
     t0 = time.monotonic()
     flood: Flood | None = None
+    meter = CpuMeter()
+    children = 0
     daemon = Daemon(command, timeout_ms=args.timeout_ms)
     try:
         daemon.start()
+        meter.watch(daemon.pid)
         link = Link(daemon.udp_port, daemon.tcp_port)
         try:
             if load == "flood":
                 flood = Flood(daemon.udp_port, args.flood_rate, args.max_run_s + 10.0)
+                meter.watch(flood.pid)
                 time.sleep(0.5)  # let the flood reach its rate
             gc.collect()
             gc.disable()
@@ -366,6 +439,7 @@ def run_one(name: str, command: list[str], load: str, args: argparse.Namespace,
             finally:
                 gc.enable()
         finally:
+            children = meter.sample_children()
             if flood is not None:
                 res.flood = flood.stop()
             link.close()
@@ -375,6 +449,7 @@ def run_one(name: str, command: list[str], load: str, args: argparse.Namespace,
         if flood is not None and res.flood is None:
             res.flood = flood.stop()
         daemon.stop()
+    res.other_cpu, res.steal_cpu = meter.finish(children)
     res.wall_s = time.monotonic() - t0
     return res
 
@@ -432,19 +507,33 @@ def markdown(results: list[RunResult], meta: dict[str, Any],
                 f"| {r.daemon} | {r.load} | {METRIC_TITLES[m]} | {s['n']} | {fmt_ms(s['p50'])} |"
                 f" {fmt_ms(s['p99'])} | {fmt_ms(s['p99.9'])} | {fmt_ms(s['max'])} | {early} |"
                 f" {r.missed[m]} | {r.wrong_reason[m]} | {r.discarded[m]} |")
-    lines += ["", "Flood (per run): sender's count over its own run time; kernel drops are "
-              "datagrams the daemon's socket dropped for a full receive buffer.", ""]
+    lines += ["", "Flood (per run): the sender's count over its own run time; kernel drops: "
+              "datagrams the daemon's socket dropped (receive buffer full); STATUS: the "
+              "daemon's own ESTOP_STATUS frames whose invalid-packet count (per 100 ms) "
+              "saturated at 255, i.e. it saw >= 2,550 invalid packets/s.", ""]
     for r in results:
         if r.flood is not None:
             f = r.flood
             drops = "n/a" if f.kernel_drops is None else f"{f.kernel_drops:,}"
             lines.append(f"- {r.daemon}: {f.sent:,} packets in {f.elapsed_s:.1f} s = "
-                         f"{f.rate:,.0f} packets/s; kernel drops {drops}")
-    lines += ["", "Per run: wall time, RELEASE refusals (retried) and failures, errors.", ""]
+                         f"{f.rate:,.0f} packets/s; kernel drops {drops}; STATUS saturated "
+                         f"{r.status_invalid_saturated} of {r.status_frames}")
+    lines += ["", "Per run: wall time; CPU that other processes on this machine used meanwhile "
+              "(cores, averaged; not the bench, its daemon or its flooder) and hypervisor "
+              "steal: numbers taken on a busy machine have fatter tails; RELEASE refusals "
+              "(retried) and failures; errors.", ""]
     for r in results:
         err = f"; ERROR {r.error}" if r.error else ""
-        lines.append(f"- {r.daemon} {r.load}: {r.wall_s:.1f} s; RELEASE NAKs {r.release_naks},"
-                     f" release failures {r.release_failures}{err}")
+        other = "n/a" if r.other_cpu is None else f"{r.other_cpu:.2f}"
+        steal = "n/a" if r.steal_cpu is None else f"{r.steal_cpu:.2f}"
+        lines.append(f"- {r.daemon} {r.load}: {r.wall_s:.1f} s; other CPU {other} cores, "
+                     f"steal {steal}; RELEASE NAKs {r.release_naks}, release failures "
+                     f"{r.release_failures}{err}")
+    busy = [r for r in results if r.other_cpu is not None and r.other_cpu > BUSY_CORES]
+    if busy:
+        lines += ["", "WARNING: the machine was busy with other work during "
+                  + ", ".join(f"{r.daemon} {r.load} ({r.other_cpu:.2f} cores)" for r in busy)
+                  + ": their tails show that load as much as the daemon under test."]
     lines += ["", "Goals:", ""]
     lines += [f"- {'PASS' if ok else 'FAIL'}: {text}" for text, ok in goals]
     lines += ["", "Columns: early = stop frame before last packet + timeout (safe, but the "
@@ -552,13 +641,14 @@ def main(argv: list[str] | None = None) -> int:
     md = markdown(results, meta, goals)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "stop_latency.md").write_text(md)
-    doc = {"meta": meta, "goals": [{"goal": g, "pass": ok} for g, ok in goals], "runs": []}
+    runs: list[dict[str, Any]] = []
+    doc = {"meta": meta, "goals": [{"goal": g, "pass": ok} for g, ok in goals], "runs": runs}
     for r in results:
         d = asdict(r)
         d["summary_ms"] = {m: summarize(r.samples[m]) for m in METRICS}
         if r.flood is not None:
             d["flood"]["rate"] = r.flood.rate
-        doc["runs"].append(d)
+        runs.append(d)
     (args.out / "stop_latency.json").write_text(json.dumps(doc, indent=1, allow_nan=True))
     plot(results, args.out / "stop_latency.png", args.timeout_ms)
     say()

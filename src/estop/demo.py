@@ -288,6 +288,7 @@ class View:
     live: bool
     t0: float
     phase: str = "boot"
+    remote: str = "silent"
     brake: can.BrakeFrame | None = None
     link_age_ms: int | None = None
     frames: int = 0
@@ -339,23 +340,25 @@ class View:
                                f" brake_request={b.brake_request} (counter {b.counter})")
 
     def line(self) -> str:
+        """The live status line, most important fields first (it is cut to the terminal)."""
         now = time.time() - self.t0
         b = self.brake
         if b is None:
             bus = "no brake frame yet"
         else:
-            flags = ",".join(can.flag_names(b.flags)) or "-"
-            bus = (f"{can.state_name(b.state):7} reason={can.reason_name(b.reason):11} "
-                   f"flags={flags:13} brake={b.brake_request} ctr={b.counter:2}")
-        age = "-" if self.link_age_ms is None else f"{self.link_age_ms:3d} ms"
-        return (f"[{now:5.2f}s] {self.phase:13} | {bus} | frames {self.frames:4} "
-                f"| link age {age}")
+            flags = "degraded" if b.flags & can.FLAG_LINK_DEGRADED else "-"
+            bus = (f"{can.state_name(b.state):7} {can.reason_name(b.reason):11} "
+                   f"brake={b.brake_request} flags={flags:8} | ctr {b.counter:2}")
+        age = "-" if self.link_age_ms is None else f"{self.link_age_ms} ms"
+        return (f"[{now:5.2f}s] {self.phase:13} | {bus} | link age {age:>6} | frames "
+                f"{self.frames:4} | remote {self.remote}")
 
     def draw(self) -> None:
         now = time.monotonic()
         if self.live:
             if now - self._last_draw >= 0.05:
-                self.out.write("\r\x1b[2K" + self.line())
+                width = shutil.get_terminal_size().columns - 1
+                self.out.write("\r\x1b[2K" + self.line()[:width])
                 self.out.flush()
                 self._last_draw = now
         elif now - self._last_plain >= 1.0:
@@ -389,8 +392,12 @@ class Script:
         while True:
             now = time.monotonic()
             if packet is not None and now >= next_send:
-                self.last_valid_sent = self.link.send_control(*packet(now - start))
+                gas, steer, gear = packet(now - start)
+                self.last_valid_sent = self.link.send_control(gas, steer, gear)
+                self.view.remote = f"gas {gas:+.2f} steer {steer:+.2f}"
                 next_send += period_s
+            elif packet is None:
+                self.view.remote = "silent"
             while True:
                 try:
                     self.view.take(self.daemon.frames.get_nowait())
@@ -503,7 +510,7 @@ def _fmt_ms(v: float | None) -> str:
 
 def _report(out: TextIO, view: View, res: Result, timeout_ms: int) -> None:
     out.write("\nTimeline\n")
-    for t, text in view.events:
+    for t, text in sorted(view.events, key=lambda e: e[0]):
         out.write(f"  {t - view.t0:7.3f}s  {text}\n")
     out.write("\nStops measured (the daemon's can-log stamps against the send times, both "
               "CLOCK_REALTIME)\n")

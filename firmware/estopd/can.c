@@ -93,8 +93,8 @@ static void can_lost(can_t *c, uint64_t now)
     if (c->fd >= 0) {
         (void)close(c->fd); /* closing also removes it from epoll */
         c->fd = -1;
+        c->reopen_at = now + CAN_REOPEN_US;
     }
-    c->reopen_at = now + CAN_REOPEN_US;
 }
 
 static void can_reopen(can_t *c, uint64_t now)
@@ -225,7 +225,7 @@ static void flush(can_t *c, uint64_t now)
     if (c->fd < 0) {
         can_reopen(c, now);
     }
-    while (c->n_queue > 0u) {
+    while (c->fd >= 0 && c->n_queue > 0u) {
         size_t i = queue_next(c);
         estop_can_frame_t f = c->queue[i];
         int err = can_write(c, &f);
@@ -237,7 +237,8 @@ static void flush(can_t *c, uint64_t now)
         note_success(c, &f, now);
     }
     if (c->n_queue > 0u) {
-        c->retry_at = now + CAN_RETRY_US;
+        /* While the interface is gone only a reopen can help: wait for that. */
+        c->retry_at = c->fd < 0 ? c->reopen_at : now + CAN_RETRY_US;
     }
     check_stuck(c, now);
 }

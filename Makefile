@@ -7,7 +7,7 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 COVDIR := build/cov
 
-.PHONY: setup demo test check pytest coverage hil bench clean
+.PHONY: setup demo test check coverage hil bench mutants clean
 setup: $(STAMP) $(VENV)/bin/estopd
 
 $(STAMP): pyproject.toml setup.py pyext/build_core.py $(wildcard firmware/core/*)
@@ -49,6 +49,10 @@ hil: setup
 
 bench: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/stop_latency.py
+
+# Mutation testing of the core (about 1.5 minutes; not part of `make test`).
+mutants: setup
+	$(VPY) tools/mutants.py
 
 clean:
 	rm -rf build firmware/build $(VENV) src/estop/_core*.so

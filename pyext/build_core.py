@@ -47,13 +47,14 @@ def cdef_from_header(text: str) -> str:
 
 
 def make_builder(module: str, extra_compile_args: list[str] | None = None,
-                 extra_link_args: list[str] | None = None, relative: bool = True) -> FFI:
+                 extra_link_args: list[str] | None = None, relative: bool = True,
+                 core_dir: Path = CORE_DIR) -> FFI:
     ffi = FFI()
-    text = HEADER.read_text()
+    text = (core_dir / HEADER.name).read_text()
     # The C++ guard's closing brace is the only bare "}" line at top level after the prototypes.
     text = text.replace('#ifdef __cplusplus\n}\n#endif', "")
     ffi.cdef(cdef_from_header(text))
-    base = Path(os.path.relpath(CORE_DIR, ROOT)) if relative else CORE_DIR
+    base = Path(os.path.relpath(core_dir, ROOT)) if relative else core_dir
     ffi.set_source(
         module,
         '#include "estop_core.h"\n',

@@ -70,10 +70,10 @@ def test_random_bytes_never_keep_it_alive_unless_valid(junk: list[bytes]) -> Non
 @settings(max_examples=300, deadline=None)
 @given(fields=st.tuples(st.floats(width=32), st.floats(width=32), st.integers(-2**31, 2**31 - 1),
                         st.integers(-2**31, 2**31 - 1), st.integers(-2**31, 2**31 - 1)),
-       legacy=st.booleans())
+       length=st.one_of(st.sampled_from([16, 20]), st.integers(0, 24)))
 def test_core_and_python_codec_agree_on_validity(fields: tuple[float, float, int, int, int],
-                                                 legacy: bool) -> None:
-    data = struct.pack("<ffiii", *fields)[: 16 if legacy else 20]
+                                                 length: int) -> None:
+    data = (struct.pack("<ffiii", *fields) + bytes(4))[:length]
     wd = Watchdog()
     wd.udp(data, 0)
     counters = wd.status().counters

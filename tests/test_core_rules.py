@@ -200,6 +200,15 @@ def test_only_valid_packets_keep_the_unit_alive() -> None:
     assert u.wd.status().counters.udp_invalid >= 30 * len(bad)
 
 
+@pytest.mark.parametrize("length", [0, 1, 8, 15, 17, 18, 19, 21, 24, 64])
+def test_packets_of_other_lengths_are_invalid(length: int) -> None:
+    good = packet() + packet()  # every prefix starts like a valid neutral packet
+    u = Unit()
+    u.udp(good[:length])
+    counters = u.wd.status().counters
+    assert (counters.udp_valid, counters.udp_invalid) == (0, 1)
+
+
 def test_old_16_byte_packet_keeps_the_unit_alive() -> None:
     u = Unit()
     u.arm()

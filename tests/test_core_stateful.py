@@ -12,6 +12,7 @@ Invariants checked on the C core's output at every step:
 
 from __future__ import annotations
 
+import os
 import struct
 
 import hypothesis.strategies as st
@@ -224,7 +225,8 @@ class CoreVsModel(RuleBasedStateMachine):
 
 
 CoreVsModel.TestCase.settings = settings(
-    max_examples=2000,
+    # The mutation run (tools/mutants.py) asks for fewer examples per mutant.
+    max_examples=int(os.environ.get("ESTOP_STATEFUL_EXAMPLES", "2000")),
     stateful_step_count=30,
     deadline=None,
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much],

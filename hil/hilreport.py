@@ -47,6 +47,7 @@ def figures_text(res: dict) -> str:
 
 def protocol_md(doc: dict, extra: dict | None = None) -> str:
     meta = doc.get("meta", {})
+    prof = meta.get("timing_profile") or {}
     extra = extra or {}
     lines = [
         f"# estop HIL test protocol, {meta.get('date', '?')}",
@@ -60,6 +61,9 @@ def protocol_md(doc: dict, extra: dict | None = None) -> str:
     lines += [
         f"- Bus: SocketCAN `{meta.get('iface', '?')}` (vcan), mode **{meta.get('mode', '?')}**"
         f", kernel {meta.get('kernel', '?')}, python-can {meta.get('python_can', '?')}",
+        f"- Timing limits: profile **{prof.get('profile', '?')}** (\"at once\" = median <= "
+        f"{prof.get('p50', '?')} ms, each <= {prof.get('max', '?')} ms; live emulator "
+        f"allowance {prof.get('emu', '?')} ms beyond 50 ms)",
         f"- Daemon timeout {meta.get('timeout_ms', '?')} ms; latency scenarios repeated "
         f"{meta.get('repeat', '?')}x; scenario runtime {meta.get('runtime_s', '?')} s",
     ]

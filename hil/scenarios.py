@@ -66,13 +66,34 @@ from hilrig import (  # noqa: E402
 
 TIMEOUT_MS = 200
 WARN_MS = TIMEOUT_MS / 2
-# Pass limits (ms). A daemon that only acts on its 10 ms tick shows a median near 5 ms, so the
-# median limit tells "at once" from "at the next tick"; the max limit leaves room for scheduler
-# hiccups (a TCG VM has a few ms) but stays at one frame period.
-IMMEDIATE_P50_MS = 2.0
-IMMEDIATE_MAX_MS = 10.0
 EARLY_TOL_MS = 0.1  # a stop before the deadline is a failure (clock granularity only)
-EMULATOR_TOL_MS = 5.0  # the emulator's own reaction time allowance
+
+
+@dataclass(frozen=True)
+class Limits:
+    """Pass limits for "at once" (ms). A daemon that acts only on its 10 ms tick shows a median
+    near 5 ms more than one that acts at once, so the median limit tells the two apart; the max
+    limit leaves room for scheduler hiccups.
+
+    ``strict`` holds on a real kernel (native vcan, or a KVM guest). Under TCG (software CPU
+    emulation) every wake-up costs a few ms and stalls of 10-30 ms occur, so the ``tcg``
+    profile widens the latency limits; the spec-level limits (50 ms brake silence, no early
+    stop, no lost frames) are the same in both profiles.
+    """
+
+    profile: str
+    p50: float  # median of an "at once" latency
+    max: float  # any single "at once" latency
+    emu: float  # the live emulator's own reaction allowance beyond the 50 ms
+
+    @classmethod
+    def for_profile(cls, profile: str) -> Limits:
+        if profile == "tcg":
+            return cls("tcg", 5.0, 25.0, 200.0)
+        return cls("strict", 2.0, 10.0, 5.0)
+
+
+LIM = Limits.for_profile("strict")
 
 
 def log(msg: str) -> None:
@@ -298,8 +319,8 @@ def sc_release(run: Run, res: Result) -> None:
     res.figures["armed_frame"] = fr.data.hex(" ")
     res.check(not b.brakes and b.brake_level == 0 and b.reason == 0,
               "ARMED frame does not release the brake")
-    res.check(lat * 1000 <= IMMEDIATE_MAX_MS,
-              f"ARMED frame {ms(lat)} ms after the RELEASE (> {IMMEDIATE_MAX_MS} ms)")
+    res.check(lat * 1000 <= LIM.max,
+              f"ARMED frame {ms(lat)} ms after the RELEASE (> {LIM.max} ms)")
     ev = d.wait_event(lambda r: r.get("event") == "state" and r.get("to") == "ARMED", since, 1.0)
     res.figures["log_state_event"] = None if ev is None else \
         f"{ev.get('from')}->{ev.get('to')} reason={ev.get('reason')} src={ev.get('src')}"
@@ -352,12 +373,12 @@ def sc_deadman(run: Run, res: Result) -> None:
     res.figures["degraded_flag_after_ms"] = summary(flag)
     if over:
         res.check(min(over) >= -EARLY_TOL_MS, f"stop before the deadline ({min(over)} ms)")
-        res.check(sorted(over)[len(over) // 2] <= IMMEDIATE_P50_MS,
-                  f"median overshoot > {IMMEDIATE_P50_MS} ms (stop waits for the tick?)")
-        res.check(max(over) <= IMMEDIATE_MAX_MS, f"max overshoot > {IMMEDIATE_MAX_MS} ms")
+        res.check(sorted(over)[len(over) // 2] <= LIM.p50,
+                  f"median overshoot > {LIM.p50} ms (stop waits for the tick?)")
+        res.check(max(over) <= LIM.max, f"max overshoot > {LIM.max} ms")
     if flag:
         res.check(min(flag) >= WARN_MS - EARLY_TOL_MS, "link-degraded flag before the warn time")
-        res.check(max(flag) <= WARN_MS + 10 + IMMEDIATE_MAX_MS,
+        res.check(max(flag) <= WARN_MS + 10 + LIM.max,
                   "link-degraded flag later than warn time + one period + slack")
     res.check(len(over) == run.args.repeat, "not every run stopped")
 
@@ -389,9 +410,9 @@ def sc_tcp_stop(run: Run, res: Result) -> None:
     res.figures["clients"] = len(run.clients)
     if lat:
         res.check(min(lat) >= 0, "stop frame before the STOP was sent (clock problem)")
-        res.check(sorted(lat)[len(lat) // 2] <= IMMEDIATE_P50_MS,
-                  f"median latency > {IMMEDIATE_P50_MS} ms (waits for the tick?)")
-        res.check(max(lat) <= IMMEDIATE_MAX_MS, f"max latency > {IMMEDIATE_MAX_MS} ms")
+        res.check(sorted(lat)[len(lat) // 2] <= LIM.p50,
+                  f"median latency > {LIM.p50} ms (waits for the tick?)")
+        res.check(max(lat) <= LIM.max, f"max latency > {LIM.max} ms")
     res.check(len(lat) == run.args.repeat + 4, "not every STOP showed on the bus")
     time.sleep(0.25)
 
@@ -452,7 +473,7 @@ def sc_invalid_flood(run: Run, res: Result) -> None:
         res.figures["overshoot_ms"] = o
         res.check(b.reason == 3, f"stop reason {b.reason}, want 3 udp timeout")
         res.check(o >= -EARLY_TOL_MS, "stopped before the deadline")
-        res.check(o <= IMMEDIATE_MAX_MS, f"overshoot {o} ms > {IMMEDIATE_MAX_MS} ms")
+        res.check(o <= LIM.max, f"overshoot {o} ms > {LIM.max} ms")
     res.figures["release_during_flood"] = f"ack={ex.reply.ack} nak={ex.reply.nak_code}"
     res.check(not ex.reply.ack and ex.reply.nak_code == 2,
               "RELEASE while only invalid packets arrive: not NAK 2")
@@ -539,6 +560,7 @@ def sc_txqueue_full(run: Run, res: Result) -> None:
                     counts[key] += 1
                 time.sleep(0.0005)
 
+    t_qdisc = time.time()
     sh(["tc", "qdisc", "add", "dev", run.iface, "root", "tbf", "rate", "1kbit",
         "burst", "160", "limit", "160"])
     th = threading.Thread(target=flood, daemon=True)
@@ -560,12 +582,11 @@ def sc_txqueue_full(run: Run, res: Result) -> None:
     qstat = sh(["tc", "-s", "qdisc", "show", "dev", run.iface], check=False).stdout
     stop.set()
     th.join(timeout=2)
-    start = run.mon.index()
-    t_clear = time.time()
     sh(["tc", "qdisc", "del", "dev", run.iface, "root"])
-    first = run.brake_after(start, lambda _b: True, 1.0)
+    t_clear = time.time()  # ``tc`` has returned: the queue is gone (spawning tc is slow in TCG)
+    first = run.mon.wait_for(lambda f: f.can_id == BRAKE_ID and f.ts > t_clear, 0, 1.0)
     time.sleep(0.3)
-    run.windows.append((t_full - 0.01, (first[0].ts if first else t_clear) + 0.02,
+    run.windows.append((t_qdisc - 0.01, (first.ts if first else t_clear) + 0.02,
                         "tx queue full"))
     stats1 = iface_stats(run.iface)
     res.figures["flood"] = dict(counts)
@@ -587,8 +608,9 @@ def sc_txqueue_full(run: Run, res: Result) -> None:
     if first is None:
         res.check(False, "no ESTOP_BRAKE frame within 1 s after the queue drained")
     else:
-        fr, b = first
+        fr, b = first, BrakeFrame.parse(first.data)
         res.figures["drain_to_first_frame_ms"] = ms(fr.ts - t_clear)
+        res.check(fr.ts - t_clear <= 0.05, "frames resumed more than 50 ms after the drain")
         res.check(b.brakes and b.state == 0 and b.reason == 4,
                   f"after the queue drained: {fr.data.hex(' ')}, want STOPPED reason fault")
         after = [f for f in run.mon.window(t_clear, t_clear + 0.3) if f.can_id == BRAKE_ID]
@@ -606,30 +628,42 @@ def sc_sigkill(run: Run, res: Result) -> None:
     time.sleep(0.2)
     t_kill = d.signal(signal.SIGKILL)
     code = d.wait(2.0)
+    t_dead = time.time()  # reaped: the process is gone
     time.sleep(0.2)
     run.windows.append((t_kill - 0.01, time.time() + 3.0, "killed, restarting"))
     res.figures["exit"] = code
-    before = [f for f in run.mon.window(t_kill - 1.0, t_kill) if f.can_id == BRAKE_ID]
-    after = [f for f in run.mon.window(t_kill + 0.002, time.time())
-             if f.can_id in (BRAKE_ID, STATUS_ID)]
-    res.check(not after, f"{len(after)} frames from the unit after SIGKILL")
-    if not before:
+    res.check(code == -signal.SIGKILL, f"exit status {code}, want killed by SIGKILL")
+    unit = [f for f in run.mon.window(t_kill - 1.0, time.time())
+            if f.can_id in (BRAKE_ID, STATUS_ID)]
+    brake = [f for f in unit if f.can_id == BRAKE_ID and f.ts <= t_dead]
+    late = [f for f in unit if f.ts > t_dead]
+    res.figures["frames_between_kill_and_reap"] = sum(1 for f in unit if t_kill < f.ts <= t_dead)
+    res.figures["frames_after_exit"] = len(late)
+    res.check(not late, f"{len(late)} frames from the unit after its process was gone")
+    if not brake:
         res.check(False, "no ESTOP_BRAKE frame in the second before the kill")
         return
-    last = before[-1]
+    last = brake[-1]
     res.figures["last_frame"] = last.data.hex(" ")
-    res.figures["kill_after_last_frame_ms"] = ms(t_kill - last.ts)
+    res.figures["last_frame_to_kill_ms"] = ms(t_kill - last.ts)
+    res.check(not BrakeFrame.check(last.data), "the last frame fails the frame checks")
     res.check(last.data[0] == 0, "unit was not ARMED before the kill (test set-up)")
-    trips = [t for t in run.mon.ctl.trips if t.last_good >= last.ts - 1e-6]
-    if not trips:
-        res.check(False, "brake controller emulator did not brake")
+    # On the bus (kernel timestamps): the brake controller brakes at last good frame + 50 ms.
+    off = replay(run.mon.window(last.ts - 0.5, time.time()), end=time.time())
+    trips = [t for t in off.trips if t.last_good >= last.ts - 1e-6]
+    res.check(bool(trips) and trips[0].last_good == last.ts and off.braking,
+              "the brake controller (replayed on the bus record) does not brake 50 ms after "
+              "the last frame")
+    live = [t for t in run.mon.ctl.trips if t.last_good >= last.ts - 1e-6]
+    if not live:
+        res.check(False, "live brake controller emulator did not brake")
     else:
-        react = trips[0].detected - last.ts
-        res.figures["brake_after_last_frame_ms"] = ms(react)
+        react = live[0].detected - live[0].last_good
+        res.figures["live_emulator_braked_after_ms"] = ms(react)
         res.samples_ms["SIGKILL: last frame -> brake"] = [ms(react)]
-        res.check(react <= BRAKE_SILENCE_S + EMULATOR_TOL_MS / 1000,
-                  f"emulator braked {ms(react)} ms after the last frame "
-                  f"(> 50 + {EMULATOR_TOL_MS} ms)")
+        res.check(react <= BRAKE_SILENCE_S + LIM.emu / 1000,
+                  f"live emulator braked {ms(react)} ms after the last frame "
+                  f"(> 50 + {LIM.emu} ms)")
     res.check(run.mon.ctl.braking, "brake controller emulator is not braking")
     run.udp.start(NEUTRAL)  # a live neutral link for the restart scenario
 
@@ -688,15 +722,15 @@ SCENARIOS: list[tuple[str, str, str, Callable[[Run, Result], None]]] = [
     ("nak3", "RELEASE refused, not neutral",
      "NAK 3 with gas 0.3; no ARMED frame", sc_nak3),
     ("release", "RELEASE accepted",
-     f"ACK ARMED, ARMED frame <= {IMMEDIATE_MAX_MS} ms, log STOPPED->ARMED", sc_release),
+     "ACK ARMED, ARMED frame <= {max} ms, log STOPPED->ARMED", sc_release),
     ("deadman", "Dead-man timeout (200 ms)",
-     f"reason udp_timeout; overshoot >= -{EARLY_TOL_MS}, p50 <= {IMMEDIATE_P50_MS}, "
-     f"max <= {IMMEDIATE_MAX_MS} ms; degraded flag at 100..120 ms", sc_deadman),
+     f"reason udp_timeout; overshoot >= -{EARLY_TOL_MS}, " "p50 <= {p50}, max <= {max} ms; "
+     "degraded flag >= 100 ms, <= 110 + {max} ms", sc_deadman),
     ("tcp_stop", "TCP STOP latency (4 clients)",
-     f"ACK STOPPED tcp_stop; stop frame p50 <= {IMMEDIATE_P50_MS}, max <= {IMMEDIATE_MAX_MS} ms",
+     "ACK STOPPED tcp_stop; stop frame p50 <= {p50}, max <= {max} ms",
      sc_tcp_stop),
     ("invalid_flood", "Invalid UDP flood while ARMED",
-     "stops at last valid + 200 ms (reason udp_timeout); RELEASE NAK 2; "
+     "stops at last valid + 200 ms (overshoot <= {max} ms, reason udp_timeout); RELEASE NAK 2; "
      "ESTOP_STATUS counts every invalid packet", sc_invalid_flood),
     ("iface_down", "CAN link down 300 ms, then up",
      "can_error/fault logged; STOPPED fault; frames resume <= 50 ms after up", sc_iface_down),
@@ -704,8 +738,8 @@ SCENARIOS: list[tuple[str, str, str, Callable[[Run, Result], None]]] = [
      "ENOBUFS seen; fault logged, STOPPED fault on the bus after drain; no crash; "
      "STATUS answered < 100 ms meanwhile", sc_txqueue_full),
     ("sigkill", "estopd killed (SIGKILL)",
-     f"no frames after the kill; emulator brakes <= 50 + {EMULATOR_TOL_MS} ms after the "
-     "last frame", sc_sigkill),
+     "no frames once the process is gone; last frame good; brake controller brakes 50 ms "
+     "after the last frame (bus record); live emulator <= 50 + {emu} ms", sc_sigkill),
     ("restart", "Restart boots STOPPED",
      "boot frame first; stays STOPPED with a live neutral link; STATUS STOPPED boot",
      sc_restart),
@@ -816,7 +850,10 @@ def check_logs(run: Run, res: Result) -> None:
             if prev is not None and st != prev:
                 bus_changes += 1
             prev = st
-        log_changes += len(d.events("state"))
+        with d.lock:
+            log_changes += sum(1 for ln in d.lines if ln.rec is not None
+                               and ln.rec.get("event") == "state"
+                               and (d.signal_time is None or ln.t_wall < d.signal_time))
     res.figures["state_changes_bus"] = bus_changes
     res.figures["state_changes_log"] = log_changes
     res.check(bus_changes == log_changes,
@@ -841,7 +878,7 @@ GLOBAL: list[tuple[str, str, str, Callable[[Run, Result], None]]] = [
 def run_all(run: Run, only: set[str] | None, budget_s: float) -> None:
     t_begin = time.monotonic()
     for sid, title, crit, fn in SCENARIOS:
-        res = Result(sid, title, crit)
+        res = Result(sid, title, crit.format(**asdict(LIM)))
         if only is not None and sid not in only and sid != "boot":
             continue
         if time.monotonic() - t_begin > budget_s:
@@ -887,6 +924,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--budget", type=float, default=240.0, help="seconds for all scenarios")
     args = p.parse_args(argv)
     sys.setswitchinterval(0.0005)  # short GIL slices: threads react within ~1 ms
+    global LIM
+    mode = os.environ.get("HIL_MODE", "native")
+    LIM = Limits.for_profile(os.environ.get("HIL_TIMING") or ("tcg" if "tcg" in mode else
+                                                               "strict"))
     dut = args.dut.split()
     exe = shutil.which(dut[0])
     args.dut = [exe or dut[0], *dut[1:]]
@@ -894,7 +935,8 @@ def main(argv: list[str] | None = None) -> int:
     out.mkdir(parents=True, exist_ok=True)
     meta: dict[str, object] = {
         "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "mode": os.environ.get("HIL_MODE", "native"),
+        "mode": mode,
+        "timing_profile": asdict(LIM),
         "host": platform.node(),
         "kernel": platform.release(),
         "python": platform.python_version(),

@@ -194,12 +194,13 @@ class Daemon:
         self._out = _Tail(self.out_path)
         self._err = _Tail(self.err_path)
         self._udp: socket.socket | None = None
+        self.env: dict[str, str] = {}  # added to the environment of the process
 
     # -- life cycle
     def start(self, wait_s: float = 10.0) -> Daemon:
         with self.out_path.open("wb") as out, self.err_path.open("wb") as err:
             self.proc = subprocess.Popen(self.argv, stdin=subprocess.DEVNULL, stdout=out,
-                                         stderr=err)
+                                         stderr=err, env={**os.environ, **self.env})
         deadline = time.monotonic() + wait_s
         while time.monotonic() < deadline:
             for line in self._err.poll():

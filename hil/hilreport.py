@@ -18,15 +18,14 @@ PLOTTED = (
     "overshoot under invalid flood",
     "TCP STOP -> stop frame",
     "release -> ARMED frame",
-    "SIGKILL: last frame -> brake",
 )
 
 
 def fmt(value: object) -> str:
     if isinstance(value, dict):
         if "p50" in value:
-            return (f"n={value['n']} min {value['min']} / p50 {value['p50']} / "
-                    f"max {value['max']}")
+            return (f"n={value['n']} min {fmt(value['min'])} / p50 {fmt(value['p50'])} / "
+                    f"max {fmt(value['max'])}")
         if value.get("n") == 0:
             return "n=0"
         return ", ".join(f"{k} {fmt(v)}" for k, v in value.items())
@@ -52,8 +51,8 @@ def protocol_md(doc: dict, extra: dict | None = None) -> str:
     lines = [
         f"# estop HIL test protocol, {meta.get('date', '?')}",
         "",
-        f"- Device under test: `{meta.get('dut', '?')}` (sha256 "
-        f"{str(meta.get('dut_sha256'))[:16]}...)",
+        f"- Device under test: `{meta.get('dut', '?')}`"
+        + (f" (sha256 {meta['dut_sha256'][:16]}...)" if meta.get("dut_sha256") else ""),
     ]
     if "standin" in str(meta.get("dut", "")):
         lines.append("- **NOTE: the device under test is the harness's Python stand-in, "
@@ -112,7 +111,15 @@ def plot(doc: dict, path: Path) -> bool:
     ax.set_xticks(range(len(series)))
     ax.set_xticklabels([f"{n}\n(n={len(v)})" for n, v in series], fontsize=8)
     ax.axhline(0, color="grey", lw=0.8)
-    ax.set_ylabel("ms (stop frame time on the bus - reference)")
+    prof = doc.get("meta", {}).get("timing_profile") or {}
+    for key, style in (("p50", ":"), ("max", "--")):
+        if isinstance(prof.get(key), int | float):
+            ax.axhline(prof[key], color="tab:red", lw=0.8, ls=style)
+            ax.annotate(f"limit {key} {prof[key]:g} ms ({prof.get('profile', '?')})",
+                        (len(series) - 0.5, prof[key]), fontsize=7, color="tab:red",
+                        ha="right", va="bottom")
+    ax.set_ylabel("ms: frame time on the bus - reference time")
+    ax.set_xlim(-0.6, len(series) - 0.4)
     meta = doc.get("meta", {})
     ax.set_title(f"estop stop latencies on {meta.get('iface', 'vcan')} "
                  f"({meta.get('mode', '?')}, {meta.get('date', '')})", fontsize=10)

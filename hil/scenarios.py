@@ -67,6 +67,9 @@ from hilrig import (  # noqa: E402
 TIMEOUT_MS = 200
 WARN_MS = TIMEOUT_MS / 2
 EARLY_TOL_MS = 0.1  # a stop before the deadline is a failure (clock granularity only)
+# After a provoked outage, lost-frame counter jumps may still show on the next ESTOP_STATUS
+# frame (every 100 ms): the disturbance window ends this long after the first frame back.
+RECOVERY_S = 0.15
 
 
 @dataclass(frozen=True)
@@ -142,6 +145,7 @@ class Run:
         self.monitor: BusMonitor | None = None
         self.candump: Candump | None = None
         self.markers: list[Frame] = []
+        self.t_closed = math.inf
 
     # ---- plumbing
     @property
@@ -194,6 +198,7 @@ class Run:
         self.remote = UdpRemote(self.udp_port)
 
     def teardown(self) -> None:
+        self.windows.append((time.time() - 0.01, math.inf, "teardown"))
         if self.remote is not None:
             self.remote.close()
         for c in self.clients:
@@ -207,6 +212,7 @@ class Run:
                 log(f"end marker: {exc}")
             time.sleep(0.1)
             self.monitor.close()
+            self.t_closed = time.time()
         if self.candump is not None:
             self.candump.stop()
 
@@ -337,12 +343,20 @@ def sc_release(run: Run, res: Result) -> None:
 def sc_deadman(run: Run, res: Result) -> None:
     over: list[float] = []
     flag: list[float] = []
+    phase: list[float] = []
     for i in range(run.args.repeat):
         run.arm(res)
         time.sleep(0.1)
+        run.udp.stop()
+        # The last packet goes out just after a periodic frame, so the deadline falls just after
+        # a 10 ms tick: a daemon that waits for the next tick overshoots by nearly 10 ms.
+        tick = run.brake_after(run.mon.index(), lambda b: b.state == 1, 0.5)
+        if tick is None:
+            res.check(False, f"run {i}: no periodic ARMED frame")
+            continue
         start = run.mon.index()
-        t_last = run.udp.stop()
-        assert t_last is not None
+        t_last = run.udp.send(NEUTRAL)
+        phase.append(ms(t_last - tick[0].ts))
         got = run.brake_after(start, lambda b: b.state == 0, 1.0)
         if got is None:
             res.check(False, f"run {i}: no STOPPED frame within 1 s of the last packet")
@@ -371,6 +385,7 @@ def sc_deadman(run: Run, res: Result) -> None:
     res.samples_ms["degraded flag after last packet"] = flag
     res.figures["overshoot_ms"] = summary(over)
     res.figures["degraded_flag_after_ms"] = summary(flag)
+    res.figures["last_packet_after_tick_ms"] = summary(phase)
     if over:
         res.check(min(over) >= -EARLY_TOL_MS, f"stop before the deadline ({min(over)} ms)")
         res.check(sorted(over)[len(over) // 2] <= LIM.p50,
@@ -498,7 +513,7 @@ def sc_iface_down(run: Run, res: Result) -> None:
     _, t_up = set_link(run.iface, up=True)
     first = run.brake_after(start, lambda _b: True, 1.0)
     time.sleep(0.3)
-    run.windows.append((t_down - 0.01, (first[0].ts if first else t_up) + 0.02,
+    run.windows.append((t_down - 0.01, (first[0].ts if first else t_up) + RECOVERY_S,
                         "link down"))
     ev = d.events(since=since)
     errs = [r for r in ev if r.get("event") in ("can_error", "fault")]
@@ -586,7 +601,7 @@ def sc_txqueue_full(run: Run, res: Result) -> None:
     t_clear = time.time()  # ``tc`` has returned: the queue is gone (spawning tc is slow in TCG)
     first = run.mon.wait_for(lambda f: f.can_id == BRAKE_ID and f.ts > t_clear, 0, 1.0)
     time.sleep(0.3)
-    run.windows.append((t_qdisc - 0.01, (first.ts if first else t_clear) + 0.02,
+    run.windows.append((t_qdisc - 0.01, (first.ts if first else t_clear) + RECOVERY_S,
                         "tx queue full"))
     stats1 = iface_stats(run.iface)
     res.figures["flood"] = dict(counts)
@@ -774,14 +789,22 @@ def check_bus(run: Run, res: Result) -> None:
     res.figures["brake_gap_ms_outside_disturbances"] = summary(gaps)
     res.check(bool(gaps) and max(gaps) < BRAKE_SILENCE_S * 1000,
               "an ESTOP_BRAKE gap outside the provoked disturbances reached 50 ms")
-    trips = [t for t in ctl.trips if not in_windows(t.last_good, wins)]
+    # A silence is expected when its deadline (last good frame + 50 ms) falls in a provoked
+    # disturbance (link down, full queue, kill, exit).
+    trips = [t for t in ctl.trips if not in_windows(t.deadline, wins)]
+    for t in trips[:3]:
+        res.notes.append(f"silence after the frame at {t.last_good:.6f}")
     res.figures["emulator_trips"] = len(ctl.trips)
     res.figures["emulator_trips_unexpected"] = len(trips)
     res.check(not trips, f"{len(trips)} spurious brake-controller timeouts")
-    off = replay(run.mon.frames)
-    res.figures["offline_replay_trips"] = len(off.trips)
-    res.check(len(off.trips) == len(ctl.trips),
-              f"live emulator tripped {len(ctl.trips)}x, offline replay {len(off.trips)}x")
+    # The live emulator (real time) and a replay of the bus record (kernel timestamps) must
+    # agree; the end of the run is left out (the live one may not have looked yet).
+    cut = run.t_closed - 0.1
+    off = replay(run.mon.frames, end=cut)
+    n_live = sum(1 for t in ctl.trips if t.deadline < cut)
+    n_off = sum(1 for t in off.trips if t.deadline < cut)
+    res.figures["offline_replay_trips"] = n_off
+    res.check(n_off == n_live, f"live emulator tripped {n_live}x, replay of the bus {n_off}x")
     res.figures["disturbance_windows"] = [w[2] for w in run.windows]
 
 

@@ -33,6 +33,8 @@ import os
 import platform
 import queue
 import random
+import select
+import shutil
 import signal
 import socket
 import subprocess
@@ -114,9 +116,11 @@ FLOOD_PAYLOADS = (
 )
 
 
-def flood_child(port: int, rate: float, max_s: float) -> int:
-    """Send invalid datagrams to 127.0.0.1:port at ``rate``/s until SIGTERM or max_s; print
-    one JSON line with the count and duration."""
+def flood_child(ports: list[int], rate: float, max_s: float) -> int:
+    """Send invalid datagrams at ``rate``/s to 127.0.0.1:ports[i] until SIGTERM, end of
+    stdin, or max_s. A line on stdin holding an index switches the target (the pacing goes
+    on without a burst). At the end print one JSON line: per port, packets sent and seconds
+    spent on it."""
     stop = False
 
     def on_term(_sig: int, _frame: object) -> None:
@@ -126,28 +130,45 @@ def flood_child(port: int, rate: float, max_s: float) -> int:
     signal.signal(signal.SIGTERM, on_term)
     sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     sock.setblocking(False)
-    addr = ("127.0.0.1", port)
+    sent = [0] * len(ports)
+    busy_s = [0.0] * len(ports)
+    errors = 0
+    target = 0
+    addr = ("127.0.0.1", ports[target])
     payloads = FLOOD_PAYLOADS
     batch = 25
-    sent = errors = 0
+    total = 0
     start = time.monotonic()
+    since = start
     end = start + max_s
+    poller = select.poll()
+    poller.register(sys.stdin.fileno(), select.POLLIN)
     while not stop:
         now = time.monotonic()
         if now >= end:
             break
-        due = start + sent / rate
+        if poller.poll(0):
+            line = sys.stdin.readline()
+            if not line:
+                break
+            busy_s[target] += now - since
+            since = now
+            target = int(line) % len(ports)
+            addr = ("127.0.0.1", ports[target])
+        due = start + total / rate
         if now < due:
-            time.sleep(due - now)
+            time.sleep(min(due - now, 0.001))
             continue
         for i in range(batch):
             try:
                 sock.sendto(payloads[i & 3], addr)
-                sent += 1
+                sent[target] += 1
             except (BlockingIOError, ConnectionRefusedError):
                 errors += 1
-    elapsed = time.monotonic() - start
-    sys.stdout.write(json.dumps({"sent": sent, "errors": errors, "elapsed_s": elapsed}) + "\n")
+        total += batch
+    busy_s[target] += time.monotonic() - since
+    sys.stdout.write(json.dumps({"ports": ports, "sent": sent, "seconds": busy_s,
+                                 "errors": errors}) + "\n")
     return 0
 
 
@@ -178,19 +199,29 @@ class FloodStats:
 
 
 class Flood:
-    def __init__(self, port: int, rate: float, max_s: float) -> None:
-        self.port = port
-        self.stats = FloodStats(rate)
-        self._drops0 = udp_drops(port)
+    """One flooder child aimed at one of several daemons' UDP ports at a time."""
+
+    def __init__(self, ports: list[int], rate: float, max_s: float) -> None:
+        self.ports = ports
+        self.rate = rate
+        self._drops0 = {p: udp_drops(p) for p in ports}
         self._proc: subprocess.Popen[str] = subprocess.Popen(
-            [sys.executable, str(Path(__file__).resolve()), "--flood-child", str(port),
-             str(rate), str(max_s)], stdout=subprocess.PIPE, text=True)
+            [sys.executable, str(Path(__file__).resolve()), "--flood-child",
+             ",".join(map(str, ports)), str(rate), str(max_s)],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
 
     @property
     def pid(self) -> int:
         return self._proc.pid
 
-    def stop(self) -> FloodStats:
+    def aim(self, index: int) -> None:
+        """Send the flood to ports[index] from now on."""
+        assert self._proc.stdin is not None
+        self._proc.stdin.write(f"{index}\n")
+        self._proc.stdin.flush()
+
+    def stop(self) -> dict[int, FloodStats]:
+        """End the child; per port: packets sent to it over the time it was the target."""
         if self._proc.poll() is None:
             self._proc.send_signal(signal.SIGTERM)
         try:
@@ -198,15 +229,18 @@ class Flood:
         except subprocess.TimeoutExpired:
             self._proc.kill()
             out, _ = self._proc.communicate()
+        stats = {p: FloodStats(self.rate) for p in self.ports}
         for line in out.splitlines():
             if line.startswith("{"):
                 d = json.loads(line)
-                self.stats.sent, self.stats.errors = d["sent"], d["errors"]
-                self.stats.elapsed_s = d["elapsed_s"]
-        drops1 = udp_drops(self.port)
-        if self._drops0 is not None and drops1 is not None:
-            self.stats.kernel_drops = drops1 - self._drops0
-        return self.stats
+                for i, p in enumerate(d["ports"]):
+                    stats[p].sent, stats[p].elapsed_s = d["sent"][i], d["seconds"][i]
+                    stats[p].errors = d["errors"]
+        for p, st in stats.items():
+            d0, d1 = self._drops0[p], udp_drops(p)
+            if d0 is not None and d1 is not None:
+                st.kernel_drops = d1 - d0
+        return stats
 
 
 # --------------------------------------------------------------------------------------------
@@ -253,16 +287,20 @@ class CpuMeter:
     def sample_children(self) -> int:
         return sum(_proc_jiffies(p) - j0 for p, j0 in self.pids.items())
 
-    def finish(self, children_used: int) -> tuple[float | None, float | None]:
+    def finish(self, children_used: int | None = None) -> tuple[float, float, float] | None:
+        """(other, steal, seconds): cores used by other processes and stolen by the
+        hypervisor, averaged over the seconds measured. None without /proc."""
         end = _cpu_jiffies()
         if self.start is None or end is None or end[2] <= self.start[2]:
-            return None, None
+            return None
+        if children_used is None:
+            children_used = self.sample_children()
         ncpu = os.cpu_count() or 1
         span = (end[2] - self.start[2]) / ncpu  # wall jiffies
         own = _proc_jiffies(os.getpid()) - self.own_start + children_used
         other = max(0.0, (end[0] - self.start[0] - own) / span)
         steal = (end[1] - self.start[1]) / span
-        return other, steal
+        return other, steal, span / self.tck
 
 
 # --------------------------------------------------------------------------------------------
@@ -286,10 +324,23 @@ class RunResult:
     flood: FloodStats | None = None
     other_cpu: float | None = None  # cores used by other processes during the run
     steal_cpu: float | None = None  # cores stolen by the hypervisor during the run
+    metered_s: float = 0.0
     error: str | None = None
 
     def early(self, metric: str) -> int:
         return sum(1 for v in self.samples[metric] if v < 0)
+
+    def add_cpu(self, measured: tuple[float, float, float] | None) -> None:
+        """Fold one block's (other, steal, seconds) into the run's time-weighted means."""
+        if measured is None:
+            return
+        other, steal, secs = measured
+        total = self.metered_s + secs
+        if total <= 0:
+            return
+        self.other_cpu = ((self.other_cpu or 0.0) * self.metered_s + other * secs) / total
+        self.steal_cpu = ((self.steal_cpu or 0.0) * self.metered_s + steal * secs) / total
+        self.metered_s = total
 
 
 class Trials:
@@ -399,59 +450,102 @@ class Trials:
         self.r.samples["tcp_stop"].append((t_frame - t_stop) * 1000.0)
         return True
 
-    def run(self, n: int, max_s: float) -> None:
-        want = {"overshoot": n, "tcp_stop": n}
-        end = time.monotonic() + max_s
+    def run(self, n: int, deadline: float, max_attempts: int) -> int:
+        """Trials until each metric has n samples, the monotonic deadline passes, or
+        max_attempts trial pairs were tried; returns the attempts made."""
         attempts = 0
-        while (len(self.r.samples["overshoot"]) < want["overshoot"]
-               or len(self.r.samples["tcp_stop"]) < want["tcp_stop"]):
-            if time.monotonic() > end or attempts > 3 * n:
+        while attempts < max_attempts and time.monotonic() < deadline:
+            need = [len(self.r.samples[m]) < n for m in METRICS]
+            if not any(need):
                 break
             attempts += 1
-            if len(self.r.samples["overshoot"]) < want["overshoot"]:
+            if need[0]:
                 self.timeout_trial()
-            if len(self.r.samples["tcp_stop"]) < want["tcp_stop"]:
+            if need[1]:
                 self.tcp_trial()
+        return attempts
 
 
-def run_one(name: str, command: list[str], load: str, args: argparse.Namespace,
-            n: int) -> RunResult:
-    res = RunResult(name, load, args.timeout_ms)
-    t0 = time.monotonic()
-    flood: Flood | None = None
-    meter = CpuMeter()
-    children = 0
-    daemon = Daemon(command, timeout_ms=args.timeout_ms)
-    try:
-        daemon.start()
-        meter.watch(daemon.pid)
-        link = Link(daemon.udp_port, daemon.tcp_port)
+@dataclass
+class Contender:
+    name: str
+    daemon: Daemon
+    result: RunResult
+    link: Link | None = None
+    trials: Trials | None = None
+    attempts: int = 0
+
+
+def _drain(daemon: Daemon) -> None:
+    while True:
         try:
-            if load == "flood":
-                flood = Flood(daemon.udp_port, args.flood_rate, args.max_run_s + 10.0)
-                meter.watch(flood.pid)
-                time.sleep(0.5)  # let the flood reach its rate
-            gc.collect()
-            gc.disable()
+            daemon.frames.get_nowait()
+        except queue.Empty:
+            return
+
+
+def run_load(load: str, daemons: list[tuple[str, list[str]]], args: argparse.Namespace,
+             n: int) -> list[RunResult]:
+    """All daemons side by side under one load: they run at once, and trials alternate
+    between them in blocks, so background load on the machine falls on both alike. The
+    flood (one child) is aimed at the daemon whose block is running."""
+    t0 = time.monotonic()
+    cons = [Contender(name, Daemon(cmd, timeout_ms=args.timeout_ms),
+                      RunResult(name, load, args.timeout_ms)) for name, cmd in daemons]
+    flood: Flood | None = None
+    try:
+        for c in cons:
             try:
-                Trials(daemon, link, args.timeout_ms, args.send_slack_ms / 1000.0,
-                       res).run(n, args.max_run_s)
-            finally:
-                gc.enable()
+                c.daemon.start()
+                c.link = Link(c.daemon.udp_port, c.daemon.tcp_port)
+                c.trials = Trials(c.daemon, c.link, args.timeout_ms,
+                                  args.send_slack_ms / 1000.0, c.result)
+            except (DaemonError, OSError) as exc:
+                c.result.error = str(exc)
+        live = [c for c in cons if c.trials is not None]
+        if load == "flood" and live:
+            flood = Flood([c.daemon.udp_port for c in cons], args.flood_rate,
+                          args.max_run_s + 30.0)
+        deadline = time.monotonic() + args.max_run_s
+        gc.collect()
+        gc.disable()
+        try:
+            while live and time.monotonic() < deadline:
+                for c in list(live):
+                    assert c.trials is not None
+                    if flood is not None:
+                        flood.aim(cons.index(c))
+                        time.sleep(0.1)  # the daemon under test is in the flood for a while
+                    _drain(c.daemon)  # frames logged while the other daemon was tested
+                    meter = CpuMeter()
+                    for other in cons:
+                        meter.watch(other.daemon.pid)
+                    if flood is not None:
+                        meter.watch(flood.pid)
+                    target = min(n, len(c.result.samples["overshoot"]) + args.block)
+                    try:
+                        c.attempts += c.trials.run(target, deadline, args.block * 3)
+                    except (DaemonError, OSError, tcp.FrameError) as exc:
+                        c.result.error = str(exc)
+                    c.result.add_cpu(meter.finish())
+                    done = all(len(c.result.samples[m]) >= n for m in METRICS)
+                    if done or c.result.error or c.attempts > 3 * n:
+                        live.remove(c)
         finally:
-            children = meter.sample_children()
-            if flood is not None:
-                res.flood = flood.stop()
-            link.close()
-    except (DaemonError, OSError, tcp.FrameError) as exc:
-        res.error = str(exc)
+            gc.enable()
     finally:
-        if flood is not None and res.flood is None:
-            res.flood = flood.stop()
-        daemon.stop()
-    res.other_cpu, res.steal_cpu = meter.finish(children)
-    res.wall_s = time.monotonic() - t0
-    return res
+        if flood is not None:
+            stats = flood.stop()
+            for c in cons:
+                c.result.flood = stats.get(c.daemon.udp_port)
+        for c in cons:
+            if c.link is not None:
+                c.link.close()
+            c.daemon.stop()
+    wall = time.monotonic() - t0
+    for c in cons:
+        c.result.wall_s = wall
+    return [c.result for c in cons]
 
 
 # --------------------------------------------------------------------------------------------
@@ -481,8 +575,9 @@ def check_goals(results: list[RunResult]) -> list[tuple[str, bool]]:
         if load == "flood":
             for r in (e, b):
                 if r is not None and r.flood is not None:
-                    goals.append((f"flood at {r.daemon}: {r.flood.rate:,.0f} packets/s "
-                                  f">= {GOAL_FLOOD_RATE:,.0f}", r.flood.rate >= GOAL_FLOOD_RATE))
+                    goals.append((f"flood at {r.daemon}: {r.flood.rate:,.0f} packets/s while "
+                                  f"aimed at it >= {GOAL_FLOOD_RATE:,.0f}",
+                                  r.flood.rate >= GOAL_FLOOD_RATE))
     return goals
 
 
@@ -518,8 +613,9 @@ def markdown(results: list[RunResult], meta: dict[str, Any],
             lines.append(f"- {r.daemon}: {f.sent:,} packets in {f.elapsed_s:.1f} s = "
                          f"{f.rate:,.0f} packets/s; kernel drops {drops}; STATUS saturated "
                          f"{r.status_invalid_saturated} of {r.status_frames}")
-    lines += ["", "Per run: wall time; CPU that other processes on this machine used meanwhile "
-              "(cores, averaged; not the bench, its daemon or its flooder) and hypervisor "
+    lines += ["", "Per run: wall time of the load (both daemons); CPU that other processes on "
+              "this machine used meanwhile (cores, averaged over the daemon's blocks; not the "
+              "bench, its daemons or its flooder) and hypervisor "
               "steal: numbers taken on a busy machine have fatter tails; RELEASE refusals "
               "(retried) and failures; errors.", ""]
     for r in results:
@@ -586,7 +682,8 @@ def plot(results: list[RunResult], path: Path, timeout_ms: int) -> None:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--flood-child"]:
-        return flood_child(int(argv[1]), float(argv[2]), float(argv[3]))
+        return flood_child([int(p) for p in argv[1].split(",")], float(argv[2]),
+                           float(argv[3]))
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=1000, help="trials per metric and run")
     ap.add_argument("--quick", action="store_true", help="smoke run: 100 trials")
@@ -595,8 +692,13 @@ def main(argv: list[str] | None = None) -> int:
                     help="invalid packets/s sent during the flood runs (goal: >= 50,000)")
     ap.add_argument("--send-slack-ms", type=float, default=0.25,
                     help="discard a trial whose send call took longer than this")
-    ap.add_argument("--max-run-s", type=float, default=150.0,
-                    help="time limit of one run (daemon x load)")
+    ap.add_argument("--block", type=int, default=50,
+                    help="trials per daemon before switching to the other one")
+    ap.add_argument("--max-run-s", type=float, default=300.0,
+                    help="time limit of one load (both daemons)")
+    ap.add_argument("--rt-prio", type=int, default=0, metavar="PRIO",
+                    help="run both daemons under `chrt -f PRIO` (SCHED_FIFO, needs "
+                         "CAP_SYS_NICE), as a real-time deployment would; 0 = off")
     ap.add_argument("--estopd", metavar="PATH", help="estopd binary (default: found like "
                     "`estop demo` does)")
     ap.add_argument("--only", choices=("estopd", "baseline"), help="run one daemon only")
@@ -620,22 +722,30 @@ def main(argv: list[str] | None = None) -> int:
     if any(x not in ("idle", "flood") for x in loads):
         ap.error("--loads takes idle and/or flood")
 
+    if args.rt_prio:
+        chrt = shutil.which("chrt")
+        if chrt is None:
+            ap.error("--rt-prio needs chrt (util-linux)")
+        daemons = [(name, [chrt, "-f", str(args.rt_prio), *cmd]) for name, cmd in daemons]
+
     t_start = time.monotonic()
     results: list[RunResult] = []
     for load in loads:
-        for name, cmd in daemons:
-            say(f"running {name} {load}: {n} trials per metric ...")
-            r = run_one(name, cmd, load, args, n)
+        say(f"{load}: {' and '.join(d for d, _ in daemons)} side by side, {n} trials per "
+            f"metric each, alternating in blocks of {args.block} ...")
+        for r in run_load(load, daemons, args, n):
             results.append(r)
             extra = f", flood {r.flood.rate:,.0f}/s" if r.flood else ""
             err = f", ERROR {r.error}" if r.error else ""
-            say(f"  done in {r.wall_s:.1f} s ({len(r.samples['overshoot'])} + "
-                f"{len(r.samples['tcp_stop'])} samples{extra}{err})")
+            say(f"  {r.daemon}: {len(r.samples['overshoot'])} + {len(r.samples['tcp_stop'])} "
+                f"samples{extra}{err}")
+        say(f"  {load} done in {results[-1].wall_s:.1f} s")
 
     meta = {"date": time.strftime("%Y-%m-%d %H:%M:%S %Z"), "host": platform.node(),
             "cpus": os.cpu_count(), "python": platform.python_version(),
             "timeout_ms": args.timeout_ms, "trials": n, "flood_rate": args.flood_rate,
-            "send_slack_ms": args.send_slack_ms, "commands": {k: v for k, v in daemons},
+            "send_slack_ms": args.send_slack_ms, "block": args.block,
+            "rt_prio": args.rt_prio, "commands": {k: v for k, v in daemons},
             "bench_wall_s": round(time.monotonic() - t_start, 1)}
     goals = check_goals(results)
     md = markdown(results, meta, goals)

@@ -581,7 +581,7 @@ def main(argv: list[str] | None = None) -> int:
         res.problems.append("the daemon's last frame did not request the brake")
     if view.bad_frames:
         res.problems.append(f"{view.bad_frames} logged frames failed their checks")
-    if rc is None or rc < 0 and rc != -signal.SIGTERM:
+    if rc not in (0, -signal.SIGTERM):
         res.problems.append(f"estopd ended abnormally (exit code {rc})")
     for p in res.problems:
         out.write(f"PROBLEM: {p}\n")

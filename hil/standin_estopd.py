@@ -29,7 +29,7 @@ from estop.protocol.can import BrakeFrame, StatusFrame
 
 PERIOD_US = 10_000
 STATUS_PERIOD_US = 100_000
-FAULT_AFTER_US = 50_000  # CAN sends failing this long: fault
+FAULT_AFTER_US = 20_000  # no ESTOP_BRAKE got out for this long: fault
 REASONS = ["none", "boot", "tcp_stop", "udp_timeout", "fault"]
 STATES = ["STOPPED", "ARMED"]
 
@@ -51,7 +51,6 @@ class Daemon:
         self.ctr_b = self.ctr_s = 0
         self.n_valid = self.n_invalid = self.n_badcrc = self.n_stops = 0
         self.fail_since: int | None = None
-        self.fault_latched = False
         self.sent_brake = 0
         self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.udp.bind((args.bind, args.udp_port))
@@ -80,7 +79,8 @@ class Daemon:
     def send(self, can_id: int, data: bytes, t: int) -> None:
         try:
             self.can.send(struct.pack("=IB3x8s", can_id, 8, data))
-            self.fail_since = None
+            if can_id == 0x050:  # only brake frames getting out count as mended
+                self.fail_since = None
         except OSError as exc:
             name = errno.errorcode.get(exc.errno or 0, str(exc.errno))
             self.log("can_error", errno=name)
@@ -88,8 +88,7 @@ class Daemon:
                 return
             if self.fail_since is None:
                 self.fail_since = t
-            elif t - self.fail_since >= FAULT_AFTER_US and not self.fault_latched:
-                self.fault_latched = True
+            elif t - self.fail_since >= FAULT_AFTER_US and self.state == 1:
                 self.log("fault", cause="can_tx")
                 self.stop(4, t, "-")
 

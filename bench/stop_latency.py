@@ -55,6 +55,7 @@ GOAL_FLOOD_RATE = 50_000.0
 GOAL_P999_MS = {"idle": 1.0, "flood": 2.0}
 GOAL_AHEAD_FACTOR = 5.0
 BUSY_CORES = 0.25  # other processes' CPU during a run above which the report warns
+BUSY_STEAL = 0.05  # hypervisor steal (cores) above which the report warns
 
 
 # --------------------------------------------------------------------------------------------
@@ -318,6 +319,7 @@ class RunResult:
     discarded: dict[str, int] = field(default_factory=lambda: {m: 0 for m in METRICS})
     release_failures: int = 0
     release_naks: int = 0
+    discard_reasons: dict[str, int] = field(default_factory=dict)
     status_frames: int = 0
     status_invalid_saturated: int = 0  # STATUS frames counting >= 255 invalid packets / 100 ms
     wall_s: float = 0.0
@@ -329,6 +331,11 @@ class RunResult:
 
     def early(self, metric: str) -> int:
         return sum(1 for v in self.samples[metric] if v < 0)
+
+    def discard(self, metric: str, why: str) -> None:
+        self.discarded[metric] += 1
+        key = f"{METRIC_TITLES[metric]}: {why}"
+        self.discard_reasons[key] = self.discard_reasons.get(key, 0) + 1
 
     def add_cpu(self, measured: tuple[float, float, float] | None) -> None:
         """Fold one block's (other, steal, seconds) into the run's time-weighted means."""
@@ -403,21 +410,24 @@ class Trials:
         t_ack = self.release()
         if t_ack is None:
             return False
-        prev, clean = t_ack, True
+        prev, late, gap = t_ack, False, False
         t_last = t_ack
         for i in range(3):
             if i:
                 time.sleep(0.001)
             t_last, quick = self.send(0.3, udp.Gear.DRIVE)
-            clean = clean and quick and t_last - prev < self.timeout_s / 2
+            late = late or not quick
+            gap = gap or t_last - prev >= self.timeout_s / 2
             prev = t_last
         stop = self.wait_stop(t_ack, self.timeout_s + 2.0)
         if stop is None:
             self.r.missed["overshoot"] += 1
             return False
         t_stop, reason = stop
-        if not clean or t_stop < t_last:
-            self.r.discarded["overshoot"] += 1
+        why = ("late send" if late else "gap between packets" if gap
+               else "stop before the last packet" if t_stop < t_last else None)
+        if why is not None:
+            self.r.discard("overshoot", why)
             return False
         if reason != can.Reason.UDP_TIMEOUT:
             self.r.wrong_reason["overshoot"] += 1
@@ -429,7 +439,7 @@ class Trials:
         t_ack = self.release()
         if t_ack is None:
             return False
-        t_pkt, quick = self.send(0.3, udp.Gear.DRIVE)
+        _t_pkt, quick = self.send(0.3, udp.Gear.DRIVE)
         seq, t_stop = self.link.send_request(tcp.DEFAULT_STOP_ID)
         quick = quick and time.time() - t_stop <= self.slack
         stop = self.wait_stop(t_ack, 2.0)
@@ -438,14 +448,16 @@ class Trials:
             self.r.missed["tcp_stop"] += 1
             return False
         t_frame, reason = stop
+        if reason == can.Reason.UDP_TIMEOUT:
+            # the link timed out before the STOP was handled (the bench or the daemon was
+            # held up, or the kernel dropped the drive packet): a stop, but not the TCP path
+            self.r.discard("tcp_stop", "link timed out first")
+            return False
         if reason != can.Reason.TCP_STOP:
-            if t_stop - t_pkt >= self.timeout_s / 2 or not quick:
-                self.r.discarded["tcp_stop"] += 1
-            else:
-                self.r.wrong_reason["tcp_stop"] += 1
+            self.r.wrong_reason["tcp_stop"] += 1
             return False
         if not quick:
-            self.r.discarded["tcp_stop"] += 1
+            self.r.discard("tcp_stop", "late send")
             return False
         self.r.samples["tcp_stop"].append((t_frame - t_stop) * 1000.0)
         return True
@@ -625,17 +637,25 @@ def markdown(results: list[RunResult], meta: dict[str, Any],
         lines.append(f"- {r.daemon} {r.load}: {r.wall_s:.1f} s; other CPU {other} cores, "
                      f"steal {steal}; RELEASE NAKs {r.release_naks}, release failures "
                      f"{r.release_failures}{err}")
-    busy = [r for r in results if r.other_cpu is not None and r.other_cpu > BUSY_CORES]
+        if r.discard_reasons:
+            lines.append("  - discarded: " + ", ".join(
+                f"{k} {v}" for k, v in sorted(r.discard_reasons.items())))
+    busy = [r for r in results if (r.other_cpu or 0.0) > BUSY_CORES
+             or (r.steal_cpu or 0.0) > BUSY_STEAL]
     if busy:
-        lines += ["", "WARNING: the machine was busy with other work during "
-                  + ", ".join(f"{r.daemon} {r.load} ({r.other_cpu:.2f} cores)" for r in busy)
-                  + ": their tails show that load as much as the daemon under test."]
+        lines += ["", "WARNING: the machine was busy with other work (or the hypervisor stole "
+                  "CPU) during " + ", ".join(f"{r.daemon} {r.load} (other {r.other_cpu or 0:.2f}"
+                                             f", steal {r.steal_cpu or 0:.2f} cores)"
+                                             for r in busy)
+                  + ": their tails show that load as much as the daemon under test; rerun on "
+                  "a quiet machine for numbers to compare against the goals."]
     lines += ["", "Goals:", ""]
     lines += [f"- {'PASS' if ok else 'FAIL'}: {text}" for text, ok in goals]
     lines += ["", "Columns: early = stop frame before last packet + timeout (safe, but the "
               "daemon's deadline did not come from our last packet: e.g. it was dropped); "
               "missed = no stop frame within 2 s; wrong = stopped for another reason; "
-              "discarded = the bench's own send was late (descheduled), sample dropped.", ""]
+              "discarded = the bench's own send was late (descheduled), or in a TCP trial the "
+              "link timed out before the STOP was handled: sample dropped.", ""]
     return "\n".join(lines)
 
 

@@ -29,6 +29,7 @@ from estop.protocol.can import (
 from estop.protocol.canlog import CanLogError, parse_line
 
 BRAKE_SILENCE_S = 0.050  # spec section 4: brake when no good ESTOP_BRAKE for 50 ms
+STATUS_RESYNC_S = 0.200  # two ESTOP_STATUS periods without one: its counter starts over
 _EPS = 1e-6  # float seconds near 1.7e9 carry ~0.2 us of rounding
 
 
@@ -47,7 +48,7 @@ class Issue:
 
     ts: float
     can_id: int
-    kind: str  # bad_length, bad_crc, bad_counter, bad_content, repeat, jump
+    kind: str  # bad_length, bad_crc, bad_counter, bad_content, repeat, jump, resync
     detail: str
 
 
@@ -89,6 +90,7 @@ class BrakeController:
     trips: list[Trip] = field(default_factory=list)
     changes: list[BrakeChange] = field(default_factory=list)
     tripped: bool = False
+    last_status: float | None = None
     _brake_ctr: CounterChecker = field(default_factory=CounterChecker)
     _status_ctr: CounterChecker = field(default_factory=CounterChecker)
 
@@ -110,7 +112,14 @@ class BrakeController:
         elif frame.can_id == STATUS_ID:
             self._on_status(frame)
 
-    def _counter(self, checker: CounterChecker, frame: Frame, counter: int) -> bool:
+    def _counter(self, checker: CounterChecker, frame: Frame, counter: int,
+                 resync: bool) -> bool:
+        if resync and checker.last is not None:
+            # After a silence the counter cannot be followed (15 lost frames look like a
+            # repeat): start over, as an E2E receiver does after a timeout, and report it.
+            self.issues.append(Issue(frame.ts, frame.can_id, "resync",
+                                     f"counter {counter} after a silence, was {checker.last}"))
+            checker.reset()
         status = checker.check(counter)
         if status.result is CounterResult.REPEAT:
             self.issues.append(Issue(frame.ts, frame.can_id, "repeat",
@@ -129,7 +138,7 @@ class BrakeController:
                 self.issues.append(Issue(frame.ts, frame.can_id, p.kind, str(p)))
             return
         parsed = BrakeFrame.parse(frame.data)
-        if not self._counter(self._brake_ctr, frame, parsed.counter):
+        if not self._counter(self._brake_ctr, frame, parsed.counter, self.tripped):
             return
         self.good += 1
         self.last_good = frame.ts
@@ -143,7 +152,9 @@ class BrakeController:
             for p in problems:
                 self.issues.append(Issue(frame.ts, frame.can_id, p.kind, str(p)))
             return
-        if self._counter(self._status_ctr, frame, StatusFrame.parse(frame.data).counter):
+        resync = self.last_status is not None and frame.ts - self.last_status >= STATUS_RESYNC_S
+        self.last_status = frame.ts
+        if self._counter(self._status_ctr, frame, StatusFrame.parse(frame.data).counter, resync):
             self.status_good += 1
 
     def on_tick(self, now: float) -> None:
@@ -206,6 +217,50 @@ def frame_gaps(frames: Sequence[Frame], can_id: int = BRAKE_ID) -> list[float]:
 
 def in_windows(t: float, windows: Iterable[tuple[float, float]]) -> bool:
     return any(a <= t <= b for a, b in windows)
+
+
+# --------------------------------------------------------------------------- environment stalls
+
+def read_stalls(lines: Iterable[str]) -> list[tuple[float, float]]:
+    """Intervals of a ``stallmon.py`` file (``start end`` per line, ``#`` comments)."""
+    out: list[tuple[float, float]] = []
+    for line in lines:
+        parts = line.split()
+        if len(parts) == 2 and not line.startswith("#"):
+            try:
+                a, b = float(parts[0]), float(parts[1])
+            except ValueError:
+                continue
+            if b > a:
+                out.append((a, b))
+    return out
+
+
+def merge(intervals: Iterable[tuple[float, float]]) -> list[tuple[float, float]]:
+    """Union of intervals, sorted and non-overlapping."""
+    out: list[tuple[float, float]] = []
+    for a, b in sorted(intervals):
+        if out and a <= out[-1][1]:
+            out[-1] = (out[-1][0], max(out[-1][1], b))
+        else:
+            out.append((a, b))
+    return out
+
+
+def overlap(intervals: Sequence[tuple[float, float]], t0: float, t1: float) -> float:
+    """Seconds of ``intervals`` (merged) that fall in ``[t0, t1]``."""
+    return sum(max(0.0, min(b, t1) - max(a, t0)) for a, b in intervals)
+
+
+# A gap in the periodic frames is the environment's when, without the CPU stalls inside it,
+# the daemon had at most this much time to run: two and a half 10 ms periods.
+RUNNABLE_GAP_S = 0.025
+
+
+def excused(t0: float, t1: float, stalls: Sequence[tuple[float, float]]) -> float | None:
+    """The stall time that explains a frame gap ``[t0, t1]``, or None if it does not."""
+    s = overlap(stalls, t0, t1)
+    return s if s > 0 and (t1 - t0) - s <= RUNNABLE_GAP_S else None
 
 
 # --------------------------------------------------------------------------- candump check

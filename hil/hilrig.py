@@ -23,7 +23,7 @@ from pathlib import Path
 import can
 
 from estop.protocol import tcp, udp
-from hilcheck import BrakeController, Frame
+from hilcheck import BrakeController, Frame, merge, read_stalls
 
 MARKER_ID = 0x7FF  # harness marker frames (lowest priority ID, ignored by the checks)
 
@@ -100,6 +100,47 @@ class Candump:
 
     def stderr_text(self) -> str:
         return self._err_path.read_text(errors="replace")
+
+
+# --------------------------------------------------------------------------- stall monitor
+
+class StallMonitor:
+    """One ``stallmon.py`` per CPU (real-time priority): when did a CPU not run at all?"""
+
+    def __init__(self, out: Path, python: str) -> None:
+        cpus = sorted(os.sched_getaffinity(0))[:8]
+        self.paths = [out / f"stalls-cpu{c}.txt" for c in cpus]
+        script = str(Path(__file__).resolve().parent / "stallmon.py")
+        self.procs = [subprocess.Popen([python, "-B", script, str(c), str(p)],
+                                       stdin=subprocess.DEVNULL)
+                      for c, p in zip(cpus, self.paths, strict=True)]
+
+    def intervals(self) -> list[tuple[float, float]]:
+        """Union over the CPUs of the intervals in which one could not run."""
+        found: list[tuple[float, float]] = []
+        for p in self.paths:
+            try:
+                found += read_stalls(p.read_text().splitlines())
+            except OSError:
+                pass
+        return merge(found)
+
+    def realtime(self) -> bool:
+        try:
+            return all(" rt 1 " in p.read_text().splitlines()[0] for p in self.paths)
+        except (OSError, IndexError):
+            return False
+
+    def stop(self) -> None:
+        for proc in self.procs:
+            if proc.poll() is None:
+                proc.terminate()
+        for proc in self.procs:
+            try:
+                proc.wait(timeout=3)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait(timeout=3)
 
 
 # --------------------------------------------------------------------------- bus monitor
@@ -307,6 +348,7 @@ class UdpRemote:
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self.last_send: float | None = None  # wall time taken just before the last sendto
+        self.keepalive_times: list[float] = []
         self.sent = 0
         self.errors = 0
 
@@ -327,6 +369,7 @@ class UdpRemote:
             nxt = time.monotonic()
             while not self._stop.is_set():
                 self.last_send = self.send(data)
+                self.keepalive_times.append(self.last_send)
                 nxt += period
                 self._stop.wait(max(0.0, nxt - time.monotonic()))
 
@@ -342,6 +385,11 @@ class UdpRemote:
                 raise RigError("UDP keepalive thread did not stop")
             self._thread = None
         return self.last_send
+
+    def max_gap(self, t0: float, t1: float) -> float:
+        """Longest pause between keepalive packets sent in ``[t0, t1]`` (seconds)."""
+        ts = [t for t in self.keepalive_times if t0 <= t <= t1]
+        return max((b - a for a, b in zip(ts, ts[1:], strict=False)), default=0.0)
 
     def close(self) -> None:
         self.stop()

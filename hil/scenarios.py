@@ -40,8 +40,10 @@ from hilcheck import (  # noqa: E402
     BRAKE_SILENCE_S,
     Frame,
     crosscheck,
+    excused,
     frame_gaps,
     in_windows,
+    overlap,
     read_candump,
     replay,
     summary,
@@ -54,6 +56,7 @@ from hilrig import (  # noqa: E402
     Candump,
     Daemon,
     RigError,
+    StallMonitor,
     StopClient,
     UdpRemote,
     connect_retry,
@@ -70,6 +73,12 @@ EARLY_TOL_MS = 0.1  # a stop before the deadline is a failure (clock granularity
 # After a provoked outage, lost-frame counter jumps may still show on the next ESTOP_STATUS
 # frame (every 100 ms): the disturbance window ends this long after the first frame back.
 RECOVERY_S = 0.15
+# A latency sample during which a CPU stood still this long is not judged (see stallmon.py);
+# it is still shown, and a run with too few judged samples is repeated once.
+STALL_EXCUSE_S = 0.002
+# The harness's own keepalive (20 ms) must not pause this long where a live link is the test's
+# premise; if it did, the test is repeated once.
+KEEPALIVE_GAP_S = 0.15
 
 
 @dataclass(frozen=True)
@@ -118,6 +127,7 @@ class Result:
     samples_ms: dict[str, list[float]] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     duration_s: float = 0.0
+    inconclusive: str | None = None  # the environment spoiled the test: run it once more
 
     def check(self, ok: bool, what: str) -> bool:
         """Record a failed sub-check as a note; returns ``ok``."""
@@ -146,6 +156,7 @@ class Run:
         self.candump: Candump | None = None
         self.markers: list[Frame] = []
         self.t_closed = math.inf
+        self.stallmon: StallMonitor | None = None
 
     # ---- plumbing
     @property
@@ -189,7 +200,18 @@ class Run:
             self.start_daemon()
             self.windows.append((t - 0.2, time.time() + 0.1, "daemon (re)start"))
 
+    def stalls(self) -> list[tuple[float, float]]:
+        return self.stallmon.intervals() if self.stallmon is not None else []
+
+    def keepalive_held(self, res: Result, t0: float, t1: float) -> None:
+        gap = self.udp.max_gap(t0, t1)
+        res.figures["keepalive_max_gap_ms"] = ms(gap)
+        if gap >= KEEPALIVE_GAP_S:
+            res.inconclusive = (f"the harness's own keepalive paused {ms(gap)} ms "
+                                "(the link was not live, as this test needs)")
+
     def setup(self) -> None:
+        self.stallmon = StallMonitor(self.out, sys.executable)
         setup_vcan(self.iface)
         self.candump = Candump(self.iface, self.out / "candump.log")
         self.monitor = BusMonitor(self.iface)
@@ -215,6 +237,8 @@ class Run:
             self.t_closed = time.time()
         if self.candump is not None:
             self.candump.stop()
+        if self.stallmon is not None:
+            self.stallmon.stop()
 
     # ---- helpers used by the scenarios
     def brake_after(self, start: int, pred: Callable[[BrakeFrame], bool],
@@ -239,6 +263,34 @@ class Run:
         if got is None:
             raise RigError("ACK for RELEASE, but no ARMED frame on the bus within 1 s")
         return ex.t_send, got[0]
+
+
+def judge(run: Run, res: Result, key: str, label: str, pairs: list[tuple[float, float]],
+          use_median: bool = True, slack_ms: float = 0.0) -> list[float]:
+    """Latency samples (reference time, frame time) against the profile's limits.
+
+    Value = frame - reference. A value before its time is never excused; the other limits
+    (max: the profile's plus ``slack_ms``) skip samples during which a CPU stood still.
+    """
+    stalls = run.stalls()
+    vals = [ms(b - a) for a, b in pairs]
+    judged = [v for (a, b), v in zip(pairs, vals, strict=True)
+              if overlap(stalls, a, b) < STALL_EXCUSE_S]
+    res.samples_ms[label] = vals
+    res.figures[key] = summary(vals) if len(vals) > 1 else (vals[0] if vals else None)
+    if len(judged) < len(vals):
+        res.figures[f"{key}_not_judged_cpu_stall"] = len(vals) - len(judged)
+    if vals:
+        res.check(min(vals) >= -EARLY_TOL_MS, f"{label}: {min(vals)} ms, before its time")
+    if use_median and len(judged) >= 3:
+        res.check(sorted(judged)[len(judged) // 2] <= LIM.p50,
+                  f"{label}: median > {LIM.p50} ms (waits for the 10 ms tick?)")
+    if judged:
+        res.check(max(judged) <= LIM.max + slack_ms,
+                  f"{label}: {max(judged)} ms > {LIM.max + slack_ms} ms")
+    if vals and len(judged) < (len(vals) + 1) // 2:
+        res.inconclusive = f"{len(vals) - len(judged)} of {len(vals)} samples hit a CPU stall"
+    return vals
 
 
 # =========================================================================== scenarios
@@ -318,15 +370,12 @@ def sc_release(run: Run, res: Result) -> None:
     d = run.daemon
     since = time.time()
     t_send, fr = run.arm(res, client=3)
-    lat = fr.ts - t_send
-    res.figures["release_to_armed_frame_ms"] = ms(lat)
-    res.samples_ms["release -> ARMED frame"] = [ms(lat)]
+    judge(run, res, "release_to_armed_frame_ms", "release -> ARMED frame", [(t_send, fr.ts)],
+          use_median=False)
     b = BrakeFrame.parse(fr.data)
     res.figures["armed_frame"] = fr.data.hex(" ")
     res.check(not b.brakes and b.brake_level == 0 and b.reason == 0,
               "ARMED frame does not release the brake")
-    res.check(lat * 1000 <= LIM.max,
-              f"ARMED frame {ms(lat)} ms after the RELEASE (> {LIM.max} ms)")
     ev = d.wait_event(lambda r: r.get("event") == "state" and r.get("to") == "ARMED", since, 1.0)
     res.figures["log_state_event"] = None if ev is None else \
         f"{ev.get('from')}->{ev.get('to')} reason={ev.get('reason')} src={ev.get('src')}"
@@ -341,8 +390,8 @@ def sc_release(run: Run, res: Result) -> None:
 
 
 def sc_deadman(run: Run, res: Result) -> None:
-    over: list[float] = []
-    flag: list[float] = []
+    over: list[tuple[float, float]] = []
+    flag: list[tuple[float, float]] = []
     phase: list[float] = []
     for i in range(run.args.repeat):
         run.arm(res)
@@ -363,13 +412,12 @@ def sc_deadman(run: Run, res: Result) -> None:
             continue
         fr, b = got
         res.check(b.reason == 3, f"run {i}: stop reason {b.reason}, want 3 udp timeout")
-        o = fr.ts - (t_last + TIMEOUT_MS / 1000)
-        over.append(ms(o))
+        over.append((t_last + TIMEOUT_MS / 1000, fr.ts))
         frames = run.mon.since(start)
         degraded = [f for f in frames if f.can_id == BRAKE_ID and f.data[2] == 1
                     and f.data[4] & 1 and f.ts < fr.ts]
         if degraded:
-            flag.append(ms(degraded[0].ts - t_last))
+            flag.append((t_last + WARN_MS / 1000, degraded[0].ts))
         else:
             res.check(False, f"run {i}: no ARMED frame with the link-degraded flag before "
                              "the stop")
@@ -381,27 +429,21 @@ def sc_deadman(run: Run, res: Result) -> None:
             b2 = run.brake_after(run.mon.index() - 1, lambda _b: True, 0.5)
             res.check(b2 is not None and b2[1].reason == 3,
                       "STOP after a udp timeout changed the reason on the bus")
-    res.samples_ms["dead-man overshoot"] = over
-    res.samples_ms["degraded flag after last packet"] = flag
-    res.figures["overshoot_ms"] = summary(over)
-    res.figures["degraded_flag_after_ms"] = summary(flag)
+    judge(run, res, "overshoot_ms", "dead-man overshoot", over)
+    # The flag may wait for the next periodic frame: up to 10 ms after the warn time.
+    judge(run, res, "degraded_flag_after_warn_ms", "degraded flag after warn time", flag,
+          use_median=False, slack_ms=10.0)
     res.figures["last_packet_after_tick_ms"] = summary(phase)
-    if over:
-        res.check(min(over) >= -EARLY_TOL_MS, f"stop before the deadline ({min(over)} ms)")
-        res.check(sorted(over)[len(over) // 2] <= LIM.p50,
-                  f"median overshoot > {LIM.p50} ms (stop waits for the tick?)")
-        res.check(max(over) <= LIM.max, f"max overshoot > {LIM.max} ms")
-    if flag:
-        res.check(min(flag) >= WARN_MS - EARLY_TOL_MS, "link-degraded flag before the warn time")
-        res.check(max(flag) <= WARN_MS + 10 + LIM.max,
-                  "link-degraded flag later than warn time + one period + slack")
     res.check(len(over) == run.args.repeat, "not every run stopped")
 
 
 def sc_tcp_stop(run: Run, res: Result) -> None:
-    lat: list[float] = []
+    lat: list[tuple[float, float]] = []
     rep: list[float] = []
-    for i in range(run.args.repeat + 4):
+    spoiled = 0
+    n = run.args.repeat + 4
+    for i in range(n):
+        t_arm = time.time()
         run.arm(res)
         time.sleep(0.05)
         k = i % len(run.clients)
@@ -409,6 +451,9 @@ def sc_tcp_stop(run: Run, res: Result) -> None:
         ex = run.clients[k].stop()
         got = run.brake_after(start, lambda b: b.state == 0, 1.0)
         run.udp.stop()
+        if run.udp.max_gap(t_arm, ex.t_send) >= KEEPALIVE_GAP_S and ex.reply.reason == 3:
+            spoiled += 1  # the harness let the link die before its STOP: not a sample
+            continue
         res.check(ex.reply.ack and ex.reply.state == 0 and ex.reply.reason == 2,
                   f"run {i} (client {k}): reply not ACK STOPPED tcp_stop: {ex.reply}")
         rep.append(ms(ex.t_reply - ex.t_send))
@@ -417,18 +462,16 @@ def sc_tcp_stop(run: Run, res: Result) -> None:
             continue
         fr, b = got
         res.check(b.reason == 2, f"run {i}: bus reason {b.reason}, want 2 tcp stop")
-        lat.append(ms(fr.ts - ex.t_send))
-    res.samples_ms["TCP STOP -> stop frame"] = lat
+        lat.append((ex.t_send, fr.ts))
+    judge(run, res, "stop_frame_latency_ms", "TCP STOP -> stop frame", lat)
     res.samples_ms["TCP STOP -> reply"] = rep
-    res.figures["stop_frame_latency_ms"] = summary(lat)
     res.figures["reply_latency_ms"] = summary(rep)
     res.figures["clients"] = len(run.clients)
-    if lat:
-        res.check(min(lat) >= 0, "stop frame before the STOP was sent (clock problem)")
-        res.check(sorted(lat)[len(lat) // 2] <= LIM.p50,
-                  f"median latency > {LIM.p50} ms (waits for the tick?)")
-        res.check(max(lat) <= LIM.max, f"max latency > {LIM.max} ms")
-    res.check(len(lat) == run.args.repeat + 4, "not every STOP showed on the bus")
+    if spoiled:
+        res.figures["samples_spoiled_by_keepalive_pause"] = spoiled
+        if spoiled > n // 2:
+            res.inconclusive = f"{spoiled} of {n} samples: the harness's keepalive paused"
+    res.check(len(lat) == n - spoiled, "not every STOP showed on the bus")
     time.sleep(0.25)
 
 
@@ -483,12 +526,9 @@ def sc_invalid_flood(run: Run, res: Result) -> None:
         res.check(False, "still ARMED 1 s after the last valid packet (flood keeps it alive)")
     else:
         fr, b = got
-        o = ms(fr.ts - (t_last + TIMEOUT_MS / 1000))
-        res.samples_ms["overshoot under invalid flood"] = [o]
-        res.figures["overshoot_ms"] = o
+        judge(run, res, "overshoot_ms", "overshoot under invalid flood",
+              [(t_last + TIMEOUT_MS / 1000, fr.ts)], use_median=False)
         res.check(b.reason == 3, f"stop reason {b.reason}, want 3 udp timeout")
-        res.check(o >= -EARLY_TOL_MS, "stopped before the deadline")
-        res.check(o <= LIM.max, f"overshoot {o} ms > {LIM.max} ms")
     res.figures["release_during_flood"] = f"ack={ex.reply.ack} nak={ex.reply.nak_code}"
     res.check(not ex.reply.ack and ex.reply.nak_code == 2,
               "RELEASE while only invalid packets arrive: not NAK 2")
@@ -510,9 +550,10 @@ def sc_iface_down(run: Run, res: Result) -> None:
     time.sleep(0.3)
     res.check(d.alive, "daemon exited while the link was down")
     start = run.mon.index()
-    _, t_up = set_link(run.iface, up=True)
+    t_up0, t_up = set_link(run.iface, up=True)
     first = run.brake_after(start, lambda _b: True, 1.0)
     time.sleep(0.3)
+    run.keepalive_held(res, since, t_up)
     run.windows.append((t_down - 0.01, (first[0].ts if first else t_up) + RECOVERY_S,
                         "link down"))
     ev = d.events(since=since)
@@ -527,7 +568,7 @@ def sc_iface_down(run: Run, res: Result) -> None:
         res.check(False, "no ESTOP_BRAKE frame within 1 s after the link came up")
     else:
         fr, b = first
-        res.figures["up_to_first_frame_ms"] = ms(fr.ts - t_up)
+        res.figures["up_to_first_frame_ms"] = ms(fr.ts - t_up0)
         res.figures["first_frame_after_up"] = fr.data.hex(" ")
         res.check(fr.ts - t_up <= 0.05, "frames resumed more than 50 ms after link up")
         res.check(b.brakes and b.state == 0 and b.reason == 4,
@@ -599,6 +640,7 @@ def sc_txqueue_full(run: Run, res: Result) -> None:
     th.join(timeout=2)
     sh(["tc", "qdisc", "del", "dev", run.iface, "root"])
     t_clear = time.time()  # ``tc`` has returned: the queue is gone (spawning tc is slow in TCG)
+    run.keepalive_held(res, since, t_clear)
     first = run.mon.wait_for(lambda f: f.can_id == BRAKE_ID and f.ts > t_clear, 0, 1.0)
     time.sleep(0.3)
     run.windows.append((t_qdisc - 0.01, (first.ts if first else t_clear) + RECOVERY_S,
@@ -740,7 +782,7 @@ SCENARIOS: list[tuple[str, str, str, Callable[[Run, Result], None]]] = [
      "ACK ARMED, ARMED frame <= {max} ms, log STOPPED->ARMED", sc_release),
     ("deadman", "Dead-man timeout (200 ms)",
      f"reason udp_timeout; overshoot >= -{EARLY_TOL_MS}, " "p50 <= {p50}, max <= {max} ms; "
-     "degraded flag >= 100 ms, <= 110 + {max} ms", sc_deadman),
+     "degraded flag >= 100 ms after the last packet, <= 110 + {max} ms", sc_deadman),
     ("tcp_stop", "TCP STOP latency (4 clients)",
      "ACK STOPPED tcp_stop; stop frame p50 <= {p50}, max <= {max} ms",
      sc_tcp_stop),
@@ -775,18 +817,37 @@ def check_bus(run: Run, res: Result) -> None:
     for iss in ctl.issues:
         kinds[iss.kind] = kinds.get(iss.kind, 0) + 1
     res.figures["issues"] = kinds
-    hard = [i for i in ctl.issues if i.kind not in ("jump",)]
+    lossy = ("jump", "resync")  # frames lost: allowed only in provoked disturbances
+    hard = [i for i in ctl.issues if i.kind not in lossy]
     for i in hard[:5]:
         res.notes.append(f"{i.kind} at {i.ts:.6f} id {i.can_id:#05x}: {i.detail}")
     res.check(not hard, f"{len(hard)} frames failed CRC/length/counter/content checks")
-    jumps = [i for i in ctl.issues if i.kind == "jump" and not in_windows(i.ts, wins)]
+    jumps = [i for i in ctl.issues if i.kind in lossy and not in_windows(i.ts, wins)]
+    for i in jumps[:3]:
+        res.notes.append(f"{i.kind} at {i.ts:.6f} id {i.can_id:#05x}: {i.detail}")
     res.check(not jumps, f"{len(jumps)} counter jumps (lost frames) outside disturbances")
     gaps = []
+    excuses: list[str] = []
+    stalls = run.stalls()
     brake = [f for f in frames if f.can_id == BRAKE_ID]
     for a, b in zip(brake, brake[1:], strict=False):
-        if not (in_windows(a.ts, wins) or in_windows(b.ts, wins)):
-            gaps.append((b.ts - a.ts) * 1000)
+        if in_windows(a.ts, wins) or in_windows(b.ts, wins):
+            continue
+        if b.ts - a.ts >= BRAKE_SILENCE_S:
+            stall = excused(a.ts, b.ts, stalls)
+            if stall is not None:
+                excuses.append(f"{ms(b.ts - a.ts)} ms gap at {a.ts:.3f}: a CPU stood still "
+                               f"{ms(stall)} ms of it")
+                wins.append((a.ts, b.ts))  # the trip it caused is excused as well
+                continue
+        gaps.append((b.ts - a.ts) * 1000)
     res.figures["brake_gap_ms_outside_disturbances"] = summary(gaps)
+    long_stalls = [b - a for a, b in stalls if b - a >= 0.010]
+    res.figures["cpu_stalls_10ms_or_more"] = (
+        f"{len(long_stalls)}, max {ms(max(long_stalls))} ms" if long_stalls else 0)
+    res.figures["stall_monitor_realtime"] = run.stallmon.realtime() if run.stallmon else None
+    if excuses:
+        res.figures["gaps_excused_by_cpu_stalls"] = excuses[:5]
     res.check(bool(gaps) and max(gaps) < BRAKE_SILENCE_S * 1000,
               "an ESTOP_BRAKE gap outside the provoked disturbances reached 50 ms")
     # A silence is expected when its deadline (last good frame + 50 ms) falls in a provoked
@@ -898,6 +959,30 @@ GLOBAL: list[tuple[str, str, str, Callable[[Run, Result], None]]] = [
 
 # =========================================================================== main
 
+# Scenarios that start from any state and may run again when the environment spoiled them.
+RETRYABLE = {"release", "deadman", "tcp_stop", "invalid_flood", "iface_down", "txqueue_full"}
+
+
+def run_one(run: Run, sid: str, res: Result, fn: Callable[[Run, Result], None]) -> None:
+    t0 = time.monotonic()
+    try:
+        if sid not in ("boot", "restart"):
+            run.ensure_daemon()
+        fn(run, res)
+        res.passed = not any(n.startswith("FAIL") for n in res.notes)
+    except Exception as exc:  # noqa: BLE001 - any error is a FAIL with its reason
+        res.passed = False
+        res.notes.append(f"FAIL: {type(exc).__name__}: {exc}")
+        res.notes.append(traceback.format_exc().strip().splitlines()[-2][:200])
+        if run.remote is not None:
+            run.remote.stop()
+        run.windows.append((time.time() - 2.0, time.time() + 0.5, f"error in {sid}"))
+    res.duration_s = round(time.monotonic() - t0, 2)
+    log(f"  -> {'PASS' if res.passed else 'FAIL'} {json.dumps(res.figures)[:300]}")
+    for n in res.notes:
+        log(f"     {n}")
+
+
 def run_all(run: Run, only: set[str] | None, budget_s: float) -> None:
     t_begin = time.monotonic()
     for sid, title, crit, fn in SCENARIOS:
@@ -909,23 +994,19 @@ def run_all(run: Run, only: set[str] | None, budget_s: float) -> None:
             run.results.append(res)
             continue
         log(f"scenario {sid}: {title}")
-        t0 = time.monotonic()
-        try:
-            if sid not in ("boot", "restart"):
-                run.ensure_daemon()
-            fn(run, res)
-            res.passed = not any(n.startswith("FAIL") for n in res.notes)
-        except Exception as exc:  # noqa: BLE001 - any error is a FAIL with its reason
-            res.passed = False
-            res.notes.append(f"FAIL: {type(exc).__name__}: {exc}")
-            res.notes.append(traceback.format_exc().strip().splitlines()[-2][:200])
-            if run.remote is not None:
-                run.remote.stop()
-            run.windows.append((time.time() - 2.0, time.time() + 0.5, f"error in {sid}"))
-        res.duration_s = round(time.monotonic() - t0, 2)
-        log(f"  -> {'PASS' if res.passed else 'FAIL'} {json.dumps(res.figures)[:300]}")
-        for n in res.notes:
-            log(f"     {n}")
+        run_one(run, sid, res, fn)
+        if not res.passed and res.inconclusive and sid in RETRYABLE:
+            # The environment, not the daemon, spoiled this run (see the note): once more.
+            # The first try stays on record in the notes; the second one decides.
+            first = res
+            log(f"  inconclusive ({first.inconclusive}): running {sid} once more")
+            res = Result(sid, title, first.criterion)
+            res.notes.append(f"second try; the first was inconclusive: {first.inconclusive} "
+                             f"[{'; '.join(first.notes)[:300]}]")
+            run_one(run, sid, res, fn)
+            if res.inconclusive:
+                res.check(False, f"inconclusive twice: {res.inconclusive}")
+                res.passed = False
         run.results.append(res)
 
 

@@ -95,6 +95,21 @@ def test_counter_wraps_at_15() -> None:
     assert ctl.good == 40 and not ctl.issues
 
 
+def test_counter_resyncs_after_a_silence() -> None:
+    # 15 frames lost in an outage bring the counter back to the same value: not a repeat
+    ctl = BrakeController()
+    ctl.on_frame(Frame(0.00, 0x050, armed(0)))
+    ctl.on_frame(Frame(0.16, 0x050, stopped(0, reason=4)))
+    assert ctl.good == 2 and [i.kind for i in ctl.issues] == ["resync"]
+    ctl.on_frame(Frame(0.17, 0x050, stopped(1, reason=4)))
+    assert ctl.good == 3 and len(ctl.issues) == 1
+    status = [StatusFrame(0, 0, 0, 0, 0xFFFF, c).encode() for c in (3, 3, 4)]
+    ctl.on_frame(Frame(0.1, 0x051, status[0]))
+    ctl.on_frame(Frame(0.4, 0x051, status[1]))  # 300 ms later: starts over
+    ctl.on_frame(Frame(0.5, 0x051, status[2]))
+    assert ctl.status_good == 3 and [i.kind for i in ctl.issues] == ["resync", "resync"]
+
+
 def test_new_sender_resets_counters() -> None:
     ctl = BrakeController()
     ctl.on_frame(Frame(0.0, 0x050, armed(9)))
@@ -229,3 +244,15 @@ def test_run_command_line() -> None:
     assert res.returncode != 0 and "unknown option" in res.stderr
     res = subprocess.run([str(run), "--mode", "x"], capture_output=True, text=True, timeout=10)
     assert res.returncode != 0 and "--mode" in res.stderr
+
+
+def test_stall_intervals() -> None:
+    lines = ["# cpu 0 rt 1 pid 5", "10.000 10.040", "bad line", "10.030 10.050", "11.0 11.01"]
+    stalls = hilcheck.merge(hilcheck.read_stalls(lines))
+    assert stalls == [(10.0, 10.05), (11.0, 11.01)]
+    assert hilcheck.overlap(stalls, 10.02, 11.005) == pytest.approx(0.035)
+    # a 54 ms gap of which the CPU stood still 45 ms: the environment's
+    assert hilcheck.excused(10.0, 10.054, stalls) == pytest.approx(0.05)
+    # a 60 ms gap with only a 10 ms stall in it: the daemon had 50 ms to send
+    assert hilcheck.excused(10.995, 11.055, stalls) is None
+    assert hilcheck.excused(12.0, 12.06, stalls) is None

@@ -1,0 +1,44 @@
+"""Stall monitor: tells the environment's stalls from the daemon's.
+
+    python stallmon.py CPU OUTFILE
+
+Pinned to one CPU at real-time priority (SCHED_FIFO 50, when allowed), it wakes every 2 ms and
+writes each interval in which it could not run for more than 4 ms beyond that, as
+``start end`` wall-clock seconds. An RT thread that cannot run means the CPU itself did not run
+(a VM's vCPU descheduled by a busy host, or held up by the emulator), so nothing else on that
+CPU could run either: a frame gap that coincides with such a stall is the environment's.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import time
+
+PERIOD_S = 0.002
+REPORT_S = 0.004  # beyond the period
+
+
+def main() -> int:
+    cpu = int(sys.argv[1])
+    out = open(sys.argv[2], "w", buffering=1)  # noqa: SIM115 - lives as long as the process
+    os.sched_setaffinity(0, {cpu})
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
+        rt = True
+    except (OSError, AttributeError):
+        rt = False
+    out.write(f"# cpu {cpu} rt {int(rt)} pid {os.getpid()}\n")
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    prev = time.time()
+    while True:
+        time.sleep(PERIOD_S)
+        now = time.time()
+        if now - prev > PERIOD_S + REPORT_S:
+            out.write(f"{prev + PERIOD_S:.6f} {now:.6f}\n")
+        prev = now
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -26,6 +26,8 @@ could not run (or --strict and a goal failed).
 from __future__ import annotations
 
 import argparse
+import contextlib
+import ctypes
 import gc
 import json
 import math
@@ -302,6 +304,20 @@ class CpuMeter:
         other = max(0.0, (end[0] - self.start[0] - own) / span)
         steal = (end[1] - self.start[1]) / span
         return other, steal, span / self.tck
+
+
+def timer_floor(n: int, period_s: float) -> list[float]:
+    """This machine's own timer wake-up latency (ms): n sleeps of period_s, with the timer
+    slack set to 1 ns where prctl allows. A floor no daemon on this machine can beat."""
+    with contextlib.suppress(OSError, AttributeError):
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(29, ctypes.c_ulong(1), 0, 0, 0)  # PR_SET_TIMERSLACK, 1 ns
+    out = []
+    for _ in range(n):
+        deadline = time.monotonic() + period_s
+        time.sleep(period_s)
+        out.append((time.monotonic() - deadline) * 1000.0)
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -614,6 +630,15 @@ def markdown(results: list[RunResult], meta: dict[str, Any],
                 f"| {r.daemon} | {r.load} | {METRIC_TITLES[m]} | {s['n']} | {fmt_ms(s['p50'])} |"
                 f" {fmt_ms(s['p99'])} | {fmt_ms(s['p99.9'])} | {fmt_ms(s['max'])} | {early} |"
                 f" {r.missed[m]} | {r.wrong_reason[m]} | {r.discarded[m]} |")
+    floor = meta.get("timer_floor_ms")
+    if floor:
+        lines += ["", f"Reference, this machine's own timer wake-up latency ({floor['n']} sleeps "
+                  f"of {meta['timeout_ms']} ms, timer slack 1 ns, before the daemons start): "
+                  f"p50 {fmt_ms(floor['p50'])}, p99 {fmt_ms(floor['p99'])}, p99.9 "
+                  f"{fmt_ms(floor['p99.9'])}, max {fmt_ms(floor['max'])} ms (other CPU "
+                  f"{meta.get('timer_floor_other_cpu', 'n/a')} cores, steal "
+                  f"{meta.get('timer_floor_steal', 'n/a')}). A timeout stop's tail at or below "
+                  f"this comes from the machine, not the daemon."]
     lines += ["", "Flood (per run): the sender's count over its own run time; kernel drops: "
               "datagrams the daemon's socket dropped (receive buffer full); STATUS: the "
               "daemon's own ESTOP_STATUS frames whose invalid-packet count (per 100 ms) "
@@ -659,7 +684,8 @@ def markdown(results: list[RunResult], meta: dict[str, Any],
     return "\n".join(lines)
 
 
-def plot(results: list[RunResult], path: Path, timeout_ms: int) -> None:
+def plot(results: list[RunResult], path: Path, timeout_ms: int,
+         floor_samples: Sequence[float] = ()) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -673,6 +699,8 @@ def plot(results: list[RunResult], path: Path, timeout_ms: int) -> None:
             ax = axes[row][col]
             runs = [r for r in results if r.load == load and r.samples[m]]
             allv = [max(v, floor) for r in runs for v in r.samples[m]]
+            if m == "overshoot" and load == "idle" and allv:
+                allv += [max(v, floor) for v in floor_samples]
             if not allv:
                 ax.set_axis_off()
                 continue
@@ -682,6 +710,11 @@ def plot(results: list[RunResult], path: Path, timeout_ms: int) -> None:
                 s = summarize(r.samples[m])
                 ax.hist(vals, bins=bins, alpha=0.6, color=colors.get(r.daemon),
                         label=f"{r.daemon} (p99.9 {fmt_ms(s['p99.9'])} ms)")
+            if m == "overshoot" and load == "idle" and floor_samples:
+                s = summarize(floor_samples)
+                ax.hist([max(v, floor) for v in floor_samples], bins=bins, histtype="step",
+                        color="k", lw=1,
+                        label=f"machine timer wake (p99.9 {fmt_ms(s['p99.9'])} ms)")
             if m == "overshoot":
                 ax.axvline(GOAL_P999_MS[load], color="k", ls="--", lw=1,
                            label=f"goal p99.9 < {GOAL_P999_MS[load]:g} ms")
@@ -724,6 +757,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--only", choices=("estopd", "baseline"), help="run one daemon only")
     ap.add_argument("--loads", default="idle,flood", help="comma-separated: idle,flood")
     ap.add_argument("--out", type=Path, default=HERE / "out")
+    ap.add_argument("--no-floor", action="store_true",
+                    help="skip the reference measurement of the machine's timer wake-up")
     ap.add_argument("--strict", action="store_true", help="exit 1 when a goal fails")
     args = ap.parse_args(argv)
     n = 100 if args.quick else args.trials
@@ -750,6 +785,18 @@ def main(argv: list[str] | None = None) -> int:
 
     t_start = time.monotonic()
     results: list[RunResult] = []
+    floor: dict[str, Any] = {}
+    floor_samples: list[float] = []
+    if not args.no_floor:
+        say(f"reference: this machine's timer wake-up latency, {n} sleeps of "
+            f"{args.timeout_ms} ms ...")
+        meter = CpuMeter()
+        floor_samples = timer_floor(n, args.timeout_ms / 1000.0)
+        floor["timer_floor_ms"] = summarize(floor_samples)
+        cpu = meter.finish()
+        if cpu is not None:
+            floor["timer_floor_other_cpu"] = round(cpu[0], 2)
+            floor["timer_floor_steal"] = round(cpu[1], 2)
     for load in loads:
         say(f"{load}: {' and '.join(d for d, _ in daemons)} side by side, {n} trials per "
             f"metric each, alternating in blocks of {args.block} ...")
@@ -765,14 +812,15 @@ def main(argv: list[str] | None = None) -> int:
             "cpus": os.cpu_count(), "python": platform.python_version(),
             "timeout_ms": args.timeout_ms, "trials": n, "flood_rate": args.flood_rate,
             "send_slack_ms": args.send_slack_ms, "block": args.block,
-            "rt_prio": args.rt_prio, "commands": {k: v for k, v in daemons},
+            "rt_prio": args.rt_prio, "commands": {k: v for k, v in daemons}, **floor,
             "bench_wall_s": round(time.monotonic() - t_start, 1)}
     goals = check_goals(results)
     md = markdown(results, meta, goals)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "stop_latency.md").write_text(md)
     runs: list[dict[str, Any]] = []
-    doc = {"meta": meta, "goals": [{"goal": g, "pass": ok} for g, ok in goals], "runs": runs}
+    doc: dict[str, Any] = {"meta": meta, "runs": runs,
+                           "goals": [{"goal": g, "pass": ok} for g, ok in goals]}
     for r in results:
         d = asdict(r)
         d["summary_ms"] = {m: summarize(r.samples[m]) for m in METRICS}
@@ -780,7 +828,8 @@ def main(argv: list[str] | None = None) -> int:
             d["flood"]["rate"] = r.flood.rate
         runs.append(d)
     (args.out / "stop_latency.json").write_text(json.dumps(doc, indent=1, allow_nan=True))
-    plot(results, args.out / "stop_latency.png", args.timeout_ms)
+    doc["timer_floor_samples_ms"] = floor_samples
+    plot(results, args.out / "stop_latency.png", args.timeout_ms, floor_samples)
     say()
     say(md)
     say(f"bench wall time {meta['bench_wall_s']} s; wrote {args.out}/stop_latency.md, "

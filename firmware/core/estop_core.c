@@ -394,32 +394,30 @@ static estop_err_t check_slot(const estop_core_t *core, uint32_t slot)
     return err;
 }
 
-estop_err_t estop_tcp_open(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out)
+/* Opening and closing a slot both start it empty; only the open mark differs. */
+static estop_err_t set_slot(estop_core_t *core, uint32_t slot, uint8_t open, uint32_t now_us,
+                            estop_out_t *out)
 {
     estop_err_t err = check_slot(core, slot);
     if (err == ESTOP_OK) {
         err = begin(core, now_us, out);
     }
     if (err == ESTOP_OK) {
-        core->slots[slot].open = 1u;
+        core->slots[slot].open = open;
         core->slots[slot].fill = 0u;
         finish(core, out);
     }
     return err;
 }
 
+estop_err_t estop_tcp_open(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out)
+{
+    return set_slot(core, slot, 1u, now_us, out);
+}
+
 estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out)
 {
-    estop_err_t err = check_slot(core, slot);
-    if (err == ESTOP_OK) {
-        err = begin(core, now_us, out);
-    }
-    if (err == ESTOP_OK) {
-        core->slots[slot].open = 0u;
-        core->slots[slot].fill = 0u;
-        finish(core, out);
-    }
-    return err;
+    return set_slot(core, slot, 0u, now_us, out);
 }
 
 static void reply(const estop_core_t *core, uint32_t seq, uint8_t nak_code, estop_out_t *out)

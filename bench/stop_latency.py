@@ -2,7 +2,11 @@
 
 Two measurements, each over many quick trials, for each daemon (estopd and
 ``bench/baseline_asyncio.py``), each at idle and while another process floods the daemon's UDP
-port with invalid packets (loopback only, bounded in time):
+port with invalid packets (loopback only, bounded in time). Both daemons run at once and the
+trials alternate between them in blocks (--block), so background load on the machine falls on
+both alike; the one flooder is aimed at the daemon whose block runs. The report also gives the
+CPU other processes used meanwhile, hypervisor steal, and a reference measurement of this
+machine's own timer wake-up latency, so that a tail can be told apart from the machine's.
 
 - timeout overshoot = first stop frame - (last valid packet sent + timeout)
 - TCP stop latency  = first stop frame (brake_request 1) - STOP sent
@@ -336,6 +340,8 @@ class RunResult:
     release_failures: int = 0
     release_naks: int = 0
     discard_reasons: dict[str, int] = field(default_factory=dict)
+    sample_times: dict[str, list[float]] = field(default_factory=lambda: {m: [] for m in METRICS})
+    blocks: list[dict[str, float]] = field(default_factory=list)  # per block: t, s, other, steal
     status_frames: int = 0
     status_invalid_saturated: int = 0  # STATUS frames counting >= 255 invalid packets / 100 ms
     wall_s: float = 0.0
@@ -353,11 +359,17 @@ class RunResult:
         key = f"{METRIC_TITLES[metric]}: {why}"
         self.discard_reasons[key] = self.discard_reasons.get(key, 0) + 1
 
+    def add_sample(self, metric: str, value_ms: float) -> None:
+        self.samples[metric].append(value_ms)
+        self.sample_times[metric].append(round(time.time(), 3))
+
     def add_cpu(self, measured: tuple[float, float, float] | None) -> None:
         """Fold one block's (other, steal, seconds) into the run's time-weighted means."""
         if measured is None:
             return
         other, steal, secs = measured
+        self.blocks.append({"t_end": round(time.time(), 3), "seconds": round(secs, 2),
+                            "other": round(other, 3), "steal": round(steal, 3)})
         total = self.metered_s + secs
         if total <= 0:
             return
@@ -448,7 +460,7 @@ class Trials:
         if reason != can.Reason.UDP_TIMEOUT:
             self.r.wrong_reason["overshoot"] += 1
             return False
-        self.r.samples["overshoot"].append((t_stop - (t_last + self.timeout_s)) * 1000.0)
+        self.r.add_sample("overshoot", (t_stop - (t_last + self.timeout_s)) * 1000.0)
         return True
 
     def tcp_trial(self) -> bool:
@@ -475,7 +487,7 @@ class Trials:
         if not quick:
             self.r.discard("tcp_stop", "late send")
             return False
-        self.r.samples["tcp_stop"].append((t_frame - t_stop) * 1000.0)
+        self.r.add_sample("tcp_stop", (t_frame - t_stop) * 1000.0)
         return True
 
     def run(self, n: int, deadline: float, max_attempts: int) -> int:
@@ -659,9 +671,10 @@ def markdown(results: list[RunResult], meta: dict[str, Any],
         err = f"; ERROR {r.error}" if r.error else ""
         other = "n/a" if r.other_cpu is None else f"{r.other_cpu:.2f}"
         steal = "n/a" if r.steal_cpu is None else f"{r.steal_cpu:.2f}"
+        peak = max((b["other"] + b["steal"] for b in r.blocks), default=math.nan)
         lines.append(f"- {r.daemon} {r.load}: {r.wall_s:.1f} s; other CPU {other} cores, "
-                     f"steal {steal}; RELEASE NAKs {r.release_naks}, release failures "
-                     f"{r.release_failures}{err}")
+                     f"steal {steal} (busiest block: {fmt_ms(peak)} cores); RELEASE NAKs "
+                     f"{r.release_naks}, release failures {r.release_failures}{err}")
         if r.discard_reasons:
             lines.append("  - discarded: " + ", ".join(
                 f"{k} {v}" for k, v in sorted(r.discard_reasons.items())))

@@ -455,6 +455,16 @@ class Result:
     problems: list[str] = field(default_factory=list)
 
 
+def _still_armed(view: View, res: Result) -> bool:
+    b = view.brake
+    if b is not None and b.state == can.State.ARMED:
+        return True
+    reason = can.reason_name(b.reason) if b is not None else "-"
+    res.problems.append(f"the unit stopped during the drive (reason {reason}): the demo's "
+                        f"packets were held up longer than the timeout (a very busy machine?)")
+    return False
+
+
 def run_script(daemon: Daemon, view: View, timeout_ms: int, res: Result) -> None:
     """The scripted drive; fills ``res`` as it goes."""
     link = Link(daemon.udp_port, daemon.tcp_port)
@@ -469,6 +479,8 @@ def run_script(daemon: Daemon, view: View, timeout_ms: int, res: Result) -> None
             return
         view.phase = "drive"
         s.wait(2.0, _drive)
+        if not _still_armed(view, res):
+            return
 
         view.phase = "finger lifted"
         t_last = s.last_valid_sent
@@ -487,6 +499,8 @@ def run_script(daemon: Daemon, view: View, timeout_ms: int, res: Result) -> None
             return
         view.phase = "drive"
         s.wait(1.5, _drive)
+        if not _still_armed(view, res):
+            return
 
         view.phase = "stop button"
         _reply, t_stop = s.request("STOP button", tcp.DEFAULT_STOP_ID)

@@ -16,9 +16,10 @@ if refused), then either drive 3 packets 1 ms apart and go silent (timeout trial
 packet and send STOP (TCP trial). Frame times are the daemon's own can-log stamps
 (CLOCK_REALTIME); send times are time.time() taken just before the send call (same clock).
 A trial whose send call itself took longer than --send-slack-ms (the bench was descheduled,
-so the send time is uncertain) or whose packets left gaps over half the timeout is discarded
-and counted. Stops with the wrong reason,
-missing stops and early stops (overshoot < 0) are counted and reported, never dropped.
+so the send time is uncertain), whose packets left gaps over half the timeout, or (TCP trial)
+whose link timed out before the STOP was handled is discarded, counted and its reason
+reported. Stops with the wrong reason, missing stops and early stops (overshoot < 0) are
+counted and reported, never dropped.
 
 Outputs: a Markdown table (printed and saved), JSON with the raw samples, and a PNG histogram,
 in bench/out/ by default. Goals are checked and printed; the exit code is 0 unless the bench

@@ -52,7 +52,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from estop.demo import Daemon, DaemonError, Link, find_estopd, is_stop_frame, stamp
+from estop.loopback import Daemon, DaemonError, Link, find_estopd, is_stop_frame, stamp
 from estop.protocol import can, tcp, udp
 
 HERE = Path(__file__).resolve().parent

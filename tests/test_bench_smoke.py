@@ -104,7 +104,7 @@ def test_goals_and_report_on_synthetic_runs(bench: ModuleType, tmp_path: Path) -
 
 
 def test_start_line_ports_are_parsed() -> None:
-    from estop.demo import parse_start_ports
+    from estop.loopback import parse_start_ports
 
     assert parse_start_ports("estopd 0.000001 start udp=127.0.0.1:5700 tcp=127.0.0.1:5701") \
         == (5700, 5701)

@@ -15,7 +15,8 @@ from pathlib import Path
 
 import pytest
 
-from estop.demo import find_estopd, main
+from estop.demo import main
+from estop.loopback import find_estopd
 
 ROOT = Path(__file__).resolve().parents[1]
 

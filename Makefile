@@ -47,8 +47,12 @@ coverage: setup
 hil: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" hil/run
 
+# Benchmarks (not part of `make test`): stop latency vs the asyncio baseline, memory soak,
+# instructions per input. Reports land in bench/out/.
 bench: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/stop_latency.py
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/rss_soak.py
+	$(VPY) bench/core_instructions.py
 
 # Mutation testing of the core (about 1.5 minutes; not part of `make test`).
 mutants: setup

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import struct
-import zlib
-
 from estop.core import Config, Step, Watchdog
+from estop.protocol import tcp, udp
 
 STOPPED, ARMED = 0, 1
 NONE, BOOT, TCP_STOP, UDP_TIMEOUT, FAULT = range(5)
@@ -15,20 +13,22 @@ MS = 1000
 
 
 def packet(gas: float = 0.0, steer: float = 0.0, gear: int = 4, turn: int = 0,
-           horn: int = 0) -> bytes:
-    return struct.pack("<ffiii", gas, steer, gear, turn, horn)
+           horn: int = 0, legacy: bool = False) -> bytes:
+    """A control packet, valid or not (no validation); the 16-byte form drops horn."""
+    fields = udp.ControlPacket(gas, steer, gear, turn, 0 if legacy else horn)
+    return fields.encode(legacy=legacy, validate=False)
 
 
-def request(msg_id: int, seq: int = 1, arg: int = 0) -> bytes:
-    body = struct.pack("<III", msg_id, seq, arg)
-    return body + struct.pack("<I", zlib.crc32(body))
+def request(msg_id: int, seq: int = 1, arg: int = 0, good_crc: bool = True) -> bytes:
+    frame = tcp.Request(msg_id, seq, arg).encode()
+    return frame if good_crc else frame[:12] + bytes([frame[12] ^ 0x01]) + frame[13:]
 
 
 def reply_fields(raw: bytes) -> tuple[int, int, int, int, int, int]:
-    """(msg_id, seq, state, reason, flags, nak) of a reply, after checking its CRC."""
-    assert len(raw) == 16
-    assert zlib.crc32(raw[:12]) == struct.unpack("<I", raw[12:])[0]
-    return struct.unpack("<IIBBBB", raw[:12])
+    """(msg_id, seq, state, reason, flags, nak) of a reply; strict decoding checks length, CRC
+    and that every field is one spec version 1 allows."""
+    r = tcp.Reply.decode(raw)
+    return r.msg_id, r.seq, r.state, r.reason, r.flags, r.nak_code
 
 
 class Unit:

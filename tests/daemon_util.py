@@ -6,8 +6,9 @@ file never fills up, so the daemon can never block on a test that is busy elsewh
 ports come from the ``start`` line. :class:`Daemon` is a context manager that always kills
 the process on exit.
 
-Packets are encoded here with struct/zlib directly, independently of ``estop.protocol``, so the
-daemon is checked against a second reading of PROTOCOL.md.
+Packets and replies go through the Python codecs (``estop.protocol``, via tests/core_util.py),
+written apart from the C sources, so the daemon is checked against a second reading of
+PROTOCOL.md. The can-log line format is checked here with its own strict pattern.
 """
 
 from __future__ import annotations
@@ -17,15 +18,16 @@ import re
 import shutil
 import signal
 import socket
-import struct
 import subprocess
 import time
-import zlib
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 import pytest
+
+from core_util import packet, reply_fields, request
+from estop.protocol.crc import e2e_crc8
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -50,14 +52,9 @@ CANLOG_RE = re.compile(r"^\((?P<sec>\d+)\.(?P<usec>\d{6})\) (?P<iface>\S+) "
 
 # ---- encoding (PROTOCOL.md 1, 2, 4) ---------------------------------------------------------
 
-def udp_packet(gas: float = 0.0, steer: float = 0.0, gear: int = 4, turn: int = 0,
-               horn: int = 0) -> bytes:
-    return struct.pack("<ffiii", gas, steer, gear, turn, horn)
-
-
-def tcp_frame(msg_id: int, seq: int, arg: int = 0) -> bytes:
-    body = struct.pack("<III", msg_id, seq, arg)
-    return body + struct.pack("<I", zlib.crc32(body))
+# The daemon tests' names for the shared test-side encoders.
+udp_packet = packet
+tcp_frame = request
 
 
 @dataclass(frozen=True)
@@ -71,21 +68,7 @@ class Reply:
 
 
 def parse_reply(raw: bytes) -> Reply:
-    assert len(raw) == 16, raw
-    msg, seq, state, reason, flags, nak, crc = struct.unpack("<IIBBBBI", raw)
-    assert crc == zlib.crc32(raw[:12]), f"bad reply crc: {raw.hex()}"
-    assert msg in (ACK, NAK), hex(msg)
-    assert (nak == 0) == (msg == ACK), raw.hex()
-    return Reply(msg, seq, state, reason, flags, nak)
-
-
-def crc8_j1850(data: bytes) -> int:
-    crc = 0xFF
-    for b in data:
-        crc ^= b
-        for _ in range(8):
-            crc = ((crc << 1) ^ 0x1D) & 0xFF if crc & 0x80 else (crc << 1) & 0xFF
-    return crc ^ 0xFF
+    return Reply(*reply_fields(raw))
 
 
 @dataclass(frozen=True)
@@ -109,8 +92,7 @@ class Frame:
 
     def crc_ok(self) -> bool:
         data_id = BRAKE_DATA_ID if self.can_id == BRAKE_ID else STATUS_DATA_ID
-        expect = crc8_j1850(bytes([data_id & 0xFF, data_id >> 8]) + self.data[:7])
-        return len(self.data) == 8 and self.data[7] == expect
+        return len(self.data) == 8 and self.data[7] == e2e_crc8(data_id, self.data[:7])
 
     def is_brake(self) -> bool:
         return self.can_id == BRAKE_ID

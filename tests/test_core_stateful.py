@@ -19,6 +19,7 @@ import hypothesis.strategies as st
 from hypothesis import HealthCheck, event, settings
 from hypothesis.stateful import RuleBasedStateMachine, initialize, invariant, precondition, rule
 
+from core_util import packet, request
 from estop.core import MAX_SLOTS, Config, Step, Watchdog
 from estop.protocol.crc import crc32, e2e_crc8
 from reference_model import ACK, RELEASE_ID, STATUS_ID, Model, ModelConfig
@@ -28,16 +29,8 @@ BRAKE_ID, STATUS_CAN_ID = CFG.brake_can_id, CFG.status_can_id
 PERIOD = CFG.brake_period_us
 
 
-def request(msg_id: int, seq: int, good_crc: bool = True) -> bytes:
-    body = struct.pack("<III", msg_id, seq, 0)
-    crc = crc32(body) ^ (0 if good_crc else 0x1)
-    return body + struct.pack("<I", crc)
-
-
 def control(gas: float, steer: float, gear: int, turn: int, horn: int, legacy: bool) -> bytes:
-    if legacy:
-        return struct.pack("<ffii", gas, steer, gear, turn)
-    return struct.pack("<ffiii", gas, steer, gear, turn, horn)
+    return packet(gas, steer, gear, turn, horn, legacy=legacy)
 
 
 unit = st.floats(min_value=-1.0, max_value=1.0, width=32)
@@ -145,9 +138,9 @@ class CoreVsModel(RuleBasedStateMachine):
     @rule(data=st.lists(neutral_packets, min_size=1, max_size=8), gap=st.integers(1_000, 60_000))
     def drive(self, data: list[bytes], gap: int) -> None:
         """A burst of packets at a steady rate, the host ticking between them."""
-        for packet in data:
+        for datagram in data:
             self.run_host_until(self.now + gap)
-            self._compare(self.core.udp(packet, self.now), self.model.udp(packet, self.now))
+            self._compare(self.core.udp(datagram, self.now), self.model.udp(datagram, self.now))
 
     @rule(data=st.lists(neutral_packets, min_size=5, max_size=8),
           gap=st.integers(1_000, 45_000), slot=st.integers(0, MAX_SLOTS - 1))

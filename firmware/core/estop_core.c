@@ -308,13 +308,14 @@ static estop_err_t begin(estop_core_t *core, uint32_t now_us, estop_out_t *out)
     estop_err_t err = ESTOP_OK;
     if ((core == NULL) || (out == NULL)) {
         err = ESTOP_ERR_NULL_ARG;
-    } else if (core->magic != CORE_MAGIC) {
-        clear_out(out);
-        err = ESTOP_ERR_NOT_INIT;
     } else {
         clear_out(out);
-        advance_clock(core, now_us, out);
-        send_due_frames(core, out);
+        if (core->magic != CORE_MAGIC) {
+            err = ESTOP_ERR_NOT_INIT;
+        } else {
+            advance_clock(core, now_us, out);
+            send_due_frames(core, out);
+        }
     }
     return err;
 }

@@ -10,7 +10,8 @@ COVDIR := build/cov
 .PHONY: setup demo test check coverage hil bench mutants clean
 setup: $(STAMP) $(VENV)/bin/estopd
 
-$(STAMP): pyproject.toml setup.py pyext/build_core.py $(wildcard firmware/core/*)
+$(STAMP): pyproject.toml setup.py pyext/build_core.py deps/debian-packages.txt $(wildcard firmware/core/*)
+	scripts/ensure-debs build
 	test -x $(VPY) || $(PYTHON) -m venv $(VENV)
 	$(VPY) -m pip install -q --upgrade pip
 	$(VPY) -m pip install -q -e '.[test]'
@@ -29,7 +30,7 @@ test: setup
 	$(MAKE) hil
 
 check: setup
-	scripts/ensure-debs clang
+	scripts/ensure-debs check
 	$(MAKE) -C firmware strict
 	$(VENV)/bin/ruff check src tests hil bench pyext
 

@@ -1,5 +1,5 @@
 """Protocol version 2 (spec section 5): the authenticated codecs of estop.protocol.auth against
-the spec's test vectors and properties, and the v2 framing rules of section 2.
+the spec's test vectors and properties, the v2 framing rules of section 2, and key files.
 
 hashlib's BLAKE2s is the reference for every tag (no copy of the codec's own code).
 """
@@ -7,13 +7,17 @@ hashlib's BLAKE2s is the reference for every tag (no copy of the codec's own cod
 from __future__ import annotations
 
 import hashlib
+import os
+import stat
 import struct
+from pathlib import Path
 
 import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
 from estop import cli
+from estop.keyfile import KeyFileError, load_key_file, write_key_file
 from estop.protocol import auth, tcp, udp
 from estop.protocol.auth import (
     AuthControlPacket,
@@ -364,3 +368,126 @@ def test_client_reads_48_byte_replies() -> None:
     assert asm.feed(V_STATUS_REPLY[:20]) == []
     assert asm.feed(V_STATUS_REPLY[20:] + V_STATUS_REPLY[:1]) == [V_STATUS_REPLY]
     assert asm.pending == 1
+
+
+# ------------------------------------------------------------------------- key files
+
+KEY_HEX = K.hex()
+
+
+def key_file(tmp_path: Path, content: bytes, mode: int = 0o600) -> Path:
+    p = tmp_path / "estop.key"
+    p.write_bytes(content)
+    p.chmod(mode)
+    return p
+
+
+@pytest.mark.parametrize("content", [
+    KEY_HEX.encode(), KEY_HEX.encode() + b"\n", KEY_HEX.upper().encode(),
+    KEY_HEX.upper().encode() + b"\n",
+], ids=["plain", "newline", "upper", "upper-newline"])
+def test_key_file_good(tmp_path: Path, content: bytes) -> None:
+    assert load_key_file(key_file(tmp_path, content)) == K
+    assert load_key_file(str(key_file(tmp_path, content, 0o400))) == K
+
+
+@pytest.mark.parametrize(("content", "match"), [
+    (KEY_HEX.encode() + b"\n\n", "more than one line"),
+    (KEY_HEX[:63].encode(), "found 63"),
+    (KEY_HEX[:63].encode() + b"\n", "found 63"),
+    (KEY_HEX.encode() + b"0", "found 65"),
+    (KEY_HEX[:62].encode() + b"zz", "0x7a 'z'"),
+    (KEY_HEX.encode() + b"\r\n", "0x0d"),
+    (b" " + KEY_HEX.encode(), "0x20"),
+    (KEY_HEX[:32].encode() + b"\n" + KEY_HEX[32:].encode(), "more than one line"),
+    (b"", "found 0"),
+    (b"0" * 5000, "too long"),
+], ids=["two-newlines", "63", "63-newline", "65", "non-hex", "crlf", "space", "split",
+        "empty", "huge"])
+def test_key_file_malformed(tmp_path: Path, content: bytes, match: str) -> None:
+    path = key_file(tmp_path, content)
+    with pytest.raises(KeyFileError, match=match) as info:
+        load_key_file(path)
+    assert "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+@pytest.mark.parametrize("mode", [0o640, 0o604, 0o602, 0o620, 0o660, 0o666, 0o644])
+def test_key_file_group_or_others_refused(tmp_path: Path, mode: int) -> None:
+    path = key_file(tmp_path, KEY_HEX.encode() + b"\n", mode)
+    with pytest.raises(KeyFileError, match=f"mode {mode:04o}") as info:
+        load_key_file(path)
+    assert "\n" not in str(info.value) and "chmod 600" in str(info.value)
+
+
+def test_key_file_missing_and_not_regular(tmp_path: Path) -> None:
+    with pytest.raises(KeyFileError, match="No such file") as info:
+        load_key_file(tmp_path / "absent.key")
+    assert "\n" not in str(info.value)
+    with pytest.raises(KeyFileError, match="not a regular file"):
+        load_key_file(tmp_path)
+    fifo = tmp_path / "fifo"
+    os.mkfifo(fifo, 0o600)
+    with pytest.raises(KeyFileError, match="not a regular file"):
+        load_key_file(fifo)  # refused without hanging on the open
+
+
+def test_parse_and_format_key() -> None:
+    assert auth.parse_key(auth.format_key(K)) == K
+    assert auth.format_key(K) == KEY_HEX.encode() + b"\n"
+    with pytest.raises(auth.KeyTextError):
+        auth.parse_key(b"00" * 31)
+
+
+# ------------------------------------------------------------------------- estop keygen
+
+def test_keygen_writes_a_fresh_0600_key(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                        ) -> None:
+    a, b = tmp_path / "a.key", tmp_path / "b.key"
+    old = os.umask(0)  # the widest umask: the mode still comes out 0600
+    try:
+        assert cli.main(["keygen", str(a)]) == 0
+    finally:
+        os.umask(old)
+    assert cli.main(["keygen", str(b)]) == 0
+    out = capsys.readouterr().out
+    assert out.count("\n") == 2 and str(a) in out
+    for p in (a, b):
+        assert stat.S_IMODE(p.stat().st_mode) == 0o600
+        text = p.read_bytes()
+        assert len(text) == 65 and text.endswith(b"\n")
+        assert len(load_key_file(p)) == 32
+    assert a.read_bytes() != b.read_bytes()  # fresh randomness each time
+    assert a.read_bytes()[:64].decode() not in out  # the key is never printed
+
+
+def test_keygen_refuses_to_overwrite(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                     ) -> None:
+    path = tmp_path / "k"
+    path.write_text("precious\n")
+    assert cli.main(["keygen", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("estop: error: ")
+    assert "already exists" in err
+    assert path.read_text() == "precious\n"
+    link = tmp_path / "link"
+    link.symlink_to(tmp_path / "target")  # a dangling link is refused, not followed
+    assert cli.main(["keygen", str(link)]) == 1
+    assert not (tmp_path / "target").exists()
+    capsys.readouterr()
+
+
+def test_keygen_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]
+                                    ) -> None:
+    assert cli.main(["keygen", str(tmp_path / "no" / "such" / "dir" / "k")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "cannot create" in err
+    assert cli.main(["keygen"]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+
+
+def test_write_key_file_api(tmp_path: Path) -> None:
+    path = tmp_path / "k"
+    assert write_key_file(path, K) == K
+    assert path.read_bytes() == KEY_HEX.encode() + b"\n"
+    with pytest.raises(KeyFileError, match="already exists"):
+        write_key_file(path)

@@ -34,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     from estop import keyfile, monitor, oneshot, remote
 
     parser = ErrorOnlyParser(prog="estop", description="Tools for the estop emergency-stop "
-                             "unit (wire contract: shared/spec/PROTOCOL.md).", epilog=_EPILOG)
+                             "unit (wire contract: docs/PROTOCOL.md).", epilog=_EPILOG)
     parser.add_argument("--version", action="version", version=f"estop {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 

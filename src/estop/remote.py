@@ -29,7 +29,7 @@ lines, ``#`` starts a comment. Times are seconds.
 ``horn on|off``
 ``drive X [T]``       gear drive and gas X; with T: after T seconds gas back to 0
 ``neutral``           gas 0, steering 0, gear neutral
-``rate HZ``           change the send rate
+``rate HZ``           change the send rate (0.1..1000 Hz)
 ``stop``              press the stop button (TCP STOP), print the reply
 ``release``           TCP RELEASE, print the reply
 ``status``            TCP STATUS, print the reply
@@ -85,6 +85,8 @@ from estop.stopchannel import StopChannel, StopChannelError, format_reply
 __all__ = [
     "DESCRIPTION",
     "EPILOG",
+    "MAX_RATE_HZ",
+    "MIN_RATE_HZ",
     "Remote",
     "RemoteStats",
     "ExpectFailed",
@@ -92,9 +94,11 @@ __all__ = [
     "ScriptRunner",
     "Step",
     "add_arguments",
+    "check_rate",
     "handle_key",
     "link_config",
     "parse_script",
+    "rate_arg",
     "run",
     "run_interactive",
 ]
@@ -115,7 +119,7 @@ script (--script TEXT or --script-file FILE): commands separated by ';' or new l
   horn on|off
   drive X [T]     gear drive and gas X; with T: after T seconds gas back to 0
   neutral         gas 0, steering 0, gear neutral
-  rate HZ         change the send rate
+  rate HZ         change the send rate (0.1..1000)
   stop | release | status      TCP request, prints the reply
   expect W...     the last reply must match every word (ack nak stopped armed none boot
                   tcp_stop udp_timeout fault unknown_msg_id no_live_link not_neutral
@@ -130,6 +134,32 @@ exit codes: 0 done, 1 an expect failed, 2 usage error or bad script,
 3 stop channel failed (refused, closed, timeout, malformed reply)"""
 
 PacketHook = Callable[[float, bytes, float | None], None]
+
+MIN_RATE_HZ = 0.1
+MAX_RATE_HZ = 1000.0
+# The sender thread always waits at least this long between two turns, even when it is behind
+# its schedule, so hold()/lift()/close() get its lock at once at any rate.
+_MIN_WAIT = 0.0002
+
+
+def check_rate(rate_hz: float) -> float:
+    """Return ``rate_hz`` if it is a send rate the remote supports (0.1..1000 Hz), else raise
+    ValueError with a one-line message."""
+    if not isinstance(rate_hz, int | float) or not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
+        raise ValueError(f"rate must be {MIN_RATE_HZ:g}..{MAX_RATE_HZ:g} Hz, got {rate_hz!r}")
+    return float(rate_hz)
+
+
+def rate_arg(text: str) -> float:
+    """argparse type of ``--rate``."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    try:
+        return check_rate(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 @dataclass(slots=True)
@@ -161,15 +191,13 @@ class Remote:
                  link: LinkConfig = IDEAL, seed: int | None = None,
                  stop_id: int = tcp.DEFAULT_STOP_ID, tcp_timeout: float = 2.0,
                  legacy: bool = False, on_packet: PacketHook | None = None) -> None:
-        if not rate_hz > 0 or not math.isfinite(rate_hz):
-            raise ValueError(f"rate must be > 0 Hz, got {rate_hz}")
+        self._period = 1.0 / check_rate(rate_hz)
         self.addr = (host, udp_port)
         self.legacy = legacy
         self.on_packet = on_packet
         self.link = LinkModel(link, seed)
         self.channel = StopChannel(host, tcp_port, timeout=tcp_timeout, stop_id=stop_id)
         self.stats = RemoteStats()
-        self._period = 1.0 / rate_hz
         self._control = ControlPacket()
         self._held = False
         self._next_send = 0.0
@@ -224,10 +252,9 @@ class Remote:
 
     @rate_hz.setter
     def rate_hz(self, value: float) -> None:
-        if not value > 0 or not math.isfinite(value):
-            raise ValueError(f"rate must be > 0 Hz, got {value}")
+        period = 1.0 / check_rate(value)
         with self._cond:
-            self._period = 1.0 / value
+            self._period = period
             self._cond.notify_all()
 
     def hold(self) -> None:
@@ -239,7 +266,8 @@ class Remote:
                 self._cond.notify_all()
 
     def lift(self) -> None:
-        """Finger up: send no more packets (those in flight still arrive)."""
+        """Finger up: once this returns, no further packet is sent (those already in flight
+        in the link model still arrive, as on a real network)."""
         with self._cond:
             self._held = False
             self._cond.notify_all()
@@ -286,6 +314,9 @@ class Remote:
     # ------------------------------------------------------------------- sender thread
 
     def _loop(self) -> None:
+        # Everything is decided and sent under the lock, so once lift() has held it no packet
+        # goes out; and every turn ends in a wait of at least _MIN_WAIT, which lets go of the
+        # lock even when the sender is behind its schedule (a slow machine, a slow hook).
         with self._cond:
             while not self._closing:
                 now = time.monotonic()
@@ -304,9 +335,8 @@ class Remote:
                     wake = self._next_send
                 if self._inflight:
                     wake = min(wake, self._inflight[0][0])
-                timeout = 0.5 if wake == math.inf else max(0.0, wake - time.monotonic())
-                if timeout > 0:
-                    self._cond.wait(timeout)
+                timeout = 0.5 if wake == math.inf else wake - time.monotonic()
+                self._cond.wait(min(0.5, max(_MIN_WAIT, timeout)))
 
     def _send_one(self, now: float) -> None:
         data = self._control.encode(legacy=self.legacy)
@@ -400,7 +430,7 @@ def _arg(kind: str, word: str, op: str) -> float:
     if kind == "axis":
         return _number(word, op, -1.0, 1.0)
     if kind == "rate":
-        return _number(word, op, 0.1, 10000.0)
+        return _number(word, op, MIN_RATE_HZ, MAX_RATE_HZ)
     tables = {"gear": _GEARS, "signal": _SIGNALS, "horn": _HORN}
     return _code(word, op, tables[kind])
 
@@ -630,8 +660,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"control packet port (default {udp.DEFAULT_PORT})")
     parser.add_argument("--tcp-port", type=port, default=tcp.DEFAULT_PORT,
                         help=f"stop channel port (default {tcp.DEFAULT_PORT})")
-    parser.add_argument("--rate", type=positive_float, default=50.0,
-                        help="packets per second while held (default 50)")
+    parser.add_argument("--rate", type=rate_arg, default=50.0,
+                        help=f"packets per second while held, {MIN_RATE_HZ:g}..{MAX_RATE_HZ:g} "
+                             f"(default 50)")
     parser.add_argument("--wifi", action="store_true",
                         help=f"link like the original Wi-Fi: {WIFI.loss * 100:g} %% loss, "
                              f"bursts of {WIFI.burst:g}, {WIFI.delay * 1000:g}+0..."

@@ -4,7 +4,6 @@ the send rate is bounded. Real UDP sockets on 127.0.0.1; every thread and socket
 
 from __future__ import annotations
 
-import socket
 import threading
 import time
 from collections.abc import Iterator
@@ -13,61 +12,9 @@ import pytest
 
 from estop import cli
 from estop.remote import MAX_RATE_HZ, MIN_RATE_HZ, Remote, ScriptError, parse_script
+from net_util import LOCAL, UdpSink, unused_tcp_port
 
 pytestmark = pytest.mark.timeout(60)
-
-LOCAL = "127.0.0.1"
-
-
-class UdpSink:
-    """A UDP socket on loopback that counts every datagram it receives, on a thread."""
-
-    def __init__(self) -> None:
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
-        self.sock.bind((LOCAL, 0))
-        self.sock.settimeout(0.02)
-        self.port: int = self.sock.getsockname()[1]
-        self.datagrams: list[bytes] = []
-        self._lock = threading.Lock()
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
-
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.sock.recv(2048)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
-            with self._lock:
-                self.datagrams.append(data)
-
-    @property
-    def count(self) -> int:
-        with self._lock:
-            return len(self.datagrams)
-
-    def wait_for(self, n: int, timeout: float = 5.0) -> bool:
-        deadline = time.monotonic() + timeout
-        while self.count < n and time.monotonic() < deadline:
-            time.sleep(0.005)
-        return self.count >= n
-
-    def settle(self, quiet: float = 0.3) -> int:
-        """Wait until nothing arrived for ``quiet`` seconds; return the count."""
-        last = -1
-        while self.count != last:
-            last = self.count
-            time.sleep(quiet)
-        return last
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5)
-        self.sock.close()
 
 
 @pytest.fixture
@@ -76,11 +23,6 @@ def sink() -> Iterator[UdpSink]:
     yield s
     s.close()
 
-
-def unused_tcp_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind((LOCAL, 0))
-        return int(s.getsockname()[1])
 
 
 def lift_within(remote: Remote, seconds: float) -> bool:

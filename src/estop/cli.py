@@ -45,9 +45,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=remote.run)
 
     for name, text in oneshot.COMMANDS.items():
+        last = "; for stop: no ACK by the deadline" if name == "stop" else ""
         p = sub.add_parser(name, help=text, description=text, epilog="exit codes: 0 ACK, "
-                           "1 NAK, 2 usage error, 3 connection/timeout/malformed reply")
-        oneshot.add_arguments(p)
+                           f"1 NAK, 2 usage error, 3 connection/timeout/malformed reply{last}")
+        oneshot.add_arguments(p, name)
         p.set_defaults(handler=oneshot.run)
 
     p = sub.add_parser("monitor", help="decode and check ESTOP_BRAKE / ESTOP_STATUS frames",

@@ -2,7 +2,10 @@
 
 While *held* (a finger on the screen) the remote sends control packets over UDP at a fixed
 rate (default 50 Hz); when the finger lifts it sends nothing, so the unit times out. The stop
-button, RELEASE and STATUS go over the TCP stop channel, one connection kept open.
+button, RELEASE and STATUS go over the TCP stop channel, one connection kept open. The stop
+button also sends a stop datagram to the UDP port at once, and keeps trying (a fresh
+connection and another datagram each time) until the unit answers or ``stop_deadline``
+(default 3 s) passes.
 An optional :class:`estop.linkmodel.LinkModel` makes the UDP link lossy and slow like Wi-Fi;
 its one-way delay (not its loss) is also applied to each TCP request and its reply.
 
@@ -30,7 +33,8 @@ lines, ``#`` starts a comment. Times are seconds.
 ``drive X [T]``       gear drive and gas X; with T: after T seconds gas back to 0
 ``neutral``           gas 0, steering 0, gear neutral
 ``rate HZ``           change the send rate (0.1..1000 Hz)
-``stop``              press the stop button (TCP STOP), print the reply
+``stop``              press the stop button (stop datagram + TCP STOP, tried again until an
+                      answer or the stop deadline), print the reply and the attempts
 ``release``           TCP RELEASE, print the reply
 ``status``            TCP STATUS, print the reply
 ``expect W...``       the last reply must match every word: ack, nak, stopped, armed, a reason
@@ -80,7 +84,15 @@ from estop.protocol import tcp, udp
 from estop.protocol.can import REASON_NAMES, STATE_NAMES
 from estop.protocol.tcp import Reply
 from estop.protocol.udp import ControlPacket, Gear, TurnSignal
-from estop.stopchannel import StopChannel, StopChannelError, format_reply
+from estop.stopchannel import (
+    DEFAULT_STOP_DEADLINE,
+    StopChannel,
+    StopChannelError,
+    StopDatagram,
+    StopOutcome,
+    format_reply,
+    press_stop,
+)
 
 __all__ = [
     "DESCRIPTION",
@@ -120,7 +132,9 @@ script (--script TEXT or --script-file FILE): commands separated by ';' or new l
   drive X [T]     gear drive and gas X; with T: after T seconds gas back to 0
   neutral         gas 0, steering 0, gear neutral
   rate HZ         change the send rate (0.1..1000)
-  stop | release | status      TCP request, prints the reply
+  stop            the stop button: stop datagram + TCP STOP, tried again until an
+                  answer or --stop-deadline; prints the reply and the attempts
+  release | status             TCP request, prints the reply
   expect W...     the last reply must match every word (ack nak stopped armed none boot
                   tcp_stop udp_timeout fault unknown_msg_id no_live_link not_neutral
                   link_degraded link_ok), else exit 1
@@ -131,7 +145,8 @@ keys (terminal): space hold/lift, s stop, r release, t status, arrows gas/steeri
 n neutral, g next gear, h horn, 0-3 turn signal, q quit
 
 exit codes: 0 done, 1 an expect failed, 2 usage error or bad script,
-3 stop channel failed (refused, closed, timeout, malformed reply)"""
+3 stop channel failed (refused, closed, timeout, malformed reply; for stop: no answer
+by --stop-deadline)"""
 
 PacketHook = Callable[[float, bytes, float | None], None]
 
@@ -169,6 +184,7 @@ class RemoteStats:
     delivered: int = 0  # written to the UDP socket
     send_errors: int = 0  # sendto() failed
     requests: int = 0  # TCP requests answered
+    stop_datagrams: int = 0  # stop datagrams handed to the link (lost ones included)
 
     @property
     def loss_fraction(self) -> float:
@@ -190,18 +206,24 @@ class Remote:
                  tcp_port: int = tcp.DEFAULT_PORT, *, rate_hz: float = 50.0,
                  link: LinkConfig = IDEAL, seed: int | None = None,
                  stop_id: int = tcp.DEFAULT_STOP_ID, tcp_timeout: float = 2.0,
-                 legacy: bool = False, on_packet: PacketHook | None = None) -> None:
+                 stop_deadline: float = DEFAULT_STOP_DEADLINE, legacy: bool = False,
+                 on_packet: PacketHook | None = None) -> None:
         self._period = 1.0 / check_rate(rate_hz)
+        if not stop_deadline > 0 or not math.isfinite(stop_deadline):
+            raise ValueError(f"stop deadline must be > 0 s, got {stop_deadline!r}")
+        self.stop_deadline = stop_deadline
         self.addr = (host, udp_port)
         self.legacy = legacy
         self.on_packet = on_packet
         self.link = LinkModel(link, seed)
         self.channel = StopChannel(host, tcp_port, timeout=tcp_timeout, stop_id=stop_id)
+        self.datagram = StopDatagram(host, udp_port, stop_id=stop_id,
+                                     transmit=self._send_datagram)
         self.stats = RemoteStats()
         self._control = ControlPacket()
         self._held = False
         self._next_send = 0.0
-        self._inflight: list[tuple[float, int, bytes]] = []
+        self._inflight: list[tuple[float, int, bytes, bool]] = []  # (due, n, data, control)
         self._n = 0
         self._closing = False
         self._cond = threading.Condition()
@@ -301,9 +323,25 @@ class Remote:
         self.stats.requests += 1
         return reply
 
+    def press_stop(self) -> StopOutcome:
+        """The stop button: STOP with the vehicle's stop ID, tried again on a fresh connection
+        until the unit answers or ``stop_deadline`` passes, with a stop datagram on the UDP
+        port at the first try and each retry (see :func:`estop.stopchannel.press_stop`)."""
+        linked = self.link.config.delay > 0 or self.link.config.jitter > 0
+        outcome = press_stop(self.channel, deadline=self.stop_deadline,
+                             datagram=self.datagram, delay=self._tcp_delay if linked else None)
+        if outcome.reply is not None:
+            self.stats.requests += 1
+        return outcome
+
     def stop(self) -> Reply:
-        """The stop button: STOP with the vehicle's stop ID."""
-        return self.request(self.channel.stop_id)
+        """The stop button (:meth:`press_stop`); the unit's reply, or
+        :class:`~estop.stopchannel.StopChannelError` saying how many tries failed by the
+        deadline."""
+        outcome = self.press_stop()
+        if outcome.reply is None:
+            raise StopChannelError(outcome.summary())
+        return outcome.reply
 
     def release(self) -> Reply:
         return self.request(tcp.RELEASE)
@@ -321,8 +359,8 @@ class Remote:
             while not self._closing:
                 now = time.monotonic()
                 while self._inflight and self._inflight[0][0] <= now:
-                    _, _, data = heapq.heappop(self._inflight)
-                    self._write(data)
+                    _, _, data, control = heapq.heappop(self._inflight)
+                    self._write(data, control)
                 if not self._inflight:
                     self._cond.notify_all()  # close(flush=True) may be waiting
                 if self._held and self._next_send <= now:
@@ -341,21 +379,33 @@ class Remote:
     def _send_one(self, now: float) -> None:
         data = self._control.encode(legacy=self.legacy)
         self.stats.sent += 1
-        t_deliver = self.link.transmit(now)
+        t_deliver = self._transmit(now, data, True)
         if t_deliver is None:
             self.stats.lost += 1
-        elif t_deliver <= now:
-            self._write(data)
-        else:
-            self._n += 1
-            heapq.heappush(self._inflight, (t_deliver, self._n, data))
         if self.on_packet is not None:
             self.on_packet(now, data, t_deliver)
 
-    def _write(self, data: bytes) -> None:
+    def _send_datagram(self, data: bytes) -> None:
+        """A stop datagram, through the same link as the control packets."""
+        with self._cond:
+            self.stats.stop_datagrams += 1
+            self._transmit(time.monotonic(), data, False)
+            self._cond.notify_all()
+
+    def _transmit(self, now: float, data: bytes, control: bool) -> float | None:
+        t_deliver = self.link.transmit(now)
+        if t_deliver is not None and t_deliver <= now:
+            self._write(data, control)
+        elif t_deliver is not None:
+            self._n += 1
+            heapq.heappush(self._inflight, (t_deliver, self._n, data, control))
+        return t_deliver
+
+    def _write(self, data: bytes, control: bool) -> None:
         try:
             self._udp.sendto(data, self.addr)
-            self.stats.delivered += 1
+            if control:
+                self.stats.delivered += 1
         except OSError:
             self.stats.send_errors += 1
 
@@ -510,8 +560,16 @@ class ScriptRunner:
     def step(self, step: Step) -> None:
         r = self.remote
         op, args = step.op, step.args
-        if op in ("stop", "release", "status"):
-            reply = {"stop": r.stop, "release": r.release, "status": r.status}[op]()
+        if op == "stop":
+            outcome = r.press_stop()
+            if outcome.reply is None:
+                raise StopChannelError(f"stop: {outcome.summary()}")
+            self.last_reply = outcome.reply
+            self.replies.append((op, outcome.reply))
+            self._say(f"{op} -> {outcome.line()}")
+            return
+        if op in ("release", "status"):
+            reply = {"release": r.release, "status": r.status}[op]()
             self.last_reply = reply
             self.replies.append((op, reply))
             self._say(f"{op} -> {format_reply(reply)}")
@@ -606,8 +664,10 @@ def handle_key(remote: Remote, key: str) -> str | None:
         return "quit"
     if key == " ":
         remote.lift() if remote.held else remote.hold()
-    elif key in ("s", "r", "t"):
-        op = {"s": "stop", "r": "release", "t": "status"}[key]
+    elif key == "s":
+        return f"stop -> {remote.press_stop().line()}"
+    elif key in ("r", "t"):
+        op = {"r": "release", "t": "status"}[key]
         try:
             return f"{op} -> {format_reply(remote.request(_OPS[op](remote)))}"
         except StopChannelError as exc:
@@ -629,7 +689,6 @@ def handle_key(remote: Remote, key: str) -> str | None:
 
 
 _OPS: dict[str, Callable[[Remote], int]] = {
-    "stop": lambda r: r.channel.stop_id,
     "release": lambda r: tcp.RELEASE,
     "status": lambda r: tcp.STATUS,
 }
@@ -680,6 +739,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"the vehicle's stop ID (default {tcp.DEFAULT_STOP_ID:#010X})")
     parser.add_argument("--timeout", type=positive_float, default=2.0,
                         help="seconds to wait for a TCP reply (default 2)")
+    parser.add_argument("--stop-deadline", type=positive_float, default=DEFAULT_STOP_DEADLINE,
+                        metavar="S", help="the stop button tries again (fresh connection, "
+                        f"another stop datagram) until an ACK or S seconds "
+                        f"(default {DEFAULT_STOP_DEADLINE:g})")
     parser.add_argument("--legacy", action="store_true",
                         help="send the older 16-byte packets (no horn)")
     script = parser.add_mutually_exclusive_group()
@@ -735,7 +798,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         remote = Remote(args.host, args.udp_port, args.tcp_port, rate_hz=args.rate, link=cfg,
                         seed=args.seed, stop_id=args.stop_id, tcp_timeout=args.timeout,
-                        legacy=args.legacy)
+                        stop_deadline=args.stop_deadline, legacy=args.legacy)
     except OSError as exc:
         raise ConnectionFailure(f"cannot open a UDP socket: {exc}") from None
     code = EXIT_OK

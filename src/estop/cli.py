@@ -7,6 +7,8 @@
 ``estop monitor``                 decode and check ESTOP_BRAKE / ESTOP_STATUS
                                   (:mod:`estop.monitor`)
 ``estop demo``                    the scripted demo (:mod:`estop.demo`)
+``estop link``                    false stops per hour per timeout from a recording of the
+                                  control link (:mod:`estop.link`)
 ================================  ==========================================================
 
 Exit codes: 0 success/ACK, 1 NAK or problems found, 2 usage error (one line
@@ -30,7 +32,7 @@ _EPILOG = ("exit codes: 0 success/ACK, 1 NAK or problems found, 2 usage error, "
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from estop import monitor, oneshot, remote
+    from estop import link, monitor, oneshot, remote
 
     parser = ErrorOnlyParser(prog="estop", description="Tools for the estop emergency-stop "
                              "unit (wire contract: shared/spec/PROTOCOL.md).", epilog=_EPILOG)
@@ -55,6 +57,12 @@ def build_parser() -> argparse.ArgumentParser:
                               "or malformed log line, 3 bus or file cannot be opened")
     monitor.add_arguments(p)
     p.set_defaults(handler=monitor.run)
+
+    p = sub.add_parser("link", help="false stops per hour per timeout from a recording of "
+                       "the control link (estopd log, arrival times or pcap)",
+                       description=link.DESCRIPTION, epilog=link.EPILOG)
+    link.add_arguments(p)
+    p.set_defaults(handler=link.run)
 
     # `estop demo ...` is dispatched before parsing (see main); listed here for --help
     sub.add_parser("demo", help="run estopd on loopback and play a scripted drive "

@@ -22,7 +22,7 @@ import pytest
 
 from estop import cli
 from estop import linkstats as L
-from estop.linkmodel import LinkConfig, LinkModel
+from estop.linkmodel import WIFI, LinkConfig, LinkModel
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -395,6 +395,63 @@ def test_remote_link_model_with_delay_and_small_jitter() -> None:
     assert f.mean_burst == pytest.approx(cfg.burst, rel=0.10)
 
 
+def test_heavy_jitter_wifi_preset_fits_the_long_runs() -> None:
+    # estop remote's WIFI preset: 9 % loss, bursts of 2, delay 100 ms + 0..50 ms jitter with
+    # order kept. Jitter of 2.5 send periods makes late packets look like losses and bunched
+    # ones like none: a fit to every run sees short bursts and is far too optimistic about
+    # long gaps. The automatic fit uses the longer runs, which keep the burst law.
+    model = LinkModel(WIFI, seed=5)
+    arrivals = [model.transmit(i / RATE) for i in range(300_000)]
+    t = np.asarray([a for a in arrivals if a is not None])
+    t_us = np.rint(t * 1e6).astype(np.int64)
+    gaps = L.gaps_from_times(t, RATE)
+    assert gaps.extra["off_grid"] > 0.2 and gaps.notes
+    auto = L.report(gaps, RATE)
+    plain = L.report(gaps, RATE, tail_from=1)
+    assert auto.fit.tail_from > 1
+    assert auto.fit.mean_burst == pytest.approx(WIFI.burst, rel=0.10)
+    assert plain.fit.mean_burst < 0.8 * WIFI.burst  # the misread short runs
+    hours = auto.fit.hours
+    checked = 0
+    for row_a, row_p in zip(auto.rows, plain.rows, strict=True):
+        stops = int((np.diff(t_us) >= row_a.timeout_ms * 1000).sum())  # the deadline rule
+        if row_a.lost_in_row < auto.fit.tail_from:
+            # below the fitted runs (marked ^): the recording itself has plenty there
+            assert row_a.enough
+        elif stops >= 30:
+            assert row_a.model >= 0.9 * stops / hours, row_a  # not optimistic
+            assert row_a.model <= 3.0 * stops / hours, row_a  # nor useless
+            if row_a.timeout_ms >= 150:
+                assert row_p.model < 0.2 * stops / hours, row_p
+            checked += 1
+    assert checked >= 6
+
+
+def test_forced_tail_on_a_clean_trace_agrees(trace10h: Trace) -> None:
+    # without jitter every tail follows the same law: k0 = 3 recovers the same link
+    gaps = L.gaps_from_times(trace10h.times, RATE)
+    f = L.fit(gaps, RATE, tail_from=3)
+    assert f.tail_from == 3 and f.tail_bursts < f.bursts
+    assert f.loss == pytest.approx(trace10h.loss, rel=0.10)
+    assert f.mean_burst == pytest.approx(trace10h.burst, rel=0.10)
+    assert L.fit(gaps, RATE).tail_from == 1  # and the automatic choice sees no jitter
+
+
+def test_recommendation_never_contradicts_the_recording() -> None:
+    # short bursts plus 20 one-second outages in 2 hours: the Gilbert model fitted to every
+    # run calls 1 s safe, the recording says otherwise; the recommendation follows the data
+    lost = gilbert_lost(360_000, 0.05, 1.5, 40)
+    for start in range(10_000, 350_000, 17_000):
+        lost[start:start + 50] = True
+    t = arrivals_us(lost) / 1e6
+    rep = L.report(L.gaps_from_times(t, RATE), RATE, tail_from=1)
+    one_s = next(r for r in rep.rows if r.timeout_ms == 1000)
+    assert one_s.model < 0.01 and one_s.gaps_sure == 20 and one_s.contradicted
+    assert rep.recommended_ms is not None and rep.recommended_ms > 1000
+    text = "\n".join(L.format_report(rep))
+    assert "! the recording holds more such gaps" in text
+
+
 # --------------------------------------------------------------------------- pcap
 
 
@@ -594,10 +651,18 @@ def test_cli_bad_options_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[st
         assert code == 2 and err.count("\n") == 1 and err.startswith("estop"), (args, err)
 
 
-def test_poisson_upper_bound() -> None:
+def test_poisson_bounds() -> None:
+    # the usual tables (Garwood, one-sided 95 %)
     assert L.poisson_upper95(0) == pytest.approx(2.996, abs=1e-3)
     assert L.poisson_upper95(1) == pytest.approx(4.744, abs=1e-3)
-    assert L.poisson_upper95(10) == pytest.approx(17.0, abs=0.05)
+    assert L.poisson_upper95(10) == pytest.approx(16.962, abs=1e-3)
+    assert L.poisson_lower95(0) == 0.0
+    assert L.poisson_lower95(1) == pytest.approx(0.0513, abs=1e-4)
+    assert L.poisson_lower95(10) == pytest.approx(5.425, abs=1e-3)
+    # past 100 events an approximation takes over without a jump
+    for f in (L.poisson_lower95, L.poisson_upper95):
+        assert f(101) == pytest.approx(f(100) * 101 / 100, rel=0.01)
+        assert f(100) < f(101) < f(102)
 
 
 def test_help_mentions_the_stop_rule(capsys: pytest.CaptureFixture[str]) -> None:

@@ -41,6 +41,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-gap", type=non_negative_float, default=5.0, metavar="S",
                         help="gaps of this many seconds or more are the sender pausing "
                              "(finger lifted), left out of the fit (default 5; 0: none)")
+    parser.add_argument("--tail-from", type=int, default=None, metavar="K",
+                        help="fit the burst law to runs of at least K losses (default: the "
+                             "shortest runs that follow one geometric law; 1: every run)")
     parser.add_argument("--json", action="store_true", help="print the report as JSON")
     parser.add_argument("--plot", metavar="PATH",
                         help="write a PNG: false stops per hour against timeout")
@@ -52,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     from estop.linkstats import format_report, load, report, report_json, write_plot
 
     gaps = load(args.file, args.format, args.rate_hz, args.max_gap, args.port)
-    rep = report(gaps, args.rate_hz, args.target)
+    rep = report(gaps, args.rate_hz, args.target, tail_from=args.tail_from)
     if args.plot:
         write_plot(rep, args.plot)
     if args.json:

@@ -55,6 +55,7 @@ __all__ = [
     "gaps_from_times",
     "load",
     "lost_in_row",
+    "poisson_lower95",
     "poisson_upper95",
     "read_histogram_log",
     "read_pcap_times",
@@ -161,11 +162,19 @@ def gaps_from_times(times: Sequence[float] | F64, rate_hz: float, max_gap: float
     g = g[~pause]
     if g.size == 0:
         raise LinkInputError(f"{source}: every gap is a pause (>= {max_gap:g} s)")
-    k = np.maximum(np.rint(g * rate_hz).astype(np.int64) - 1, 0)
+    periods = g * rate_hz
+    k = np.maximum(np.rint(periods).astype(np.int64) - 1, 0)
     ks, counts = np.unique(k, return_counts=True)
+    # share of gaps more than a quarter period off the send grid: arrival jitter
+    off_grid = float(np.mean(np.abs(periods - np.rint(periods)) > 0.25))
+    notes: tuple[str, ...] = ()
+    if off_grid > 0.05:
+        notes = (f"{off_grid * 100:.0f} % of gaps are more than T/4 off the send grid: arrival "
+                 "jitter, so short gaps are misread as losses or as none",)
     return Gaps(ks.astype(np.int64), ks.astype(np.int64), counts.astype(np.int64),
                 int(pause.sum()), source, hours_measured=float(g.sum()) / 3600.0,
-                extra={"packets": int(t.size), "longest_gap_s": float(np.diff(t).max())})
+                notes=notes, extra={"packets": int(t.size), "off_grid": off_grid,
+                                    "longest_gap_s": float(np.diff(t).max())})
 
 
 @dataclass(frozen=True)
@@ -255,9 +264,12 @@ class Fit:
     p_bg: float  # P(bad -> good): a lost packet is followed by a received one
     p_bg_se: float  # standard error of p_bg (observed Fisher information)
     gaps: int  # gaps between received packets (good-state steps)
-    bursts: int  # gaps with at least one packet lost
+    bursts: int  # gaps with at least one packet lost, as recorded
     lost: float  # packets lost (expected, for binned input)
     hours: float  # time covered by the gaps (sender pauses left out)
+    tail_from: int = 1  # the fit used the gaps of at least this many lost (k0)
+    tail_bursts: int = 0  # gaps of at least tail_from lost: the data the fit stands on
+    tail_note: str = ""  # why tail_from is what it is
 
     @property
     def loss(self) -> float:
@@ -266,7 +278,7 @@ class Fit:
 
     @property
     def mean_burst(self) -> float | None:
-        return 1.0 / self.p_bg if self.bursts and self.p_bg > 0 else None
+        return 1.0 / self.p_bg if self.tail_bursts and self.p_bg > 0 else None
 
     def false_stops(self, n: int) -> float:
         """Model false stops per hour for n lost in a row (the closed form at the fit)."""
@@ -278,15 +290,16 @@ class Fit:
         return false_stops_per_hour(self.loss, mb, n, self.rate_hz)
 
     def interval95(self, n: int) -> tuple[float, float]:
-        """Approximate 95 % range of the model rate: delta method on its log, from the count
-        of bursts (Poisson) and the standard error of p_bg, which (n-1) amplifies."""
+        """Approximate 95 % range of the model rate: delta method on its log. The rate is
+        anchored at the count of gaps of at least k0 lost (Poisson) and carried to n by
+        (1 - p_bg)^(n - k0), whose error grows with n - k0."""
         mid = self.false_stops(n)
-        if n <= 0 or mid <= 0 or self.bursts == 0:
+        if n <= 0 or mid <= 0 or self.tail_bursts == 0:
             return mid, mid
         r = self.p_bg
-        var = 1.0 / self.bursts
+        var = 1.0 / self.tail_bursts
         if r < 1.0:
-            var += ((n - 1) * self.p_bg_se / (1.0 - r)) ** 2
+            var += ((n - self.tail_from) * self.p_bg_se / (1.0 - r)) ** 2
         spread = math.exp(Z95 * math.sqrt(var))
         return mid / spread, mid * spread
 
@@ -310,7 +323,7 @@ def _argmax_r(k_lo: I64, k_hi: I64, counts: I64) -> float:
             return -math.inf
         return _cell_loglik(r, k_lo, k_hi, counts)
 
-    grid = np.linspace(-20.0, 20.0, 801)
+    grid = np.linspace(-20.0, 20.0, 161)
     vals = [f(float(u)) for u in grid]
     i = int(np.argmax(vals))
     a = float(grid[max(i - 1, 0)])
@@ -345,32 +358,91 @@ def _expected_k(r: float, lo: int, hi: int) -> float:
     return float((k * w).sum() / w.sum())
 
 
-def fit(gaps: Gaps, rate_hz: float) -> Fit:
-    """Maximum likelihood Gilbert fit. Exact cells: p_gb = bursts / gaps, p_bg = bursts / lost.
-    Binned cells: the same p_gb (one send period always has a bin of its own), p_bg maximises
-    the likelihood of the bin counts under the geometric burst length."""
+def _tail_fit(gaps: Gaps, k0: int) -> tuple[float, float, int]:
+    """(p_bg, its standard error, gaps in the tail) from the gaps of at least k0 lost: given
+    k >= k0, k - k0 + 1 is geometric with parameter p_bg (the chain forgets how it got there)."""
+    mask = gaps.k_lo >= k0
+    counts = gaps.counts[mask]
+    tail = int(counts.sum())
+    if tail == 0:
+        return 1.0, 0.0, 0
+    lo = gaps.k_lo[mask] - (k0 - 1)
+    hi = np.where(gaps.k_hi[mask] < 0, -1, gaps.k_hi[mask] - (k0 - 1))
+    if gaps.exact:
+        r = tail / float((lo * counts).sum())
+        return r, r * math.sqrt((1.0 - r) / tail), tail
+    r = _argmax_r(lo, hi, counts)
+    return r, _se_numeric(r, lo, hi, counts), tail
+
+
+MIN_TAIL = 50  # gaps a tail needs before its burst decay is compared with another's
+Z_TAIL = 2.5
+
+
+def choose_tail(gaps: Gaps) -> tuple[int, str]:
+    """k0 for the fit: the shortest runs of losses that follow one geometric law. Gaps can be
+    misread by arrival jitter (a late packet looks like a loss, a bunch of early ones like
+    none), which invents short bursts and makes a fit to every run far too optimistic about
+    the long ones. The smallest k0 whose decay p_bg agrees with that of the next two longer
+    tails (within Z_TAIL standard errors of the difference) is taken; if the decay never
+    settles, the longest tail with MIN_TAIL gaps (the more cautious estimate)."""
+    cands = sorted({int(k) for k in gaps.k_lo.tolist() if k >= 1})
+    fits: list[tuple[int, float, float]] = []
+    for k0 in cands:
+        r, se, tail = _tail_fit(gaps, k0)
+        if tail < MIN_TAIL:
+            break
+        fits.append((k0, r, se))
+    for i, (k0, r, se) in enumerate(fits):
+        later = fits[i + 1:i + 3]
+        if len(later) < 2:
+            break
+        if all(abs(r - r2) <= Z_TAIL * math.sqrt(max(se2 * se2 - se * se, 1e-300))
+               for _, r2, se2 in later):
+            if k0 == 1:
+                return 1, "every run of losses"
+            return k0, (f"runs of at least {k0} losses: shorter ones do not follow the same "
+                        "geometric law (arrival jitter misreads short gaps)")
+    if len(fits) < 3:
+        return 1, "every run of losses (too few bursts to check the geometric law)"
+    k0 = fits[-1][0]
+    return k0, (f"runs of at least {k0} losses: the burst lengths do not follow one "
+                "geometric law, the longest runs with enough data are used (cautious)")
+
+
+def fit(gaps: Gaps, rate_hz: float, tail_from: int | None = None) -> Fit:
+    """Maximum likelihood Gilbert fit to the runs of at least k0 = ``tail_from`` losses
+    (None: :func:`choose_tail`). The tail decay gives p_bg (exact cells: tail gaps over
+    packets lost beyond k0 - 1; binned: the likelihood of the bin counts); the share of gaps
+    in the tail, P(k >= k0) = p_gb (1 - p_bg)^(k0 - 1), gives p_gb. With k0 = 1 this is the
+    plain fit: p_gb = bursts / gaps, p_bg = bursts / lost."""
     _check_rate(rate_hz)
     n_gaps = gaps.total
-    burst_mask = gaps.k_lo >= 1
-    bursts = int(gaps.counts[burst_mask].sum())
-    p_gb = bursts / n_gaps if n_gaps else 0.0
-    k_lo, k_hi, counts = gaps.k_lo[burst_mask], gaps.k_hi[burst_mask], gaps.counts[burst_mask]
-    if bursts == 0:
-        p_bg, se, lost = 1.0, 0.0, 0.0
-    elif gaps.exact:
-        lost = float((k_lo * counts).sum())
-        p_bg = bursts / lost
-        se = p_bg * math.sqrt((1.0 - p_bg) / bursts)
+    bursts = int(gaps.counts[gaps.k_lo >= 1].sum())
+    if tail_from is None:
+        k0, note = choose_tail(gaps)
     else:
-        p_bg = _argmax_r(k_lo, k_hi, counts)
-        lost = sum(int(c) * _expected_k(p_bg, int(a), int(b))
-                   for a, b, c in zip(k_lo, k_hi, counts, strict=True))
-        se = _se_numeric(p_bg, k_lo, k_hi, counts)
+        if tail_from < 1:
+            raise LinkInputError("--tail-from must be at least 1")
+        starts = gaps.k_lo[gaps.k_lo >= tail_from]
+        k0 = int(starts.min()) if starts.size else tail_from  # binned: the next bin start
+        note = f"runs of at least {k0} losses (--tail-from)"
+    p_bg, se, tail = _tail_fit(gaps, k0)
+    share = tail / n_gaps if n_gaps else 0.0
+    if tail == 0:
+        p_gb = 0.0
+    elif p_bg >= 1.0:
+        p_gb = min(1.0, share)  # every tail run exactly k0 long: no decay to divide by
+    else:
+        p_gb = min(1.0, share / (1.0 - p_bg) ** (k0 - 1))
+    lost = sum(int(c) * _expected_k(p_bg, int(a), int(b))
+               for a, b, c in zip(gaps.k_lo, gaps.k_hi, gaps.counts, strict=True)
+               if a >= 1)
     if gaps.hours_measured is not None:
         hours = gaps.hours_measured
     else:
         hours = (n_gaps + lost) / rate_hz / 3600.0
-    return Fit(rate_hz, p_gb, p_bg, se, n_gaps, bursts, lost, hours)
+    return Fit(rate_hz, p_gb, p_bg, se, n_gaps, bursts, lost, hours, k0, tail, note)
 
 
 def _se_numeric(r: float, k_lo: I64, k_hi: I64, counts: I64) -> float:
@@ -640,6 +712,19 @@ class Row:
     def empirical_upper95(self) -> float:
         return poisson_upper95(self.gaps_possible) / self.hours if self.hours > 0 else math.inf
 
+    @property
+    def empirical_lower95(self) -> float:
+        return poisson_lower95(self.gaps_sure) / self.hours if self.hours > 0 else 0.0
+
+    @property
+    def contradicted(self) -> bool:
+        """The recording holds clearly more such gaps than the model's 95 % range allows."""
+        return self.empirical_lower95 > self.model_high
+
+    def meets(self, target: float) -> bool:
+        """Model below target, and the recording does not say the rate is above it."""
+        return self.model < target and self.empirical_lower95 <= target
+
 
 @dataclass(frozen=True)
 class Report:
@@ -651,41 +736,65 @@ class Report:
     recommended_conservative_ms: int | None
 
 
-def poisson_upper95(k: int) -> float:
-    """One-sided 95 % upper limit of a Poisson mean after seeing k events (exact)."""
-    if k == 0:
-        return -math.log(0.05)
+def _poisson_cdf(k: int, mu: float) -> float:
+    """P(X <= k) for X ~ Poisson(mu)."""
+    if k < 0:
+        return 0.0
+    term = math.exp(-mu)
+    total = term
+    for i in range(1, k + 1):
+        term *= mu / i
+        total += term
+    return min(total, 1.0)
 
-    def cdf(mu: float) -> float:
-        term = math.exp(-mu)
-        total = term
-        for i in range(1, k + 1):
-            term *= mu / i
-            total += term
-        return total
 
-    lo, hi = float(k), float(k) + 10.0 * math.sqrt(k) + 10.0
+def _solve_mu(f: Any, a: float, b: float) -> float:
+    """Bisection for the mu between a and b where the monotonic f(mu) crosses 0.05
+    (f(a) > 0.05 >= f(b))."""
     for _ in range(100):
-        mid = (lo + hi) / 2.0
-        if cdf(mid) > 0.05:
-            lo = mid
+        mid = (a + b) / 2.0
+        if f(mid) > 0.05:
+            a = mid
         else:
-            hi = mid
-    return (lo + hi) / 2.0
+            b = mid
+    return (a + b) / 2.0
+
+
+Z95_ONE_SIDED = 1.6448536269514722
+
+
+def poisson_upper95(k: int) -> float:
+    """One-sided 95 % upper limit of a Poisson mean after seeing k events (exact up to 100
+    events, then the Wilson-Hilferty approximation, good to a fraction of a percent)."""
+    if k > 100:
+        m = k + 1
+        return m * (1.0 - 1.0 / (9.0 * m) + Z95_ONE_SIDED / (3.0 * math.sqrt(m))) ** 3
+    return _solve_mu(lambda mu: _poisson_cdf(k, mu), float(k),
+                     float(k) + 10.0 * math.sqrt(k) + 10.0)
+
+
+def poisson_lower95(k: int) -> float:
+    """One-sided 95 % lower limit of a Poisson mean after seeing k events (exact; 0 for 0)."""
+    if k == 0:
+        return 0.0
+    if k > 100:
+        return k * (1.0 - 1.0 / (9.0 * k) - Z95_ONE_SIDED / (3.0 * math.sqrt(k))) ** 3
+    # P(X >= k) grows with mu: above 0.05 at mu = k, below it at mu = 0
+    return _solve_mu(lambda mu: 1.0 - _poisson_cdf(k - 1, mu), float(k), 0.0)
 
 
 def report(gaps: Gaps, rate_hz: float, target: float = 0.01,
-           timeouts_ms: Iterable[int] = TIMEOUTS_MS) -> Report:
-    f = fit(gaps, rate_hz)
+           timeouts_ms: Iterable[int] = TIMEOUTS_MS, tail_from: int | None = None) -> Report:
+    f = fit(gaps, rate_hz, tail_from)
     rows = []
     for d in timeouts_ms:
         n = lost_in_row(d, rate_hz)
         lo, hi = f.interval95(n)
         sure, possible = gaps.at_least(n) if n > 0 else (f.gaps, f.gaps)
         rows.append(Row(d, n, f.false_stops(n), lo, hi, sure, possible, f.hours))
-    rec = next((r.timeout_ms for r in rows if r.model < target), None) if f.bursts else None
-    cons = next((r.timeout_ms for r in rows if r.model_high < target), None) \
-        if f.bursts else None
+    rec = next((r.timeout_ms for r in rows if r.meets(target)), None) if f.bursts else None
+    cons = next((r.timeout_ms for r in rows if r.meets(target) and r.model_high < target),
+                None) if f.bursts else None
     return Report(gaps, f, tuple(rows), target, rec, cons)
 
 
@@ -705,6 +814,9 @@ def report_json(rep: Report) -> dict[str, Any]:
         "p_good_to_bad": f.p_gb,
         "p_bad_to_good": f.p_bg,
         "p_bad_to_good_se": f.p_bg_se,
+        "fitted_runs_from": f.tail_from,
+        "fitted_runs": f.tail_bursts,
+        "fit_note": f.tail_note,
         "hours": f.hours,
         "hours_measured": g.hours_measured is not None,
         "gaps": f.gaps,
@@ -727,6 +839,8 @@ def report_json(rep: Report) -> dict[str, Any]:
             "gaps_at_least": [r.gaps_sure, r.gaps_possible],
             "gaps_per_hour": _num(r.empirical),
             "gaps_per_hour_upper95": _num(r.empirical_upper95),
+            "gaps_per_hour_lower95": r.empirical_lower95,
+            "model_contradicted": r.contradicted,
             "enough_data": r.enough,
         } for r in rep.rows],
     }
@@ -754,6 +868,7 @@ def format_report(rep: Report) -> list[str]:
         lines.append(f"model: loss {f.loss * 100:.3g} %, mean burst {mb:.3g} packets "
                      f"(Gilbert: P(good->bad) {f.p_gb:.4g}, P(bad->good) {f.p_bg:.4g} "
                      f"+- {f.p_bg_se:.2g})")
+        lines.append(f"fitted to {f.tail_note} ({f.tail_bursts} gaps)")
     else:
         lines.append("model: no packet lost, nothing to fit (record longer)")
     extra = g.extra
@@ -782,16 +897,22 @@ def format_report(rep: Report) -> list[str]:
             per_h = f"{_fmt_rate(r.gaps_sure / r.hours)}-{_fmt_rate(r.gaps_possible / r.hours)}"
         else:
             per_h = "<" + _fmt_rate(r.empirical_upper95)
+        mark = "!" if r.contradicted else (" " if r.lost_in_row >= f.tail_from else "^")
         lines.append(f"{r.timeout_ms:5d} ms {r.lost_in_row:4d} {seen:>6} {per_h:>8} "
-                     f"{_fmt_rate(r.model):>12}   {_fmt_rate(r.model_low)} .. "
+                     f"{_fmt_rate(r.model):>12}{mark}  {_fmt_rate(r.model_low)} .. "
                      f"{_fmt_rate(r.model_high)}")
+    if any(r.contradicted for r in rep.rows):
+        lines.append("! the recording holds more such gaps than the model allows: trust the "
+                     "recording there")
+    if any(r.lost_in_row < f.tail_from for r in rep.rows):
+        lines.append(f"^ fewer than {f.tail_from} lost: below the runs the model was fitted to")
     lines.append("")
     if not f.bursts:
         lines.append("recommendation: none (no loss recorded: the model has nothing to "
                      "extrapolate from)")
     elif rep.recommended_ms is None:
         lines.append(f"recommendation: no timeout up to {rep.rows[-1].timeout_ms} ms keeps the "
-                     f"model below {rep.target:g} false stops per hour")
+                     f"model (and the recording) below {rep.target:g} false stops per hour")
     else:
         r = next(x for x in rep.rows if x.timeout_ms == rep.recommended_ms)
         lines.append(f"recommendation: {rep.recommended_ms} ms (model {_fmt_rate(r.model)} "

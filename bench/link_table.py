@@ -75,8 +75,9 @@ def main() -> None:
           f"{LOSS * 100:g} % loss; tool fitted to the {form}. False stops per hour: tool "
           "(its Gilbert fit), closed form (true parameters), seen (gaps in the trace).")
     print()
-    fits = ", ".join(f"burst {b:g}: loss {r.fit.loss * 100:.2f} %, mean burst "
-                     f"{r.fit.mean_burst or 0:.3f}" for b, r in zip(BURSTS, reports, strict=True))
+    fits = "; ".join(f"burst {b:g}: loss {r.fit.loss * 100:.2f} %, mean burst "
+                     f"{r.fit.mean_burst or 0:.3f} (runs of >= {r.fit.tail_from} fitted)"
+                     for b, r in zip(BURSTS, reports, strict=True))
     print(f"Fitted: {fits}.")
     print()
     head = "| timeout | n |" + "".join(f" b={b:g} tool | b={b:g} closed | b={b:g} seen |"

@@ -82,7 +82,7 @@ class Unit:
     def send_status(self) -> None:
         age = time.monotonic() - self.last_valid
         age_ms = int(age * 1000) if self.last_valid and age < self.timeout_s else 0xFFFF
-        frame = can.StatusFrame(_sat(self.n_valid), _sat(self.n_invalid), _sat(self.n_bad_crc),
+        frame = can.StatusFrame(_sat(self.n_valid), _sat(self.n_invalid), 0,  # no key: no auth
                                 _sat(self.n_stops), age_ms, self.status_counter)
         self._emit(can.STATUS_ID, frame.encode())
         self.n_valid = self.n_invalid = 0

@@ -112,7 +112,7 @@ class Daemon:
         if self.last_valid is not None and t - self.last_valid < self.timeout_us:
             age = min((t - self.last_valid) // 1000, 0xFFFE)
         data = StatusFrame(min(self.n_valid, 255), min(self.n_invalid, 255),
-                           min(self.n_badcrc, 255), min(self.n_stops, 255), age,
+                           0, min(self.n_stops, 255), age,  # no key: no auth failures
                            self.ctr_s).encode()
         self.n_valid = self.n_invalid = 0
         self.ctr_s = (self.ctr_s + 1) % 15

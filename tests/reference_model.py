@@ -116,7 +116,8 @@ class Model:
         age = self.link_age()
         age_ms = 0xFFFF if age is None else age // 1000
         body = bytes([min(self.window_valid, 255), min(self.window_invalid, 255),
-                      min(self.bad_crc, 255), min(self.stops, 255)]) + struct.pack("<H", age_ms)
+                      0,  # authentication failures: a unit without a key has none
+                      min(self.stops, 255)]) + struct.pack("<H", age_ms)
         self._frame(step, self.cfg.status_can_id, self.cfg.status_data_id, body,
                     self.status_counter)
         self.status_counter = (self.status_counter + 1) % 15

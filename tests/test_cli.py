@@ -398,7 +398,7 @@ def test_monitor_clean_log(tmp_path: Path, capsys) -> None:
     assert lines[-1] == "summary: 44 frames, 44 accepted; problems: none"
     assert lines[0] == ("(1700000000.000000) 050 ESTOP_BRAKE ARMED reason=none brake=0 "
                         "level=0 flags=0x00 ctr=0")
-    assert lines[1] == ("(1700000000.001000) 051 ESTOP_STATUS valid=5 invalid=0 tcp_bad_crc=0 "
+    assert lines[1] == ("(1700000000.001000) 051 ESTOP_STATUS valid=5 invalid=0 auth_failures=0 "
                         "stops=1 link_age=12ms ctr=0")
     assert "!" not in out
 

@@ -8,7 +8,9 @@ import dataclasses
 import pytest
 
 from core_util import MS, STOP_ID, packet, reply_fields, request
-from estop.core import Config, CoreError, Watchdog, check_config, ffi, lib
+from estop.core import TEST_SESSION, Config, CoreError, Watchdog, check_config, ffi, lib
+from estop.protocol import auth
+from estop.protocol.udp import ControlPacket
 
 U32 = 0xFFFFFFFF
 
@@ -279,17 +281,23 @@ def test_reply_while_stopped_reports_state_reason_flags() -> None:
 
 
 def test_status_frame_counts_saturate_at_255() -> None:
-    wd = Watchdog()
+    key = bytes(32)
+    wd = Watchdog(dataclasses.replace(Config(), key=key))
     wd.tick(0)
+    good = auth.AuthControlPacket(1, TEST_SESSION, 1, ControlPacket()).encode(key)
+    wd.udp(good, 500)
     for _ in range(300):
-        wd.udp(packet(), 1000)
+        wd.udp(good, 1000)  # a replay: invalid and an authentication failure
         wd.udp(b"x", 1000)
     for _ in range(300):
         wd.tcp_open(0, 2000)
         assert wd.tcp_data(0, b"\x00" * 16, 2000)[-1].close
     status = [f.data for f in wd.tick(100 * MS).frames if f.can_id == 0x051]
-    assert status[0][:3] == bytes([255, 255, 255])
-    assert wd.status().counters.tcp_bad_crc == 300
+    assert status[0][:3] == bytes([1, 255, 255])
+    counters = wd.status().counters
+    assert (counters.tcp_bad_crc, counters.auth_old_counter) == (300, 300)
+    status = [f.data for f in wd.tick(200 * MS).frames if f.can_id == 0x051]
+    assert status[0][:3] == bytes([0, 0, 0])  # window counts restart with every frame
 
 
 def test_null_status_read_out_and_empty_tcp_read() -> None:

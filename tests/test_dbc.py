@@ -33,7 +33,7 @@ def brake_as_dbc(frame: BrakeFrame, data: bytes) -> dict[str, int]:
 def status_as_dbc(frame: StatusFrame, data: bytes) -> dict[str, int]:
     return {
         "valid_packets": frame.valid_packets, "invalid_packets": frame.invalid_packets,
-        "tcp_bad_crc": frame.tcp_bad_crc, "stops": frame.stops, "link_age": frame.link_age_ms,
+        "auth_failures": frame.auth_failures, "stops": frame.stops, "link_age": frame.link_age_ms,
         "alive_counter": frame.counter, "counter_reserved": data[6] >> 4, "crc": data[7],
     }
 

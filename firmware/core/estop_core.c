@@ -27,6 +27,9 @@
 #define REQUEST_TAG_AT 32u         /* 5.2: the tag covers bytes 0..31 */
 #define CHANNEL_UDP 0u
 #define CHANNEL_TCP 1u
+#define GAP_FIRST_EXP 10u          /* bin 1 starts at 2^10 us */
+#define GAP_LONG_US 0x40000000u    /* past this age a gap is only "very long" (bin 31): the
+                                      wrapping tick could not measure it much further */
 
 /* ---- small helpers ------------------------------------------------------------------------ */
 
@@ -65,6 +68,38 @@ static uint32_t sat32_inc(uint32_t v)
     return (v < 0xFFFFFFFFu) ? (v + 1u) : v;
 }
 
+/* floor(log2(v)) for v > 0: O(1). GCC and Clang count leading zeros (one instruction where
+ * the target has it, a runtime helper where not); elsewhere a five-step binary search. */
+static uint32_t log2_floor(uint32_t v)
+{
+#if defined(__GNUC__)
+    return 31u - (uint32_t)__builtin_clz(v);
+#else
+    uint32_t e = 0u;
+    uint32_t x = v;
+    if (x >= 0x10000u) {
+        e += 16u;
+        x >>= 16;
+    }
+    if (x >= 0x100u) {
+        e += 8u;
+        x >>= 8;
+    }
+    if (x >= 0x10u) {
+        e += 4u;
+        x >>= 4;
+    }
+    if (x >= 0x4u) {
+        e += 2u;
+        x >>= 2;
+    }
+    if (x >= 0x2u) {
+        e += 1u;
+    }
+    return e;
+#endif
+}
+
 static uint8_t sat8_of(uint32_t v)
 {
     return (v < SAT8_MAX) ? (uint8_t)v : (uint8_t)SAT8_MAX;
@@ -87,6 +122,7 @@ static int non_positive_bits(uint32_t bits)
 
 void estop_config_default(estop_config_t *cfg)
 {
+    uint32_t i;
     if (cfg != NULL) {
         cfg->timeout_us = ESTOP_DEFAULT_TIMEOUT_US;
         cfg->warn_us = ESTOP_DEFAULT_TIMEOUT_US / 2u;
@@ -98,6 +134,11 @@ void estop_config_default(estop_config_t *cfg)
         cfg->release_packets = ESTOP_DEFAULT_RELEASE_PACKETS;
         cfg->brake_period_us = ESTOP_DEFAULT_BRAKE_PERIOD_US;
         cfg->status_period_us = ESTOP_DEFAULT_STATUS_PERIOD_US;
+        cfg->session = 0u; /* the host's to draw (estop_init refuses 0) */
+        cfg->key_len = 0u;
+        for (i = 0u; i < ESTOP_KEY_LEN; i++) {
+            cfg->key[i] = 0u;
+        }
     }
 }
 
@@ -237,13 +278,14 @@ static void send_status(estop_core_t *core, estop_out_t *out)
     }
     p[0] = core->status_valid;
     p[1] = core->status_invalid;
-    p[2] = sat8_of(core->counters.tcp_bad_crc);
+    p[2] = core->status_auth_failed;
     p[3] = sat8_of(stops);
     p[4] = (uint8_t)(age_ms & 0xFFu);
     p[5] = (uint8_t)((age_ms >> 8) & 0xFFu);
     push_frame(out, core->cfg.status_can_id, core->cfg.status_data_id, p, &core->status_counter);
     core->status_valid = 0u;
     core->status_invalid = 0u;
+    core->status_auth_failed = 0u;
 }
 
 /* ---- transitions -------------------------------------------------------------------------- */
@@ -286,6 +328,14 @@ static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
         core->link_fresh = 0u;
         core->counters.faults++;
         stop(core, (uint8_t)ESTOP_REASON_FAULT, out);
+    }
+    if (step > ESTOP_MAX_STEP_US) {
+        core->gap_known = 0u; /* the next gap cannot be measured: it is not recorded */
+    } else if ((core->link_fresh == 0u) && (core->gap_known != 0u) &&
+               (link_age(core) >= GAP_LONG_US)) { /* a fresh link is younger than 60 s */
+        core->gaps[ESTOP_GAP_BINS - 1u] = sat32_inc(core->gaps[ESTOP_GAP_BINS - 1u]);
+        core->silences = sat32_inc(core->silences);
+        core->gap_known = 0u; /* recorded as "very long" now, before the tick can wrap */
     }
     if ((core->link_fresh != 0u) && (link_age(core) >= core->cfg.timeout_us)) {
         core->link_fresh = 0u; /* latched: a wrapped tick can never make this link young again */
@@ -331,10 +381,17 @@ static void send_due_frames(estop_core_t *core, estop_out_t *out)
     }
 }
 
+/* Only what says how much of the output is meaningful is cleared: frames beyond n_can and
+ * reply bytes without has_reply are left as they were (clearing all 112 bytes cost the plain
+ * packet path a sixth of its instructions). */
 static void clear_out(estop_out_t *out)
 {
-    estop_out_t empty = {0};
-    *out = empty;
+    out->n_can = 0u;
+    out->has_reply = 0u;
+    out->reply_len = 0u;
+    out->close_slot = 0u;
+    out->state_changed = 0u;
+    out->changed_by_clock = 0u;
 }
 
 static estop_err_t begin(estop_core_t *core, uint32_t now_us, estop_out_t *out)
@@ -441,6 +498,9 @@ static int authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, u
             ok = 1;
         }
     }
+    if (!ok) {
+        core->status_auth_failed = sat8_inc(core->status_auth_failed);
+    }
     return ok;
 }
 
@@ -466,6 +526,33 @@ static const uint8_t *valid_body(estop_core_t *core, const uint8_t *d, size_t le
     return body;
 }
 
+uint32_t estop_gap_bin(uint32_t gap_us)
+{
+    uint32_t bin = 0u;
+    if (gap_us >= (1u << GAP_FIRST_EXP)) {
+        uint32_t e = log2_floor(gap_us);
+        bin = 1u + (2u * (e - GAP_FIRST_EXP)) + ((gap_us >> (e - 1u)) & 1u);
+        if (bin > (ESTOP_GAP_BINS - 1u)) {
+            bin = ESTOP_GAP_BINS - 1u;
+        }
+    }
+    return bin;
+}
+
+/* The link's record (issue 12): the gap since the previous valid packet. */
+static void record_gap(estop_core_t *core, uint32_t now_us)
+{
+    if (core->gap_known != 0u) {
+        uint32_t gap = (uint32_t)(now_us - core->last_valid_us);
+        uint32_t bin = estop_gap_bin(gap);
+        core->gaps[bin] = sat32_inc(core->gaps[bin]);
+        if (gap >= core->cfg.warn_us) {
+            core->silences = sat32_inc(core->silences);
+        }
+    }
+    core->gap_known = 1u;
+}
+
 /* Section 1: a request frame with the stop ID. Anyone may stop, so its tag, session and counter
  * are never looked at. */
 static int stop_datagram(const estop_core_t *core, const uint8_t *d, size_t len)
@@ -486,6 +573,7 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
         } else {
             body = valid_body(core, data, len);
             if (body != NULL) {
+                record_gap(core, now_us);
                 core->counters.udp_valid++;
                 core->status_valid = sat8_inc(core->status_valid);
                 core->valid_run = sat32_inc(core->valid_run);
@@ -689,11 +777,23 @@ estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data,
     if (err == ESTOP_OK) {
         estop_slot_t *s = &core->slots[slot];
         size_t take = 0u;
-        /* Up to one whole frame; its length is decided by its first bytes as they come. */
-        while ((take < len) && (s->fill < frame_len(s))) {
+        size_t want;
+        /* Up to one whole frame: first its 4 magic bytes, which decide its length, then the
+         * rest of it. */
+        while ((take < len) && (s->fill < MAGIC_LEN)) {
             s->buf[s->fill] = data[take];
             s->fill++;
             take++;
+        }
+        want = (size_t)frame_len(s) - (size_t)s->fill;
+        if (want > (len - take)) {
+            want = len - take;
+        }
+        while (want > 0u) {
+            s->buf[s->fill] = data[take];
+            s->fill++;
+            take++;
+            want--;
         }
         *consumed = take;
         if (s->fill == frame_len(s)) {
@@ -738,6 +838,24 @@ estop_err_t estop_get_status(const estop_core_t *core, estop_status_t *status)
         status->valid_run = core->valid_run;
         status->link_age_us = (core->link_fresh != 0u) ? link_age(core) : 0xFFFFFFFFu;
         status->counters = core->counters;
+    }
+    return err;
+}
+
+estop_err_t estop_get_link_stats(const estop_core_t *core, estop_link_stats_t *stats)
+{
+    estop_err_t err = ESTOP_OK;
+    if ((core == NULL) || (stats == NULL)) {
+        err = ESTOP_ERR_NULL_ARG;
+    } else if (core->magic != CORE_MAGIC) {
+        err = ESTOP_ERR_NOT_INIT;
+    } else {
+        uint32_t i;
+        stats->valid = core->counters.udp_valid;
+        stats->silences = core->silences;
+        for (i = 0u; i < ESTOP_GAP_BINS; i++) {
+            stats->gaps[i] = core->gaps[i];
+        }
     }
     return err;
 }

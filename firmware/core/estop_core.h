@@ -52,6 +52,9 @@ extern "C" {
 #define ESTOP_TAG_LEN 16u
 /* Remote ids the unit keeps counters for in one session (PROTOCOL.md 5). */
 #define ESTOP_MAX_REMOTES 8u
+/* Bins of the histogram of gaps between consecutive valid control packets (docs/LINK.md):
+ * bin 0 below 1.024 ms, bins 1..30 half-octaves from 1.024 ms to 33.5 s, bin 31 above. */
+#define ESTOP_GAP_BINS 32u
 #define ESTOP_CAN_DLC 8u
 
 /* TCP message ids and reply codes (PROTOCOL.md 2). */
@@ -164,7 +167,8 @@ typedef struct {
     uint32_t auth_table_full;  /* a 9th remote id */
 } estop_counters_t;
 
-/* Filled by every entry point. Fields not mentioned stay zero. */
+/* Filled by every entry point: the counts and flags always; can[0 .. n_can-1] and, with
+ * has_reply, reply[0 .. reply_len-1]. Bytes beyond those are left as they were. */
 typedef struct {
     estop_can_frame_t can[ESTOP_OUT_MAX_CAN];
     uint8_t n_can;
@@ -214,6 +218,10 @@ typedef struct {
     uint8_t status_counter;
     uint8_t status_valid;      /* valid packets since the last status frame, saturating */
     uint8_t status_invalid;    /* invalid packets since the last status frame, saturating */
+    uint8_t status_auth_failed; /* authentication failures since the last status frame, sat. */
+    uint8_t gap_known;         /* a valid packet arrived before, and the gap since is measurable */
+    uint32_t silences;         /* gaps between valid packets of at least the warn time */
+    uint32_t gaps[ESTOP_GAP_BINS]; /* saturating counts of gaps between valid packets */
     estop_counters_t counters;
     estop_slot_t slots[ESTOP_MAX_SLOTS];
     estop_b2s_key_t mac;       /* the state after the key block (the key itself is not kept) */
@@ -230,6 +238,13 @@ typedef struct {
     uint32_t link_age_us;       /* saturates at UINT32_MAX when no fresh packet */
     estop_counters_t counters;
 } estop_status_t;
+
+/* The link's record: what `estop link` turns into false stops per hour. */
+typedef struct {
+    uint32_t valid;                  /* valid control packets (= counters.udp_valid) */
+    uint32_t silences;               /* gaps of at least the warn time between them */
+    uint32_t gaps[ESTOP_GAP_BINS];   /* the gap histogram (saturating counts) */
+} estop_link_stats_t;
 
 /* Fills cfg with the defaults of PROTOCOL.md (warn time = half the timeout, no key). The
  * session is left 0: the host must draw one (estop_init refuses 0). */
@@ -257,6 +272,10 @@ estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 
 /* Read-out at the tick of the latest call. */
 estop_err_t estop_get_status(const estop_core_t *core, estop_status_t *status);
+/* The link's record, for the host to log. */
+estop_err_t estop_get_link_stats(const estop_core_t *core, estop_link_stats_t *stats);
+/* The bin of a gap of gap_us microseconds (a pure function, for hosts and tests). */
+uint32_t estop_gap_bin(uint32_t gap_us);
 /* A short constant name for an error code, for host logs. */
 const char *estop_err_name(estop_err_t err);
 /* Constant names for states and reasons ("?" when out of range). */

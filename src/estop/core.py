@@ -116,6 +116,15 @@ class Counters:
 
 
 @dataclass(frozen=True)
+class LinkStats:
+    """The link's record: valid packets, silences of at least the warn time, gap histogram."""
+
+    valid: int
+    silences: int
+    gaps: tuple[int, ...]
+
+
+@dataclass(frozen=True)
 class Status:
     state: int
     reason: int
@@ -270,3 +279,11 @@ class Watchdog:
             link_age_us=None if st.link_age_us == _U32 else st.link_age_us,
             counters=counters,
         )
+
+    def link_stats(self) -> LinkStats:
+        ls = ffi.new("estop_link_stats_t *")
+        err = lib.estop_get_link_stats(self._core, ls)
+        if err != lib.ESTOP_OK:
+            raise CoreError(err, "estop_get_link_stats")
+        return LinkStats(valid=ls.valid, silences=ls.silences,
+                         gaps=tuple(ls.gaps[i] for i in range(lib.ESTOP_GAP_BINS)))

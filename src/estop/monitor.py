@@ -89,7 +89,7 @@ def format_frame(frame: BrakeFrame | StatusFrame) -> str:
                 f"ctr={frame.counter}")
     age = "none" if frame.link_age is None else f"{frame.link_age}ms"
     return (f"ESTOP_STATUS valid={frame.valid_packets} invalid={frame.invalid_packets} "
-            f"tcp_bad_crc={frame.tcp_bad_crc} stops={frame.stops} link_age={age} "
+            f"auth_failures={frame.auth_failures} stops={frame.stops} link_age={age} "
             f"ctr={frame.counter}")
 
 

@@ -280,7 +280,7 @@ class StatusFrame:
 
     valid_packets: int
     invalid_packets: int
-    tcp_bad_crc: int
+    auth_failures: int
     stops: int
     link_age_ms: int  # 0xFFFF (LINK_AGE_NONE): no valid packet younger than the timeout
     counter: int
@@ -294,7 +294,7 @@ class StatusFrame:
         return None if self.link_age_ms == LINK_AGE_NONE else self.link_age_ms
 
     def validate(self) -> None:
-        for name in ("valid_packets", "invalid_packets", "tcp_bad_crc", "stops"):
+        for name in ("valid_packets", "invalid_packets", "auth_failures", "stops"):
             _check_u8(name, getattr(self, name))
         if not isinstance(self.link_age_ms, int) or not 0 <= self.link_age_ms <= 0xFFFF:
             raise ContentError(f"link_age_ms must be 0..65535, got {self.link_age_ms!r}")
@@ -302,7 +302,7 @@ class StatusFrame:
 
     def payload(self) -> bytes:
         return struct.pack("<BBBBHB", self.valid_packets, self.invalid_packets,
-                           self.tcp_bad_crc, self.stops, self.link_age_ms, self.counter)
+                           self.auth_failures, self.stops, self.link_age_ms, self.counter)
 
     def encode(self, *, validate: bool = True) -> bytes:
         if validate:
@@ -314,8 +314,8 @@ class StatusFrame:
         raw = bytes(data)
         if len(raw) != DLC:
             raise LengthError(f"DLC {len(raw)}, must be {DLC}")
-        valid, invalid, bad_crc, stops, age, ctr = struct.unpack("<BBBBHB", raw[:7])
-        return cls(valid, invalid, bad_crc, stops, age, ctr & 0x0F)
+        valid, invalid, auth_failures, stops, age, ctr = struct.unpack("<BBBBHB", raw[:7])
+        return cls(valid, invalid, auth_failures, stops, age, ctr & 0x0F)
 
     @classmethod
     def check(cls, data: bytes | bytearray | memoryview) -> list[FrameError]:

@@ -55,6 +55,7 @@ typedef struct {
     estop_can_frame_t last_frame;
     uint64_t stats_last_us;   /* the latest periodic read-out (stats.c) */
     uint64_t stats_auth_reported; /* authentication failures already in the log */
+    uint32_t stats_valid_reported; /* valid packets in the latest link_histogram */
     int fatal;                /* an unrecoverable error: leave the loop */
     int stop_signal;          /* the signal that asks us to stop, 0 if none */
 } daemon_t;

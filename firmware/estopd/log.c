@@ -123,7 +123,9 @@ static void build_text(line_t *l, uint64_t t_us, const char *event, const char *
         put_char(l, ' ');
         put(l, kv[i].key);
         put_char(l, '=');
-        if (kv[i].is_num) {
+        if (kv[i].is_num == 3u) {
+            put_text_value(l, kv[i].str);
+        } else if (kv[i].is_num) {
             put_num(l, kv[i].num, kv[i].is_num);
         } else {
             put_text_value(l, kv[i].str != NULL ? kv[i].str : "-");
@@ -142,7 +144,11 @@ static void build_json(line_t *l, uint64_t t_us, const char *event, const log_kv
         put_char(l, ',');
         put_json_string(l, kv[i].key);
         put_char(l, ':');
-        if (kv[i].is_num) {
+        if (kv[i].is_num == 3u) {
+            put_char(l, '[');
+            put(l, kv[i].str); /* digits and commas, made by the daemon itself */
+            put_char(l, ']');
+        } else if (kv[i].is_num) {
             put_num(l, kv[i].num, kv[i].is_num);
         } else {
             put_json_string(l, kv[i].str != NULL ? kv[i].str : "-");

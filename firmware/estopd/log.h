@@ -12,9 +12,10 @@
 
 typedef struct {
     const char *key;
-    const char *str;   /* string value (used when is_num is 0) */
-    int64_t num;       /* numeric value (used when is_num is not 0) */
-    uint8_t is_num;    /* 1: an integer; 2: microseconds shown as milliseconds (0.5, 200) */
+    const char *str;   /* string value (is_num 0), or a list (is_num 3) */
+    int64_t num;       /* numeric value (is_num 1 or 2) */
+    uint8_t is_num;    /* 0: a string; 1: an integer; 2: microseconds shown as milliseconds
+                          (0.5, 200); 3: a list of integers, "1,2,3": a JSON array */
     uint8_t json_only; /* left out of text lines (already shown in the head) */
 } log_kv_t;
 
@@ -22,6 +23,7 @@ typedef struct {
 #define KV_NUM(k, v) { (k), NULL, (int64_t)(v), 1u, 0u }
 #define KV_MS(k, us) { (k), NULL, (int64_t)(us), 2u, 0u }
 #define KV_JSTR(k, v) { (k), (v), 0, 0u, 1u }
+#define KV_LIST(k, v) { (k), (v), 0, 3u, 0u }
 
 /* Classes of events a peer can provoke as often as it likes: each class may write a burst of
  * LOG_BURST lines, then LOG_RATE lines a second; the rest are counted as suppressed. */

@@ -112,3 +112,15 @@ def test_prototypes_are_read_from_the_headers() -> None:
     assert protos[1].params == ()
     real = mcubuild.prototypes()
     assert "estop_tcp_rx" in real and len(real["estop_tcp_rx"].params) == 7
+
+
+def test_instruction_count_scenario() -> None:
+    """The scenario of make mcu and bench/mcu_instructions.py runs on every image, and its
+    counts rank as they must: more work, more instructions."""
+    import mcuinsns
+    ensure_built()
+    for v in mcubuild.VARIANTS:
+        counts = {c.label: c.instructions for c in mcuinsns.scenario(v, ffi, lib)}
+        assert all(n > 0 for n in counts.values()), v.name
+        assert (counts["tick, nothing due"] < counts["tick, brake frame due"]
+                < counts["tick, brake + status frames due"]), v.name

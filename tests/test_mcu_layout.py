@@ -65,7 +65,7 @@ int32_t negative(int32_t x) { return -x; }
 
 def test_aapcs_arguments_in_the_emulator(tmp_path: Path) -> None:
     """a in r0, b in r2:r3 (r1 skipped), c, d (8-aligned), e and f on the stack; a 64-bit
-    result in r0:r1."""
+    result in r0:r1. Also the instruction counter, on a function of known length."""
     ensure_built()
     src = tmp_path / "probe.c"
     src.write_text(ABI_PROBE)
@@ -75,13 +75,14 @@ def test_aapcs_arguments_in_the_emulator(tmp_path: Path) -> None:
                         "-ffreestanding", "-nostdlib", "-T",
                         str(mcubuild.MAKEFILE_DIR / "core.ld"), "-Wl,--no-warn-rwx-segments",
                         "-o", str(elf), str(src), "-lgcc"], check=True)
-        cpu = CortexM(elf, target)
+        cpu = CortexM(elf, target, count=True)
         a, b, c, d, e, f = 0x11, 0x0123456789ABCDEF, 0x22, 0xFEDCBA9876543210, 0x33, 0xBEEF
         want = ((b * 3) ^ (d << 1) ^ (a << 40) ^ (c << 20) ^ e ^ (f << 56)) & (2**64 - 1)
         r0, r1 = cpu.call("probe", [(a, 4), (b, 8), (c, 4), (d, 8), (e, 4), (f, 4)])
         assert r0 | (r1 << 32) == want, target
         r0, _ = cpu.call("negative", [(5, 4)])
         assert r0 == 0xFFFFFFFB
+        assert cpu.instructions == 2      # negs r0, r0; bx lr: the counter sees each one
 
 
 def test_the_return_code_comes_back_signed() -> None:

@@ -62,7 +62,9 @@ ARM_SCALAR = {"uint8_t": 1, "int8_t": 1, "uint16_t": 2, "int16_t": 2, "uint32_t"
 class CortexM:
     """One Cortex-M CPU with the image in flash, and RAM for the caller's objects and stack."""
 
-    def __init__(self, elf: Path, target: str) -> None:
+    def __init__(self, elf: Path, target: str, count: bool = False) -> None:
+        """count: count executed instructions (a hook on every instruction, so slower). The
+        hook is set before any code runs: unicorn does not add it to code already translated."""
         segments, self.symbols = load_segments(elf)
         self.uc = Uc(UC_ARCH_ARM, UC_MODE_THUMB | UC_MODE_MCLASS)
         self.uc.ctl_set_cpu_model(CPU_MODEL[target])
@@ -75,6 +77,9 @@ class CortexM:
         self._next = RAM_BASE
         self.instructions = 0
         self.stack_used = 0
+        self.counting = count
+        if count:
+            self.uc.hook_add(UC_HOOK_CODE, self._count)
 
     def alloc(self, size: int, align: int = 8) -> int:
         addr = (self._next + align - 1) & ~(align - 1)
@@ -96,9 +101,11 @@ class CortexM:
             raise McuError(f"no string end within {limit} bytes at {addr:#x}")
         return data[:end]
 
-    def call(self, func: str, args: list[tuple[int, int]], count: bool = False,
+    def call(self, func: str, args: list[tuple[int, int]],
              measure_stack: bool = False) -> tuple[int, int]:
-        """Calls func with (value, size) arguments per AAPCS; returns (r0, r1)."""
+        """Calls func with (value, size) arguments per AAPCS; returns (r0, r1). Afterwards
+        self.instructions holds the count of the call (when counting) and self.stack_used
+        the bytes of stack it used (when measured)."""
         regs: list[int] = []
         stack = b""
         ncrn = 0
@@ -126,18 +133,12 @@ class CortexM:
             self.uc.reg_write(reg, value)
         self.uc.reg_write(UC_ARM_REG_SP, sp)
         self.uc.reg_write(UC_ARM_REG_LR, RET_ADDR | 1)
-        hook = None
-        if count:
-            self.instructions = 0
-            hook = self.uc.hook_add(UC_HOOK_CODE, self._count)
+        self.instructions = 0
         try:
             self.uc.emu_start(self.symbols[func] | 1, RET_ADDR)
         except UcError as exc:
             pc = self.uc.reg_read(UC_ARM_REG_PC)
             raise McuError(f"{func}: CPU fault at pc {pc:#x}: {exc}") from exc
-        finally:
-            if hook is not None:
-                self.uc.hook_del(hook)
         if self.uc.reg_read(UC_ARM_REG_PC) != RET_ADDR:
             raise McuError(f"{func} did not return")
         if self.uc.reg_read(UC_ARM_REG_SP) != sp:
@@ -300,10 +301,10 @@ class HostCore(_Side):
 class ArmCore(_Side):
     """A Cortex-M build in the emulator, with one object per type in its RAM."""
 
-    def __init__(self, v: Variant, ffi: Any) -> None:
+    def __init__(self, v: Variant, ffi: Any, count: bool = False) -> None:
         super().__init__(ffi, v.core)
         self.variant = v
-        self.cpu = CortexM(v.elf, v.target)
+        self.cpu = CortexM(v.elf, v.target, count)
         self.objects: dict[str, tuple[int, int, str]] = {}   # key -> (addr, size, ctype)
         self._pool: dict[str, tuple[int, int, str]] = {}     # every object ever placed
         self._inputs: dict[str, int] = {}
@@ -346,8 +347,7 @@ class ArmCore(_Side):
             self._arg_sizes[ctype] = 4 if kind == "enum" else max(4, self.sizeof(ctype))
         return self._arg_sizes[ctype]
 
-    def call(self, name: str, values: Mapping[str, Any], count: bool = False,
-             measure_stack: bool = False) -> Result:
+    def call(self, name: str, values: Mapping[str, Any], measure_stack: bool = False) -> Result:
         p = self.proto(name)
         args: list[tuple[int, int]] = []
         for arg in self.plan(name):
@@ -368,7 +368,7 @@ class ArmCore(_Side):
             else:
                 addr = self._object(f"scalar:{arg.name}", arg.base, self.sizeof(arg.base))
             args.append((addr, 4))
-        r0, r1 = self.cpu.call(name, args, count=count, measure_stack=measure_stack)
+        r0, r1 = self.cpu.call(name, args, measure_stack=measure_stack)
         out: int | bytes | None
         if p.result == "void":
             out = None

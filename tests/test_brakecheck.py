@@ -122,3 +122,62 @@ def test_random_bytes_never_release_the_brake_unless_valid(data: bytes) -> None:
     assert v.accepted == (BrakeFrame.check(data) == [])
     if not chk.brake_applied(0.0):
         assert v.accepted and not BrakeFrame.decode(data).brakes
+
+
+# ------------------------------------------------------------ silence is a failure (spec 7)
+
+def test_finish_without_any_frame_is_a_failure() -> None:
+    chk = BrakeFrameChecker()
+    events = chk.finish(None)
+    assert [e.kind for e in events] == ["no_brake_frame"]
+    assert "not a working unit" in events[0].message
+    assert chk.problems == 1 and chk.counts["no_brake_frame"] == 1
+    assert chk.finish(None) == []  # judged once
+
+
+def test_finish_with_only_bad_or_status_frames_is_a_failure() -> None:
+    chk = BrakeFrameChecker()
+    bad = bytearray(armed(0))
+    bad[7] ^= 1
+    chk.feed(0.00, 0x050, bytes(bad))
+    for i in range(10):
+        chk.feed(0.01 + i * 0.1, 0x051, StatusFrame(1, 0, 0, 0, 5, i).encode())
+    events = chk.finish(0.95)
+    assert [e.kind for e in events] == ["no_brake_frame"]
+    assert "11 frames seen, none a good ESTOP_BRAKE" in events[0].message
+
+
+def test_finish_judges_the_silence_up_to_the_end() -> None:
+    chk = BrakeFrameChecker()
+    for i in range(10):
+        chk.feed(i * 0.010, 0x050, armed(i))
+    assert chk.finish(0.09 + 0.049) == []  # 49 ms: fine
+    chk2 = BrakeFrameChecker()
+    for i in range(10):
+        chk2.feed(i * 0.010, 0x050, armed(i))
+    events = chk2.finish(0.09 + 0.9)  # ESTOP_BRAKE stopped, something else went on 0.9 s
+    assert [e.kind for e in events] == ["timeout"]
+    assert "900.0 ms" in events[0].message and "end" in events[0].message
+    assert events[0].t == pytest.approx(0.99)
+    assert chk2.problems == 1
+
+
+def test_finish_does_not_repeat_a_timeout_poll_already_reported() -> None:
+    chk = BrakeFrameChecker()
+    chk.feed(0.0, 0x050, armed(0))
+    assert [e.kind for e in chk.poll(0.06)] == ["timeout"]
+    assert chk.finish(0.5) == []
+    assert chk.counts["timeout"] == 1
+
+
+def test_poll_from_the_start_of_the_watch() -> None:
+    chk = BrakeFrameChecker()
+    chk.begin(10.0)
+    assert chk.poll(10.049) == []
+    events = chk.poll(10.050)
+    assert [e.kind for e in events] == ["timeout"]
+    assert "since the watch began" in events[0].message
+    assert chk.poll(10.5) == []
+    chk.feed(10.6, 0x050, armed(0))  # frames came: the gap from the start is not a "gap"
+    assert chk.counts["gap"] == 0
+    assert [e.kind for e in chk.finish(10.605)] == []

@@ -23,7 +23,7 @@ import pytest
 
 from estop import cli, remote
 from estop.linkmodel import WIFI, LinkConfig, LinkModel
-from estop.protocol import tcp, udp
+from estop.protocol import auth, tcp, udp
 from estop.protocol.can import BrakeFrame, StatusFrame
 from estop.protocol.canlog import CanLogRecord, format_line
 from estop.protocol.tcp import FrameAssembler, Reply, Request
@@ -40,21 +40,22 @@ LOCAL = "127.0.0.1"
 
 @dataclass
 class FakeUnit:
-    """Just enough of the unit for the CLI: a UDP port recording control packets and a TCP
-    stop port answering per spec section 3 (STOPPED latched, RELEASE needs a live, neutral
-    link of >= 5 valid packets, udp timeout 200 ms). ``mode`` breaks the replies on purpose:
-    ``silent`` (no reply), ``close`` (hang up), ``badcrc``, ``wrongseq``, ``split`` (reply in
-    two pieces)."""
+    """Just enough of the unit for the CLI: a UDP port recording control packets (and stop
+    datagrams, which stop it) and a TCP stop port answering per spec section 3 (STOPPED
+    latched, RELEASE needs a live, neutral link of >= 5 valid packets, udp timeout 200 ms).
+    ``mode`` breaks the replies on purpose: ``silent`` (no reply), ``close`` (hang up),
+    ``badcrc``, ``wrongseq``, ``split`` (reply in two pieces)."""
 
     mode: str = "normal"
     timeout: float = 0.2
     stop_id: int = tcp.DEFAULT_STOP_ID
     packets: list[tuple[float, bytes]] = field(default_factory=list)
+    stop_datagrams: list[bytes] = field(default_factory=list)
     requests: list[Request] = field(default_factory=list)
     raw_requests: list[bytes] = field(default_factory=list)
     state: int = 0
     reason: int = 1
-    valid_since_stop: int = 0
+    valid_run: int = 0
     last_valid: ControlPacket | None = None
     last_valid_t: float = -1e9
 
@@ -94,13 +95,18 @@ class FakeUnit:
                 return
             now = time.monotonic()
             with self.lock:
+                if len(data) == auth.REQUEST_SIZE and data[:4] == auth.REQUEST_MAGIC:
+                    self.stop_datagrams.append(data)
+                    if auth.AuthRequest.decode(data, None).kind(self.stop_id) == "stop":
+                        self._enter_stop(2)
+                    continue
                 self.packets.append((now, data))
                 self._expire(now)
                 if udp.is_valid(data):
                     self.last_valid = udp.decode(data)
                     self.last_valid_t = now
                     if self.state == 0:
-                        self.valid_since_stop += 1
+                        self.valid_run += 1
 
     def _expire(self, now: float) -> None:
         if self.state == 1 and now - self.last_valid_t >= self.timeout:
@@ -109,7 +115,7 @@ class FakeUnit:
     def _enter_stop(self, reason: int) -> None:
         if self.state == 1:
             self.state, self.reason = 0, reason
-        self.valid_since_stop = 0
+        self.valid_run = 0
 
     # TCP side
     def _tcp_loop(self) -> None:
@@ -167,7 +173,7 @@ class FakeUnit:
             if kind == "stop":
                 self._enter_stop(2)
             elif kind == "release" and self.state == 0:
-                live = now - self.last_valid_t < self.timeout and self.valid_since_stop >= 5
+                live = now - self.last_valid_t < self.timeout and self.valid_run >= 5
                 if not live:
                     nak = tcp.NakCode.NO_LIVE_LINK
                 elif self.last_valid is None or not self.last_valid.is_neutral:
@@ -209,16 +215,19 @@ def one_error_line(err: str) -> str:
 # ------------------------------------------------------------------------ one-shot commands
 
 def test_stop_sends_the_spec_frame_and_prints_ack(unit: FakeUnit, capsys) -> None:
-    code, out, err = run_cli(capsys, "stop", "--host", LOCAL, "--port", str(unit.tcp_port))
+    code, out, err = run_cli(capsys, "stop", "--host", LOCAL, "--port", str(unit.tcp_port),
+                             "--udp-port", str(unit.udp_port))
     assert code == 0 and err == ""
     assert unit.raw_requests == [bytes.fromhex("70E570E5010000000000000" "0DC09BF43")]
-    assert out.strip() == "ACK seq=1 state=STOPPED reason=boot flags=0x00"
+    assert out.strip() == "ACK seq=1 state=STOPPED reason=boot flags=0x00 (after 1 attempt)"
+    assert len(unit.stop_datagrams) == 1
 
 
 def test_stop_seq_and_stop_id(unit: FakeUnit, capsys) -> None:
     unit.stop_id = 0x12345678
     code, out, _ = run_cli(capsys, "stop", "--host", LOCAL, "--port", str(unit.tcp_port),
-                           "--seq", "0xFFFFFFFF", "--stop-id", "0x12345678")
+                           "--udp-port", str(unit.udp_port), "--seq", "0xFFFFFFFF",
+                           "--stop-id", "0x12345678")
     assert code == 0
     assert unit.requests == [Request(0x12345678, 0xFFFFFFFF, 0)]
     assert "seq=4294967295" in out
@@ -257,17 +266,24 @@ def test_reply_split_across_reads(capsys) -> None:
     ("badcrc", "CRC mismatch"),
     ("wrongseq", "does not match"),
 ])
-def test_broken_replies_exit_3(mode: str, message: str, capsys) -> None:
+@pytest.mark.parametrize("kind", ["status", "stop"])
+def test_broken_replies_exit_3(mode: str, message: str, kind: str, capsys) -> None:
     u = FakeUnit(mode=mode)
+    argv = [kind, "--host", LOCAL, "--port", str(u.tcp_port), "--timeout", "0.3"]
+    if kind == "stop":
+        argv += ["--udp-port", str(u.udp_port), "--stop-deadline", "0.5"]
     try:
         t0 = time.monotonic()
-        code, out, err = run_cli(capsys, "stop", "--host", LOCAL, "--port", str(u.tcp_port),
-                                 "--timeout", "0.3")
+        code, out, err = run_cli(capsys, *argv)
         assert time.monotonic() - t0 < 3
     finally:
         u.close()
     assert code == 3 and out == ""
-    assert message in one_error_line(err)
+    line = one_error_line(err)
+    assert message in line
+    if kind == "stop":  # the stop button tried again until its deadline
+        assert "no ACK within 0.5 s: " in line and len(u.stop_datagrams) >= 1
+        assert len(u.requests) >= (1 if mode == "silent" else 2)
 
 
 def test_connection_refused_exit_3(capsys) -> None:
@@ -542,8 +558,11 @@ def test_remote_bad_script_sends_nothing(unit: FakeUnit, capsys) -> None:
 
 def test_remote_tcp_refused_exit_3(unit: FakeUnit, capsys) -> None:
     code, _, err = run_cli(capsys, "remote", "--host", LOCAL, "--udp-port", str(unit.udp_port),
-                           "--tcp-port", str(free_port()), "--script", "hold 0.1; stop")
-    assert code == 3 and "cannot connect" in one_error_line(err)
+                           "--tcp-port", str(free_port()), "--stop-deadline", "0.5",
+                           "--script", "hold 0.1; stop")
+    line = one_error_line(err)
+    assert code == 3 and "cannot connect" in line and "no ACK within 0.5 s" in line
+    assert unit.stop_datagrams  # the stop datagram went out all the same
 
 
 def test_remote_interactive_needs_a_terminal(monkeypatch, capsys) -> None:

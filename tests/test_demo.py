@@ -66,3 +66,43 @@ def test_demo_without_estopd_says_so_in_one_line(capsys: pytest.CaptureFixture[s
     assert main(["--estopd", str(tmp_path / "no-such-estopd")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "estopd not found" in err
+
+
+@pytest.mark.parametrize("value", ["0", "-5", "60001", "1e3", "abc", ""])
+def test_demo_timeout_out_of_range_is_one_usage_line(value: str, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    # refused before anything starts: the daemon path does not even exist
+    code = main(["--estopd", str(tmp_path / "no-such-estopd"), "--timeout-ms", value])
+    cap = capsys.readouterr()
+    assert code == 2 and cap.out == ""
+    lines = cap.err.splitlines()
+    assert len(lines) == 1, cap.err
+    assert lines[0].startswith("estop: error: argument --timeout-ms: ")
+    assert "1..60000" in lines[0] and "Traceback" not in cap.err
+
+
+def test_demo_timeout_range_ends_are_accepted(tmp_path: Path,
+                                              capsys: pytest.CaptureFixture[str]) -> None:
+    for value in ("1", "60000"):
+        # accepted: the demo goes on and stops only at the missing daemon
+        assert main(["--estopd", str(tmp_path / "no-such-estopd"), "--timeout-ms", value]) == 2
+        assert "estopd not found" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv", [["--bogus"], ["--plain", "extra"], ["--timeout-ms"]])
+def test_demo_usage_errors_are_one_line(argv: list[str],
+                                        capsys: pytest.CaptureFixture[str]) -> None:
+    from estop import cli
+
+    for run in (main, lambda a: cli.main(["demo", *a])):
+        code = run(argv)
+        cap = capsys.readouterr()
+        assert code == 2 and cap.out == ""
+        lines = cap.err.splitlines()
+        assert len(lines) == 1 and lines[0].startswith("estop: error: "), cap.err
+
+
+def test_demo_help_exits_0(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["--help"]) == 0
+    out = capsys.readouterr().out
+    assert "--timeout-ms" in out and "1..60000" in out

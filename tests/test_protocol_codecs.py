@@ -113,7 +113,7 @@ def test_constants() -> None:
     assert (can.BRAKE_DATA_ID, can.STATUS_DATA_ID) == (0x0E57, 0x0E58)
     assert (tcp.STATUS, tcp.RELEASE, tcp.ACK, tcp.NAK) == (1, 2, 0x80, 0x81)
     assert tcp.DEFAULT_STOP_ID == 0xE570E570
-    assert [int(c) for c in tcp.NakCode] == [0, 1, 2, 3]
+    assert [int(c) for c in tcp.NakCode] == [0, 1, 2, 3, 4]
     assert (udp.DEFAULT_PORT, tcp.DEFAULT_PORT) == (5700, 5701)
     assert can.STATE_NAMES == {0: "STOPPED", 1: "ARMED"}
     assert can.REASON_NAMES == {0: "none", 1: "boot", 2: "tcp_stop", 3: "udp_timeout",
@@ -310,9 +310,9 @@ valid_replies = st.one_of(
     st.builds(Reply, st.just(True), u32, st.just(0), st.integers(1, 4), st.just(0), st.just(0)),
     st.builds(Reply, st.just(True), u32, st.just(1), st.just(0), st.integers(0, 1), st.just(0)),
     st.builds(Reply, st.just(False), u32, st.just(0), st.integers(1, 4), st.just(0),
-              st.integers(1, 3)),
+              st.integers(1, 4)),
     st.builds(Reply, st.just(False), u32, st.just(1), st.just(0), st.integers(0, 1),
-              st.integers(1, 3)),
+              st.integers(1, 4)),
 )
 
 
@@ -339,7 +339,7 @@ def test_tcp_reply_layout() -> None:
     (Reply(True, 1, 0, 1, 1), "link_degraded"),
     (Reply(True, 1, 0, 1, 0, 1), "ACK with nak"),
     (Reply(False, 1, 0, 1, 0, 0), "NAK with nak code 0"),
-    (Reply(False, 1, 0, 1, 0, 4), "nak code 4"),
+    (Reply(False, 1, 0, 1, 0, 5), "nak code 5"),
 ])
 def test_tcp_reply_invalid(reply: Reply, match: str) -> None:
     with pytest.raises(tcp.FrameError, match=match):
@@ -365,7 +365,7 @@ def test_tcp_wrong_length_and_bad_values() -> None:
     with pytest.raises(ValueError, match="u32"):
         Request(1, -1).encode()
     for bad in (0, 1, 2):
-        with pytest.raises(ValueError, match="0, 1 or 2"):
+        with pytest.raises(ValueError, match="0, 1, 2 or 0x32515345"):
             tcp.stop_request(1, bad)
     assert tcp.check_stop_id(3) == 3
 

@@ -13,7 +13,6 @@
 #include "estop_crc.h"
 
 #define CORE_MAGIC 0x45535450u    /* "ESTP" */
-#define HALF_RANGE 0x80000000u    /* wrap-safe comparisons: differences below this are ahead */
 #define FLOAT_ONE_BITS 0x3F800000u  /* IEEE-754 single 1.0f */
 #define FLOAT_ABS_MASK 0x7FFFFFFFu
 #define FLOAT_SIGN_BIT 0x80000000u
@@ -36,12 +35,6 @@ static void wr_u32le(uint8_t *p, uint32_t v)
     p[1] = (uint8_t)((v >> 8) & 0xFFu);
     p[2] = (uint8_t)((v >> 16) & 0xFFu);
     p[3] = (uint8_t)(v >> 24);
-}
-
-/* True when tick `now` is at or after `due` (both wrapping, less than half a range apart). */
-static int reached(uint32_t now, uint32_t due)
-{
-    return (uint32_t)(now - due) < HALF_RANGE;
 }
 
 static uint8_t sat8_inc(uint8_t v)
@@ -101,7 +94,7 @@ estop_err_t estop_config_check(const estop_config_t *cfg)
     } else if ((cfg->warn_us == 0u) || (cfg->warn_us >= cfg->timeout_us)) {
         err = ESTOP_ERR_WARN;
     } else if ((cfg->stop_id == 0u) || (cfg->stop_id == ESTOP_MSG_STATUS) ||
-               (cfg->stop_id == ESTOP_MSG_RELEASE)) {
+               (cfg->stop_id == ESTOP_MSG_RELEASE) || (cfg->stop_id == ESTOP_MAGIC_REQUEST)) {
         err = ESTOP_ERR_STOP_ID;
     } else if ((cfg->brake_can_id > ESTOP_CAN_ID_MAX) || (cfg->status_can_id > ESTOP_CAN_ID_MAX) ||
                (cfg->brake_can_id == cfg->status_can_id)) {
@@ -164,7 +157,7 @@ static uint8_t current_flags(const estop_core_t *core)
  * than the timeout. */
 static int link_live(const estop_core_t *core)
 {
-    return (core->link_fresh != 0u) && (core->valid_since_stop >= core->cfg.release_packets);
+    return (core->link_fresh != 0u) && (core->valid_run >= core->cfg.release_packets);
 }
 
 /* ---- CAN frames --------------------------------------------------------------------------- */
@@ -235,7 +228,7 @@ static void state_changed(estop_core_t *core, estop_out_t *out)
 /* Every stop request restarts the release count; only the first one sets the reason. */
 static void stop(estop_core_t *core, uint8_t reason, estop_out_t *out)
 {
-    core->valid_since_stop = 0u;
+    core->valid_run = 0u;
     if (core->state == ESTOP_STATE_ARMED) {
         core->state = (uint8_t)ESTOP_STATE_STOPPED;
         core->reason = reason;
@@ -265,6 +258,7 @@ static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
     }
     if ((core->link_fresh != 0u) && (link_age(core) >= core->cfg.timeout_us)) {
         core->link_fresh = 0u; /* latched: a wrapped tick can never make this link young again */
+        core->valid_run = 0u;  /* a RELEASE needs its packets from after the silence */
     }
     if ((core->state == ESTOP_STATE_ARMED) && (core->link_fresh == 0u)) {
         stop(core, (uint8_t)ESTOP_REASON_UDP_TIMEOUT, out);
@@ -274,11 +268,20 @@ static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
     }
 }
 
-/* Next due time on a fixed grid; a caller that fell a whole period behind restarts it. */
+/* A frame is due unless its due time lies in (now, now + period]. So a due time that has been
+ * reached is due, and so is one that lies further ahead than a period: that only happens when
+ * the tick went backwards, and the period must hold whatever the clock does. */
+static int frame_due(uint32_t now, uint32_t due, uint32_t period)
+{
+    return ((uint32_t)(due - now) - 1u) >= period;
+}
+
+/* Next due time on a fixed grid; a caller that fell a whole period behind, or whose clock went
+ * backwards, restarts the grid from now. */
 static uint32_t next_due(uint32_t due, uint32_t period, uint32_t now)
 {
     uint32_t next = due + period;
-    if (reached(now, next)) {
+    if (frame_due(now, next, period)) {
         next = now + period;
     }
     return next;
@@ -286,11 +289,11 @@ static uint32_t next_due(uint32_t due, uint32_t period, uint32_t now)
 
 static void send_due_frames(estop_core_t *core, estop_out_t *out)
 {
-    if (reached(core->now_us, core->brake_due_us)) {
+    if (frame_due(core->now_us, core->brake_due_us, core->cfg.brake_period_us)) {
         send_brake(core, out);
         core->brake_due_us = next_due(core->brake_due_us, core->cfg.brake_period_us, core->now_us);
     }
-    if (reached(core->now_us, core->status_due_us)) {
+    if (frame_due(core->now_us, core->status_due_us, core->cfg.status_period_us)) {
         send_status(core, out);
         core->status_due_us =
             next_due(core->status_due_us, core->cfg.status_period_us, core->now_us);
@@ -363,15 +366,26 @@ static int control_packet_valid(const uint8_t *d, size_t len)
     return valid;
 }
 
+/* Section 1: a request frame with the stop ID. Anyone may stop, so its tag, session and counter
+ * are never looked at. */
+static int stop_datagram(const estop_core_t *core, const uint8_t *d, size_t len)
+{
+    return (d != NULL) && (len == ESTOP_REQ_FRAME_LEN) && (rd_u32le(d) == ESTOP_MAGIC_REQUEST) &&
+           (rd_u32le(d + 4) == core->cfg.stop_id);
+}
+
 estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
                          estop_out_t *out)
 {
     estop_err_t err = begin(core, now_us, out);
     if (err == ESTOP_OK) {
-        if (control_packet_valid(data, len)) {
+        if (stop_datagram(core, data, len)) {
+            core->counters.udp_stops++;
+            stop(core, (uint8_t)ESTOP_REASON_TCP_STOP, out);
+        } else if (control_packet_valid(data, len)) {
             core->counters.udp_valid++;
             core->status_valid = sat8_inc(core->status_valid);
-            core->valid_since_stop = sat32_inc(core->valid_since_stop);
+            core->valid_run = sat32_inc(core->valid_run);
             core->last_valid_us = now_us;
             core->link_fresh = 1u;
             core->last_neutral = non_positive_bits(rd_u32le(data)) ? 1u : 0u;
@@ -541,7 +555,7 @@ estop_err_t estop_get_status(const estop_core_t *core, estop_status_t *status)
         status->reason = core->reason;
         status->flags = current_flags(core);
         status->link_live = link_live(core) ? 1u : 0u;
-        status->valid_since_stop = core->valid_since_stop;
+        status->valid_run = core->valid_run;
         status->link_age_us = (core->link_fresh != 0u) ? link_age(core) : 0xFFFFFFFFu;
         status->counters = core->counters;
     }
@@ -558,9 +572,10 @@ const char *estop_err_name(estop_err_t err)
         "bad_brake_period", "bad_status_period", "not_initialised", "bad_slot",
         "slot_closed"};
     const char *name = "unknown_error";
-    int idx = -(int)err;
-    if ((idx >= 0) && (idx < (int)(sizeof(names) / sizeof(names[0])))) {
-        name = names[idx];
+    const int count = (int)(sizeof(names) / sizeof(names[0]));
+    /* Range first: negating an arbitrary int (INT_MIN) would overflow. */
+    if (((int)err <= 0) && ((int)err > -count)) {
+        name = names[-(int)err];
     }
     return name;
 }

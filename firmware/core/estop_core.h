@@ -33,6 +33,8 @@ extern "C" {
 #define ESTOP_UDP_LEN 20u
 #define ESTOP_UDP_LEN_NO_HORN 16u
 #define ESTOP_TCP_FRAME_LEN 16u
+#define ESTOP_REQ_FRAME_LEN 48u        /* request frame of PROTOCOL.md 5.2 (also the stop datagram) */
+#define ESTOP_MAGIC_REQUEST 0x32515345u /* "ESQ2" read as a little-endian u32 */
 #define ESTOP_CAN_DLC 8u
 
 /* TCP message ids and reply codes (PROTOCOL.md 2). */
@@ -89,7 +91,7 @@ typedef enum {
     ESTOP_ERR_NULL_ARG = -1,
     ESTOP_ERR_TIMEOUT = -2,        /* timeout_us outside its range */
     ESTOP_ERR_WARN = -3,           /* warn_us not in 1 .. timeout_us-1 */
-    ESTOP_ERR_STOP_ID = -4,        /* stop_id is 0, 1 or 2 */
+    ESTOP_ERR_STOP_ID = -4,        /* stop_id is 0, 1, 2 or ESTOP_MAGIC_REQUEST */
     ESTOP_ERR_CAN_ID = -5,         /* CAN id over 11 bits, or both ids equal */
     ESTOP_ERR_DATA_ID = -6,        /* both data ids equal */
     ESTOP_ERR_RELEASE_COUNT = -7,  /* release_packets is 0 */
@@ -122,6 +124,7 @@ typedef struct {
 typedef struct {
     uint32_t udp_valid;
     uint32_t udp_invalid;
+    uint32_t udp_stops;       /* stop datagrams (PROTOCOL.md 1), whatever their tag */
     uint32_t tcp_frames;      /* frames with a good crc */
     uint32_t tcp_bad_crc;     /* frames with a bad crc (connection closed) */
     uint32_t tcp_unknown_id;  /* good crc, unknown msg_id (NAK 1) */
@@ -163,7 +166,8 @@ typedef struct {
     uint8_t link_fresh;        /* a valid packet arrived and has not yet aged past the timeout */
     uint8_t last_neutral;      /* the latest valid packet had gas_brake <= 0 */
     uint32_t last_valid_us;    /* tick of the latest valid packet (meaningful while link_fresh) */
-    uint32_t valid_since_stop; /* saturating */
+    uint32_t valid_run;        /* valid packets since boot, the latest stop or the latest silence
+                                  of the timeout, whichever is latest (saturating) */
     uint32_t brake_due_us;
     uint32_t status_due_us;
     uint8_t brake_counter;
@@ -180,7 +184,7 @@ typedef struct {
     uint8_t reason;
     uint8_t flags;
     uint8_t link_live;          /* a RELEASE would pass the link check now */
-    uint32_t valid_since_stop;
+    uint32_t valid_run;
     uint32_t link_age_us;       /* saturates at UINT32_MAX when no fresh packet */
     estop_counters_t counters;
 } estop_status_t;
@@ -194,7 +198,8 @@ estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t n
 
 /* Advances time: timeout stop, link-degraded flag, periodic frames. */
 estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out);
-/* One UDP datagram of any length (data may be NULL when len is 0). */
+/* One UDP datagram of any length (data may be NULL when len is 0): a control packet, or a stop
+ * datagram (a request frame whose msg_id is the stop ID: it stops the unit whatever its tag). */
 estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
                          estop_out_t *out);
 /* A TCP connection was accepted into slot (0 .. ESTOP_MAX_SLOTS-1). */

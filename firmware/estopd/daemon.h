@@ -23,6 +23,9 @@ enum {
 typedef struct {
     int fd;                   /* -1: slot free */
     struct sockaddr_in peer;
+    uint64_t quiet_since_us;  /* accepted, or its latest complete frame: who makes room */
+    int reply_err;            /* errno of a reply that could not be written (EAGAIN: the client
+                                 does not read); the client goes once its input is handled */
 } client_t;
 
 typedef struct {
@@ -36,6 +39,8 @@ typedef struct {
     uint16_t udp_port;        /* bound ports (port 0 picks one) */
     uint16_t tcp_port;
     client_t clients[ESTOP_MAX_SLOTS];
+    uint64_t accept_paused_until; /* listener unwatched until then (EMFILE...), 0: watched */
+    uint32_t accept_failures;     /* pauses in the current episode */
     int can_on;
     can_t can;
     canlog_t canlog;

@@ -16,6 +16,7 @@
 #include "udp.h"
 
 #define MAX_EVENTS 16
+#define EXIT_FLUSH_US 1000000u
 
 /* Arms the timerfd (absolute CLOCK_MONOTONIC) for the next wakeup, when it changed. */
 static void arm_timer(daemon_t *d)
@@ -136,11 +137,19 @@ static int finish(daemon_t *d)
         can_close(&d->can);
     }
     clients_close_all(d, "exit");
+    log_report(clock_mono_us()); /* what is left to say about lost lines, before the exit line */
     {
         log_kv_t kv[] = { KV_NUM("code", code), KV_STR("signal", signal_name(d->stop_signal)) };
         log_event(clock_mono_us(), "exit", NULL, kv, 2u);
     }
-    canlog_close(&d->canlog);
+    {
+        /* Whatever the readers do, the exit is bounded: the outputs share one deadline. */
+        uint64_t start = clock_mono_us();
+        uint64_t spent;
+        canlog_close(&d->canlog, EXIT_FLUSH_US);
+        spent = clock_mono_us() - start;
+        log_flush(spent < EXIT_FLUSH_US ? EXIT_FLUSH_US - spent : 0u);
+    }
     return code;
 }
 

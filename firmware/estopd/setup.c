@@ -14,7 +14,6 @@
 #include "core_io.h"
 #include "log.h"
 #include "net.h"
-#include "outfd.h"
 
 static int fail(const char *what, char *err, size_t n)
 {
@@ -104,7 +103,7 @@ static int setup_can(daemon_t *d, char *err, size_t n)
                     d->opt.cfg.brake_period_us, &d->canlog, d->epfd, TAG_CAN, err, n);
 }
 
-static void log_start(const daemon_t *d)
+static void log_start_line(const daemon_t *d)
 {
     char udp[48];
     char tcp[48];
@@ -121,8 +120,8 @@ static void log_start(const daemon_t *d)
             KV_STR("tcp", tcp),
             KV_STR("can", d->opt.can_iface != NULL ? d->opt.can_iface : "-"),
             KV_STR("can_log", can_log),
-            KV_NUM("timeout_ms", d->opt.cfg.timeout_us / 1000u),
-            KV_NUM("warn_ms", d->opt.cfg.warn_us / 1000u),
+            KV_MS("timeout_ms", d->opt.cfg.timeout_us),
+            KV_MS("warn_ms", d->opt.cfg.warn_us),
             KV_STR("stop_id", stop_id),
             KV_NUM("pid", getpid()),
             KV_NUM("version_major", ESTOP_VERSION_MAJOR),
@@ -138,15 +137,15 @@ int setup(daemon_t *d, char *err, size_t errlen)
     d->canlog.fd = -1;
     d->can.fd = -1;
     clients_init(d);
-    log_set_json(d->opt.log_json);
-    /* Best effort: on failure stderr merely stays blocking. */
-    (void)outfd_prepare(2);
-    if (setup_signals(d, err, errlen) != 0 || setup_fds(d, err, errlen) != 0 ||
+    /* Signals are blocked first, so the output threads inherit the mask and leave them to
+     * the loop's signalfd. */
+    if (setup_signals(d, err, errlen) != 0 || log_start(d->opt.log_json, err, errlen) != 0 ||
+        setup_fds(d, err, errlen) != 0 ||
         setup_can(d, err, errlen) != 0) {
         return -1;
     }
     /* The ports go out before the first frame: tests and supervisors read them here. */
-    log_start(d);
+    log_start_line(d);
     if (cio_boot(d) != 0) {
         (void)snprintf(err, errlen, "the core failed to start");
         return -1;

@@ -5,14 +5,21 @@ A brake controller accepts an ESTOP_BRAKE frame only if it is 8 bytes, its CRC-8
 each other. It brakes when the accepted frame asks for it, and by itself when no accepted
 frame arrived for 50 ms (``timeout``), and before the first one.
 
+Silence is a failure (spec section 7): no good ESTOP_BRAKE frame for 50 ms means brake, and a
+watch that saw no good ESTOP_BRAKE frame at all has not seen a working unit. So a watch ends
+with :meth:`BrakeFrameChecker.finish` at the end of what it watched (the end of ``--duration``,
+the last line of a log): it judges the silence up to then.
+
 :class:`BrakeFrameChecker` is that logic without the brake: feed it frames with their times,
 read back verdicts and events. ``estop monitor`` prints them; the HIL harness's brake
 controller emulator uses :meth:`BrakeFrameChecker.brake_applied`.
 
 Event kinds: ``bad_length``, ``bad_crc``, ``bad_counter``, ``bad_content``,
 ``counter_repeat``, ``counter_jump`` (frames lost in between), ``gap`` (two accepted frames
-``timeout`` or more apart; reported when the second arrives) and ``timeout`` (reported by
-:meth:`BrakeFrameChecker.poll` while the silence lasts; live use only).
+``timeout`` or more apart; reported when the second arrives), ``timeout`` (no good frame for
+``timeout``: reported by :meth:`BrakeFrameChecker.poll` while the silence lasts, or by
+:meth:`BrakeFrameChecker.finish` for the silence at the end) and ``no_brake_frame`` (the watch
+ended without one good ESTOP_BRAKE frame; :meth:`BrakeFrameChecker.finish`).
 """
 
 from __future__ import annotations
@@ -35,7 +42,7 @@ __all__ = ["BRAKE_TIMEOUT", "EVENT_KINDS", "BrakeFrameChecker", "CheckEvent", "V
 
 BRAKE_TIMEOUT = 0.050  # seconds without an accepted ESTOP_BRAKE before a controller brakes
 EVENT_KINDS = ("bad_length", "bad_crc", "bad_counter", "bad_content", "counter_repeat",
-               "counter_jump", "gap", "timeout")
+               "counter_jump", "gap", "timeout", "no_brake_frame")
 
 
 @dataclass(frozen=True, slots=True)
@@ -96,6 +103,13 @@ class BrakeFrameChecker:
         self.counts: Counter[str] = Counter()  # events by kind
         self.frames = 0
         self.accepted = 0
+        self._began: float | None = None
+        self._finished = False
+
+    def begin(self, t: float) -> None:
+        """The watch starts at ``t`` (live use): from then on :meth:`poll` reports a silence
+        even before the first good frame."""
+        self._began = t
 
     # --------------------------------------------------------------------------- feeding
 
@@ -161,19 +175,55 @@ class BrakeFrameChecker:
 
     def poll(self, now: float) -> list[CheckEvent]:
         """Live use: a ``timeout`` event once when ``timeout`` passes without a good
-        ESTOP_BRAKE frame (again only after good frames came back)."""
+        ESTOP_BRAKE frame (again only after good frames came back); before the first good
+        frame, counted from :meth:`begin` (nothing without it)."""
         stream = self._brake
         if stream.timeout_reported:
             return []
         last = stream.last_accepted_t
-        if last is None or now - last < self.timeout:
+        since = last if last is not None else self._began
+        if since is None or now - since < self.timeout:
             return []
         stream.timeout_reported = True
-        ev = CheckEvent(now, self.brake_id, "timeout",
-                        f"no good ESTOP_BRAKE for {(now - last) * 1000:.1f} ms: a brake "
-                        f"controller brakes now")
-        self.counts["timeout"] += 1
-        return [ev]
+        if last is None:
+            text = (f"no good ESTOP_BRAKE since the watch began {(now - since) * 1000:.1f} ms "
+                    f"ago: a brake controller brakes")
+        else:
+            text = (f"no good ESTOP_BRAKE for {(now - since) * 1000:.1f} ms: a brake "
+                    f"controller brakes now")
+        return [self._event(CheckEvent(now, self.brake_id, "timeout", text))]
+
+    def finish(self, end: float | None) -> list[CheckEvent]:
+        """The watch is over at ``end`` (the end of a live watch, the last record of a log of
+        any ID; None if there was nothing at all). Judge its silence, once:
+
+        - ``no_brake_frame`` when not one good ESTOP_BRAKE frame came: no working unit seen;
+        - ``timeout`` when the last good one is ``timeout`` or more older than ``end`` (unless
+          :meth:`poll` already reported this silence).
+        """
+        if self._finished:
+            return []
+        self._finished = True
+        stream = self._brake
+        last = stream.last_accepted_t
+        t = end if end is not None else (last if last is not None else 0.0)
+        if last is None:
+            seen = (f" ({self.frames} frames seen, none a good ESTOP_BRAKE)"
+                    if self.frames else "")
+            return [self._event(CheckEvent(
+                t, self.brake_id, "no_brake_frame",
+                f"no good ESTOP_BRAKE frame at all{seen}: not a working unit"))]
+        if end is None or stream.timeout_reported or end - last < self.timeout:
+            return []
+        stream.timeout_reported = True
+        return [self._event(CheckEvent(
+            end, self.brake_id, "timeout",
+            f"no good ESTOP_BRAKE for {(end - last) * 1000:.1f} ms up to the end of the "
+            f"record (limit {self.timeout * 1000:g} ms)"))]
+
+    def _event(self, ev: CheckEvent) -> CheckEvent:
+        self.counts[ev.kind] += 1
+        return ev
 
     # ------------------------------------------------------------------------- reading
 

@@ -7,6 +7,7 @@
 ``estop monitor``                 decode and check ESTOP_BRAKE / ESTOP_STATUS
                                   (:mod:`estop.monitor`)
 ``estop demo``                    the scripted demo (:mod:`estop.demo`)
+``estop keygen PATH``             write a fresh key file, mode 0600 (:mod:`estop.keyfile`)
 ================================  ==========================================================
 
 Exit codes: 0 success/ACK, 1 NAK or problems found, 2 usage error (one line
@@ -30,10 +31,10 @@ _EPILOG = ("exit codes: 0 success/ACK, 1 NAK or problems found, 2 usage error, "
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from estop import monitor, oneshot, remote
+    from estop import keyfile, monitor, oneshot, remote
 
     parser = ErrorOnlyParser(prog="estop", description="Tools for the estop emergency-stop "
-                             "unit (wire contract: shared/spec/PROTOCOL.md).", epilog=_EPILOG)
+                             "unit (wire contract: docs/PROTOCOL.md).", epilog=_EPILOG)
     parser.add_argument("--version", action="version", version=f"estop {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
@@ -44,9 +45,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=remote.run)
 
     for name, text in oneshot.COMMANDS.items():
+        last = "; for stop: no ACK by the deadline" if name == "stop" else ""
         p = sub.add_parser(name, help=text, description=text, epilog="exit codes: 0 ACK, "
-                           "1 NAK, 2 usage error, 3 connection/timeout/malformed reply")
-        oneshot.add_arguments(p)
+                           f"1 NAK, 2 usage error, 3 connection/timeout/malformed reply{last}")
+        oneshot.add_arguments(p, name)
         p.set_defaults(handler=oneshot.run)
 
     p = sub.add_parser("monitor", help="decode and check ESTOP_BRAKE / ESTOP_STATUS frames",
@@ -55,6 +57,11 @@ def build_parser() -> argparse.ArgumentParser:
                               "or malformed log line, 3 bus or file cannot be opened")
     monitor.add_arguments(p)
     p.set_defaults(handler=monitor.run)
+
+    p = sub.add_parser("keygen", help="write a fresh random key file (mode 0600)",
+                       description=keyfile.DESCRIPTION, epilog=keyfile.EPILOG)
+    keyfile.add_arguments(p)
+    p.set_defaults(handler=keyfile.run)
 
     # `estop demo ...` is dispatched before parsing (see main); listed here for --help
     sub.add_parser("demo", help="run estopd on loopback and play a scripted drive "

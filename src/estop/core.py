@@ -89,6 +89,7 @@ class Step:
 class Counters:
     udp_valid: int
     udp_invalid: int
+    udp_stops: int
     tcp_frames: int
     tcp_bad_crc: int
     tcp_unknown_id: int
@@ -104,7 +105,7 @@ class Status:
     reason: int
     flags: int
     link_live: bool
-    valid_since_stop: int
+    valid_run: int
     link_age_us: int | None
     counters: Counters
 
@@ -239,14 +240,15 @@ class Watchdog:
             raise CoreError(err, "estop_get_status")
         c = st.counters
         counters = Counters(
-            udp_valid=c.udp_valid, udp_invalid=c.udp_invalid, tcp_frames=c.tcp_frames,
+            udp_valid=c.udp_valid, udp_invalid=c.udp_invalid, udp_stops=c.udp_stops,
+            tcp_frames=c.tcp_frames,
             tcp_bad_crc=c.tcp_bad_crc, tcp_unknown_id=c.tcp_unknown_id,
             releases_accepted=c.releases_accepted, releases_refused=c.releases_refused,
             stops=tuple(c.stops[i] for i in range(lib.ESTOP_REASON_COUNT)), faults=c.faults,
         )
         return Status(
             state=st.state, reason=st.reason, flags=st.flags, link_live=bool(st.link_live),
-            valid_since_stop=st.valid_since_stop,
+            valid_run=st.valid_run,
             link_age_us=None if st.link_age_us == _U32 else st.link_age_us,
             counters=counters,
         )

@@ -27,6 +27,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TextIO
 
+from estop.cliutil import EXIT_USAGE, ErrorOnlyParser
 from estop.loopback import Daemon, DaemonError, Link, find_estopd, stamp
 from estop.protocol import can, canlog, tcp, udp
 
@@ -306,17 +307,39 @@ def _report(out: TextIO, view: View, res: Result, timeout_ms: int) -> None:
               f"counter jumps: {view.counter_jumps})\n")
 
 
+TIMEOUT_MS_MIN = 1
+TIMEOUT_MS_MAX = 60000  # the range estopd accepts for --timeout-ms
+
+
+def timeout_ms(text: str) -> int:
+    """argparse type of ``--timeout-ms``: whole milliseconds in the daemon's range."""
+    want = f"must be whole milliseconds {TIMEOUT_MS_MIN}..{TIMEOUT_MS_MAX} (estopd's range)"
+    try:
+        value = int(text, 10)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{want}, got {text!r}") from None
+    if not TIMEOUT_MS_MIN <= value <= TIMEOUT_MS_MAX:
+        raise argparse.ArgumentTypeError(f"{want}, got {value}")
+    return value
+
+
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(prog="estop demo", description=(
+    """Run the demo; return its exit code (0 ok, 1 a problem, 2 usage error or no estopd).
+    Usage errors are one line, as for every other ``estop`` tool."""
+    ap = ErrorOnlyParser(prog="estop demo", description=(
         "Run estopd on loopback and play a scripted drive: release, drive, finger lifted "
         "(timeout stop), release, drive, stop button (TCP stop). No root, no CAN needed."))
     ap.add_argument("--estopd", metavar="PATH", help="the estopd binary (default: beside "
                     "this Python, on PATH, or firmware/build/estopd)")
-    ap.add_argument("--timeout-ms", type=int, default=200,
-                    help="the daemon's UDP timeout (default 200)")
+    ap.add_argument("--timeout-ms", type=timeout_ms, default=200,
+                    help=f"the daemon's UDP timeout, {TIMEOUT_MS_MIN}..{TIMEOUT_MS_MAX} "
+                         f"(default 200)")
     ap.add_argument("--plain", action="store_true",
                     help="plain lines instead of a refreshing status line (default off a TTY)")
-    args = ap.parse_args(argv)
+    try:
+        args = ap.parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a usage error, already reported in one line
+        return exc.code if isinstance(exc.code, int) else EXIT_USAGE
     out = sys.stdout
 
     exe = find_estopd(args.estopd)

@@ -8,8 +8,13 @@ Flags bad lengths, bad CRCs, illegal or repeated alive counters, counter jumps, 
 contradict each other, and gaps of 50 ms (``--timeout-ms``) or more between good ESTOP_BRAKE
 frames (live buses also get a ``timeout`` line while the silence lasts).
 
-Exit code: 0 no problem flagged, 1 problems flagged, 2 usage error or a malformed log line,
-3 the bus or file could not be opened.
+Silence is a failure (spec section 7): a watch with no good ESTOP_BRAKE frame at all has not
+seen a working unit (``no_brake_frame``), and the silence at the end counts (``timeout``): in
+a log, from the last good ESTOP_BRAKE to the last line (a frame of any ID); on a live bus, up
+to the end of ``--duration`` (or Ctrl-C).
+
+Exit code: 0 no problem flagged, 1 problems flagged (silence included), 2 usage error or a
+malformed log line, 3 the bus or file could not be opened.
 """
 
 from __future__ import annotations
@@ -44,7 +49,9 @@ from estop.protocol.canlog import CanLogError, read_log
 
 DESCRIPTION = ("Decode ESTOP_BRAKE / ESTOP_STATUS from a python-can bus or a can-utils log and "
                "flag what a brake controller would: bad length, CRC or counter, "
-               "contradictory fields, counter jumps/repeats, gaps of 50 ms or more.")
+               "contradictory fields, counter jumps/repeats, gaps of 50 ms or more. Silence "
+               "is a failure: no good ESTOP_BRAKE at all, or none for 50 ms before the end "
+               "of the log or of --duration, is flagged.")
 
 __all__ = ["DESCRIPTION", "Monitor", "add_arguments", "format_frame", "run"]
 
@@ -132,17 +139,22 @@ class Monitor:
 
 
 def _run_log(monitor: Monitor, lines: Iterable[str], count: int | None) -> None:
+    """Feed the log's frames; then judge the silence up to its last line (any ID)."""
     seen = 0
+    end: float | None = None
     try:
         for rec in read_log(lines):
+            end = rec.timestamp if end is None else max(end, rec.timestamp)
             if rec.extended:
                 continue
             if monitor.frame(rec.timestamp, rec.can_id, rec.data) is not None:
                 seen += 1
                 if count is not None and seen >= count:
-                    return
+                    break
     except CanLogError as exc:
         raise UsageError(f"--log: {exc}") from None
+    for ev in monitor.checker.finish(end):
+        monitor.event(ev)
 
 
 def _run_bus(monitor: Monitor, interface: str, channel: str | None, duration: float | None,
@@ -156,6 +168,7 @@ def _run_bus(monitor: Monitor, interface: str, channel: str | None, duration: fl
         raise ConnectionFailure(f"cannot open {interface} bus {channel or ''}: {why}") from None
     end = None if duration is None else time.monotonic() + duration
     seen = 0
+    monitor.checker.begin(time.time())
     try:
         while end is None or time.monotonic() < end:
             try:
@@ -169,11 +182,16 @@ def _run_bus(monitor: Monitor, interface: str, channel: str | None, duration: fl
                 if monitor.frame(t, msg.arbitration_id, bytes(msg.data)) is not None:
                     seen += 1
                     if count is not None and seen >= count:
-                        return
+                        break
             for ev in monitor.checker.poll(now):
                 monitor.event(ev)
+    except KeyboardInterrupt:
+        pass  # Ctrl-C ends the watch; it is judged like any other end
     finally:
         bus.shutdown()
+    # the silence up to the end of the watch (--duration, --count or Ctrl-C) counts too
+    for ev in monitor.checker.finish(time.time()):
+        monitor.event(ev)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -5,12 +5,19 @@ Opens a connection, sends one frame, prints the decoded reply and exits with:
 - 0: ACK
 - 1: NAK (the reply line says why, e.g. ``nak=no_live_link``)
 - 2: usage error (bad options)
-- 3: connection refused or closed, timeout, or a malformed reply (bad CRC, wrong seq)
+- 3: connection refused or closed, timeout, or a malformed reply (bad CRC, wrong seq); for
+  ``stop``: no ACK by the deadline
+
+``stop`` is the stop button: it sends a stop datagram to the UDP control port at once (spec
+section 1; it needs no handshake), then STOP over TCP, and tries both again, each time on a
+fresh connection, until the unit answers or ``--stop-deadline`` (default 3 s) passes. The
+reply line says how many tries it took (``... (after 2 attempts)``).
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 
 from estop.cliutil import (
@@ -23,19 +30,30 @@ from estop.cliutil import (
     port,
     positive_float,
 )
-from estop.protocol import tcp
-from estop.stopchannel import StopChannel, StopChannelError, format_reply, reply_dict
+from estop.protocol import tcp, udp
+from estop.stopchannel import (
+    DEFAULT_STOP_DEADLINE,
+    StopChannel,
+    StopChannelError,
+    StopDatagram,
+    StopOutcome,
+    format_reply,
+    press_stop,
+    reply_dict,
+)
 
-__all__ = ["COMMANDS", "add_arguments", "run", "send_once"]
+__all__ = ["COMMANDS", "add_arguments", "run", "send_once", "stop_once"]
 
 COMMANDS = {
-    "stop": "send STOP (the vehicle's stop ID) and print the reply",
+    "stop": "press the stop button: a stop datagram (UDP) and STOP (TCP), tried again until "
+            "the unit answers or the deadline passes; print the reply",
     "release": "ask the unit to leave the stopped state (RELEASE) and print the reply",
     "status": "ask for the unit's state (STATUS, changes nothing) and print the reply",
 }
 
 
-def add_arguments(parser: argparse.ArgumentParser) -> None:
+def add_arguments(parser: argparse.ArgumentParser, kind: str = "") -> None:
+    """Options of ``estop KIND`` (``stop`` also gets ``--udp-port`` and ``--stop-deadline``)."""
     parser.add_argument("--host", required=True, help="the unit's address")
     parser.add_argument("--port", type=port, default=tcp.DEFAULT_PORT,
                         help=f"TCP stop port (default {tcp.DEFAULT_PORT})")
@@ -45,6 +63,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"the vehicle's stop ID (default {tcp.DEFAULT_STOP_ID:#010X})")
     parser.add_argument("--timeout", type=positive_float, default=2.0,
                         help="seconds to wait for connect and reply (default 2)")
+    if kind == "stop":
+        parser.add_argument("--udp-port", type=port, default=udp.DEFAULT_PORT,
+                            help=f"the unit's UDP control port, for the stop datagram "
+                                 f"(default {udp.DEFAULT_PORT})")
+        parser.add_argument("--stop-deadline", type=positive_float,
+                            default=DEFAULT_STOP_DEADLINE, metavar="S",
+                            help="try again (fresh connection, another stop datagram) until "
+                                 f"the unit answers or S seconds pass "
+                                 f"(default {DEFAULT_STOP_DEADLINE:g})")
     parser.add_argument("--json", action="store_true", help="print the reply as one JSON line")
 
 
@@ -59,12 +86,26 @@ def send_once(kind: str, host: str, port: int = tcp.DEFAULT_PORT, *, seq: int = 
         return channel.request(msg_id, seq)
 
 
+def stop_once(host: str, port: int = tcp.DEFAULT_PORT, udp_port: int = udp.DEFAULT_PORT, *,
+              seq: int = 1, stop_id: int = tcp.DEFAULT_STOP_ID, timeout: float = 2.0,
+              deadline: float = DEFAULT_STOP_DEADLINE) -> StopOutcome:
+    """Press the stop button once (see :func:`estop.stopchannel.press_stop`): stop datagrams
+    to ``udp_port`` and STOP with ``seq`` on fresh connections until an answer or
+    ``deadline``."""
+    datagram = StopDatagram(host, udp_port, stop_id=stop_id)
+    with contextlib.closing(datagram), StopChannel(host, port, timeout=timeout,
+                                                    stop_id=stop_id) as channel:
+        return press_stop(channel, deadline=deadline, seq=seq, datagram=datagram)
+
+
 def run(args: argparse.Namespace) -> int:
     kind: str = args.command
     try:
         tcp.check_stop_id(args.stop_id)
     except ValueError as exc:
         raise UsageError(f"--stop-id: {exc}") from None
+    if kind == "stop":
+        return _run_stop(args)
     try:
         reply = send_once(kind, args.host, args.port, seq=args.seq, stop_id=args.stop_id,
                           timeout=args.timeout)
@@ -74,4 +115,19 @@ def run(args: argparse.Namespace) -> int:
         out(json.dumps({"request": kind, **reply_dict(reply)}, sort_keys=True))
     else:
         out(format_reply(reply))
+    return EXIT_ACK if reply.ack else EXIT_NAK
+
+
+def _run_stop(args: argparse.Namespace) -> int:
+    outcome = stop_once(args.host, args.port, args.udp_port, seq=args.seq,
+                        stop_id=args.stop_id, timeout=args.timeout,
+                        deadline=args.stop_deadline)
+    reply = outcome.reply
+    if reply is None:
+        raise ConnectionFailure(outcome.summary())
+    if args.json:
+        out(json.dumps({"request": "stop", **reply_dict(reply), "attempts": outcome.attempts,
+                        "stop_datagrams": outcome.datagrams}, sort_keys=True))
+    else:
+        out(outcome.line())
     return EXIT_ACK if reply.ack else EXIT_NAK

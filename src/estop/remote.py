@@ -2,7 +2,10 @@
 
 While *held* (a finger on the screen) the remote sends control packets over UDP at a fixed
 rate (default 50 Hz); when the finger lifts it sends nothing, so the unit times out. The stop
-button, RELEASE and STATUS go over the TCP stop channel, one connection kept open.
+button, RELEASE and STATUS go over the TCP stop channel, one connection kept open. The stop
+button also sends a stop datagram to the UDP port at once, and keeps trying (a fresh
+connection and another datagram each time) until the unit answers or ``stop_deadline``
+(default 3 s) passes.
 An optional :class:`estop.linkmodel.LinkModel` makes the UDP link lossy and slow like Wi-Fi;
 its one-way delay (not its loss) is also applied to each TCP request and its reply.
 
@@ -29,8 +32,9 @@ lines, ``#`` starts a comment. Times are seconds.
 ``horn on|off``
 ``drive X [T]``       gear drive and gas X; with T: after T seconds gas back to 0
 ``neutral``           gas 0, steering 0, gear neutral
-``rate HZ``           change the send rate
-``stop``              press the stop button (TCP STOP), print the reply
+``rate HZ``           change the send rate (0.1..1000 Hz)
+``stop``              press the stop button (stop datagram + TCP STOP, tried again until an
+                      answer or the stop deadline), print the reply and the attempts
 ``release``           TCP RELEASE, print the reply
 ``status``            TCP STATUS, print the reply
 ``expect W...``       the last reply must match every word: ack, nak, stopped, armed, a reason
@@ -80,11 +84,21 @@ from estop.protocol import tcp, udp
 from estop.protocol.can import REASON_NAMES, STATE_NAMES
 from estop.protocol.tcp import Reply
 from estop.protocol.udp import ControlPacket, Gear, TurnSignal
-from estop.stopchannel import StopChannel, StopChannelError, format_reply
+from estop.stopchannel import (
+    DEFAULT_STOP_DEADLINE,
+    StopChannel,
+    StopChannelError,
+    StopDatagram,
+    StopOutcome,
+    format_reply,
+    press_stop,
+)
 
 __all__ = [
     "DESCRIPTION",
     "EPILOG",
+    "MAX_RATE_HZ",
+    "MIN_RATE_HZ",
     "Remote",
     "RemoteStats",
     "ExpectFailed",
@@ -92,9 +106,11 @@ __all__ = [
     "ScriptRunner",
     "Step",
     "add_arguments",
+    "check_rate",
     "handle_key",
     "link_config",
     "parse_script",
+    "rate_arg",
     "run",
     "run_interactive",
 ]
@@ -115,8 +131,10 @@ script (--script TEXT or --script-file FILE): commands separated by ';' or new l
   horn on|off
   drive X [T]     gear drive and gas X; with T: after T seconds gas back to 0
   neutral         gas 0, steering 0, gear neutral
-  rate HZ         change the send rate
-  stop | release | status      TCP request, prints the reply
+  rate HZ         change the send rate (0.1..1000)
+  stop            the stop button: stop datagram + TCP STOP, tried again until an
+                  answer or --stop-deadline; prints the reply and the attempts
+  release | status             TCP request, prints the reply
   expect W...     the last reply must match every word (ack nak stopped armed none boot
                   tcp_stop udp_timeout fault unknown_msg_id no_live_link not_neutral
                   link_degraded link_ok), else exit 1
@@ -127,9 +145,36 @@ keys (terminal): space hold/lift, s stop, r release, t status, arrows gas/steeri
 n neutral, g next gear, h horn, 0-3 turn signal, q quit
 
 exit codes: 0 done, 1 an expect failed, 2 usage error or bad script,
-3 stop channel failed (refused, closed, timeout, malformed reply)"""
+3 stop channel failed (refused, closed, timeout, malformed reply; for stop: no answer
+by --stop-deadline)"""
 
 PacketHook = Callable[[float, bytes, float | None], None]
+
+MIN_RATE_HZ = 0.1
+MAX_RATE_HZ = 1000.0
+# The sender thread always waits at least this long between two turns, even when it is behind
+# its schedule, so hold()/lift()/close() get its lock at once at any rate.
+_MIN_WAIT = 0.0002
+
+
+def check_rate(rate_hz: float) -> float:
+    """Return ``rate_hz`` if it is a send rate the remote supports (0.1..1000 Hz), else raise
+    ValueError with a one-line message."""
+    if not isinstance(rate_hz, int | float) or not MIN_RATE_HZ <= rate_hz <= MAX_RATE_HZ:
+        raise ValueError(f"rate must be {MIN_RATE_HZ:g}..{MAX_RATE_HZ:g} Hz, got {rate_hz!r}")
+    return float(rate_hz)
+
+
+def rate_arg(text: str) -> float:
+    """argparse type of ``--rate``."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    try:
+        return check_rate(value)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
 
 
 @dataclass(slots=True)
@@ -139,6 +184,7 @@ class RemoteStats:
     delivered: int = 0  # written to the UDP socket
     send_errors: int = 0  # sendto() failed
     requests: int = 0  # TCP requests answered
+    stop_datagrams: int = 0  # stop datagrams handed to the link (lost ones included)
 
     @property
     def loss_fraction(self) -> float:
@@ -160,20 +206,24 @@ class Remote:
                  tcp_port: int = tcp.DEFAULT_PORT, *, rate_hz: float = 50.0,
                  link: LinkConfig = IDEAL, seed: int | None = None,
                  stop_id: int = tcp.DEFAULT_STOP_ID, tcp_timeout: float = 2.0,
-                 legacy: bool = False, on_packet: PacketHook | None = None) -> None:
-        if not rate_hz > 0 or not math.isfinite(rate_hz):
-            raise ValueError(f"rate must be > 0 Hz, got {rate_hz}")
+                 stop_deadline: float = DEFAULT_STOP_DEADLINE, legacy: bool = False,
+                 on_packet: PacketHook | None = None) -> None:
+        self._period = 1.0 / check_rate(rate_hz)
+        if not stop_deadline > 0 or not math.isfinite(stop_deadline):
+            raise ValueError(f"stop deadline must be > 0 s, got {stop_deadline!r}")
+        self.stop_deadline = stop_deadline
         self.addr = (host, udp_port)
         self.legacy = legacy
         self.on_packet = on_packet
         self.link = LinkModel(link, seed)
         self.channel = StopChannel(host, tcp_port, timeout=tcp_timeout, stop_id=stop_id)
+        self.datagram = StopDatagram(host, udp_port, stop_id=stop_id,
+                                     transmit=self._send_datagram)
         self.stats = RemoteStats()
-        self._period = 1.0 / rate_hz
         self._control = ControlPacket()
         self._held = False
         self._next_send = 0.0
-        self._inflight: list[tuple[float, int, bytes]] = []
+        self._inflight: list[tuple[float, int, bytes, bool]] = []  # (due, n, data, control)
         self._n = 0
         self._closing = False
         self._cond = threading.Condition()
@@ -224,10 +274,9 @@ class Remote:
 
     @rate_hz.setter
     def rate_hz(self, value: float) -> None:
-        if not value > 0 or not math.isfinite(value):
-            raise ValueError(f"rate must be > 0 Hz, got {value}")
+        period = 1.0 / check_rate(value)
         with self._cond:
-            self._period = 1.0 / value
+            self._period = period
             self._cond.notify_all()
 
     def hold(self) -> None:
@@ -239,7 +288,8 @@ class Remote:
                 self._cond.notify_all()
 
     def lift(self) -> None:
-        """Finger up: send no more packets (those in flight still arrive)."""
+        """Finger up: once this returns, no further packet is sent (those already in flight
+        in the link model still arrive, as on a real network)."""
         with self._cond:
             self._held = False
             self._cond.notify_all()
@@ -273,9 +323,25 @@ class Remote:
         self.stats.requests += 1
         return reply
 
+    def press_stop(self) -> StopOutcome:
+        """The stop button: STOP with the vehicle's stop ID, tried again on a fresh connection
+        until the unit answers or ``stop_deadline`` passes, with a stop datagram on the UDP
+        port at the first try and each retry (see :func:`estop.stopchannel.press_stop`)."""
+        linked = self.link.config.delay > 0 or self.link.config.jitter > 0
+        outcome = press_stop(self.channel, deadline=self.stop_deadline,
+                             datagram=self.datagram, delay=self._tcp_delay if linked else None)
+        if outcome.reply is not None:
+            self.stats.requests += 1
+        return outcome
+
     def stop(self) -> Reply:
-        """The stop button: STOP with the vehicle's stop ID."""
-        return self.request(self.channel.stop_id)
+        """The stop button (:meth:`press_stop`); the unit's reply, or
+        :class:`~estop.stopchannel.StopChannelError` saying how many tries failed by the
+        deadline."""
+        outcome = self.press_stop()
+        if outcome.reply is None:
+            raise StopChannelError(outcome.summary())
+        return outcome.reply
 
     def release(self) -> Reply:
         return self.request(tcp.RELEASE)
@@ -286,12 +352,15 @@ class Remote:
     # ------------------------------------------------------------------- sender thread
 
     def _loop(self) -> None:
+        # Everything is decided and sent under the lock, so once lift() has held it no packet
+        # goes out; and every turn ends in a wait of at least _MIN_WAIT, which lets go of the
+        # lock even when the sender is behind its schedule (a slow machine, a slow hook).
         with self._cond:
             while not self._closing:
                 now = time.monotonic()
                 while self._inflight and self._inflight[0][0] <= now:
-                    _, _, data = heapq.heappop(self._inflight)
-                    self._write(data)
+                    _, _, data, control = heapq.heappop(self._inflight)
+                    self._write(data, control)
                 if not self._inflight:
                     self._cond.notify_all()  # close(flush=True) may be waiting
                 if self._held and self._next_send <= now:
@@ -304,28 +373,39 @@ class Remote:
                     wake = self._next_send
                 if self._inflight:
                     wake = min(wake, self._inflight[0][0])
-                timeout = 0.5 if wake == math.inf else max(0.0, wake - time.monotonic())
-                if timeout > 0:
-                    self._cond.wait(timeout)
+                timeout = 0.5 if wake == math.inf else wake - time.monotonic()
+                self._cond.wait(min(0.5, max(_MIN_WAIT, timeout)))
 
     def _send_one(self, now: float) -> None:
         data = self._control.encode(legacy=self.legacy)
         self.stats.sent += 1
-        t_deliver = self.link.transmit(now)
+        t_deliver = self._transmit(now, data, True)
         if t_deliver is None:
             self.stats.lost += 1
-        elif t_deliver <= now:
-            self._write(data)
-        else:
-            self._n += 1
-            heapq.heappush(self._inflight, (t_deliver, self._n, data))
         if self.on_packet is not None:
             self.on_packet(now, data, t_deliver)
 
-    def _write(self, data: bytes) -> None:
+    def _send_datagram(self, data: bytes) -> None:
+        """A stop datagram, through the same link as the control packets."""
+        with self._cond:
+            self.stats.stop_datagrams += 1
+            self._transmit(time.monotonic(), data, False)
+            self._cond.notify_all()
+
+    def _transmit(self, now: float, data: bytes, control: bool) -> float | None:
+        t_deliver = self.link.transmit(now)
+        if t_deliver is not None and t_deliver <= now:
+            self._write(data, control)
+        elif t_deliver is not None:
+            self._n += 1
+            heapq.heappush(self._inflight, (t_deliver, self._n, data, control))
+        return t_deliver
+
+    def _write(self, data: bytes, control: bool) -> None:
         try:
             self._udp.sendto(data, self.addr)
-            self.stats.delivered += 1
+            if control:
+                self.stats.delivered += 1
         except OSError:
             self.stats.send_errors += 1
 
@@ -400,7 +480,7 @@ def _arg(kind: str, word: str, op: str) -> float:
     if kind == "axis":
         return _number(word, op, -1.0, 1.0)
     if kind == "rate":
-        return _number(word, op, 0.1, 10000.0)
+        return _number(word, op, MIN_RATE_HZ, MAX_RATE_HZ)
     tables = {"gear": _GEARS, "signal": _SIGNALS, "horn": _HORN}
     return _code(word, op, tables[kind])
 
@@ -480,8 +560,16 @@ class ScriptRunner:
     def step(self, step: Step) -> None:
         r = self.remote
         op, args = step.op, step.args
-        if op in ("stop", "release", "status"):
-            reply = {"stop": r.stop, "release": r.release, "status": r.status}[op]()
+        if op == "stop":
+            outcome = r.press_stop()
+            if outcome.reply is None:
+                raise StopChannelError(f"stop: {outcome.summary()}")
+            self.last_reply = outcome.reply
+            self.replies.append((op, outcome.reply))
+            self._say(f"{op} -> {outcome.line()}")
+            return
+        if op in ("release", "status"):
+            reply = {"release": r.release, "status": r.status}[op]()
             self.last_reply = reply
             self.replies.append((op, reply))
             self._say(f"{op} -> {format_reply(reply)}")
@@ -576,8 +664,10 @@ def handle_key(remote: Remote, key: str) -> str | None:
         return "quit"
     if key == " ":
         remote.lift() if remote.held else remote.hold()
-    elif key in ("s", "r", "t"):
-        op = {"s": "stop", "r": "release", "t": "status"}[key]
+    elif key == "s":
+        return f"stop -> {remote.press_stop().line()}"
+    elif key in ("r", "t"):
+        op = {"r": "release", "t": "status"}[key]
         try:
             return f"{op} -> {format_reply(remote.request(_OPS[op](remote)))}"
         except StopChannelError as exc:
@@ -599,7 +689,6 @@ def handle_key(remote: Remote, key: str) -> str | None:
 
 
 _OPS: dict[str, Callable[[Remote], int]] = {
-    "stop": lambda r: r.channel.stop_id,
     "release": lambda r: tcp.RELEASE,
     "status": lambda r: tcp.STATUS,
 }
@@ -630,8 +719,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"control packet port (default {udp.DEFAULT_PORT})")
     parser.add_argument("--tcp-port", type=port, default=tcp.DEFAULT_PORT,
                         help=f"stop channel port (default {tcp.DEFAULT_PORT})")
-    parser.add_argument("--rate", type=positive_float, default=50.0,
-                        help="packets per second while held (default 50)")
+    parser.add_argument("--rate", type=rate_arg, default=50.0,
+                        help=f"packets per second while held, {MIN_RATE_HZ:g}..{MAX_RATE_HZ:g} "
+                             f"(default 50)")
     parser.add_argument("--wifi", action="store_true",
                         help=f"link like the original Wi-Fi: {WIFI.loss * 100:g} %% loss, "
                              f"bursts of {WIFI.burst:g}, {WIFI.delay * 1000:g}+0..."
@@ -649,6 +739,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"the vehicle's stop ID (default {tcp.DEFAULT_STOP_ID:#010X})")
     parser.add_argument("--timeout", type=positive_float, default=2.0,
                         help="seconds to wait for a TCP reply (default 2)")
+    parser.add_argument("--stop-deadline", type=positive_float, default=DEFAULT_STOP_DEADLINE,
+                        metavar="S", help="the stop button tries again (fresh connection, "
+                        f"another stop datagram) until an ACK or S seconds "
+                        f"(default {DEFAULT_STOP_DEADLINE:g})")
     parser.add_argument("--legacy", action="store_true",
                         help="send the older 16-byte packets (no horn)")
     script = parser.add_mutually_exclusive_group()
@@ -704,7 +798,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         remote = Remote(args.host, args.udp_port, args.tcp_port, rate_hz=args.rate, link=cfg,
                         seed=args.seed, stop_id=args.stop_id, tcp_timeout=args.timeout,
-                        legacy=args.legacy)
+                        stop_deadline=args.stop_deadline, legacy=args.legacy)
     except OSError as exc:
         raise ConnectionFailure(f"cannot open a UDP socket: {exc}") from None
     code = EXIT_OK

@@ -1,4 +1,5 @@
-"""Client side of the TCP stop channel: one connection, requests answered by reply frames.
+"""Client side of the TCP stop channel: one connection, requests answered by reply frames;
+and the stop button, which does not give up after one failed try (:func:`press_stop`).
 
 Used by ``estop stop|release|status`` (one request per connection) and by
 :class:`estop.remote.Remote` (one connection kept open, as the tablet does).
@@ -9,12 +10,27 @@ from __future__ import annotations
 import socket
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import dataclass
 
-from estop.protocol import tcp
+from estop.protocol import auth, tcp
 from estop.protocol.can import flag_names, reason_name, state_name
 from estop.protocol.tcp import FrameAssembler, Reply, Request
 
-__all__ = ["StopChannel", "StopChannelError", "format_reply", "reply_dict"]
+__all__ = [
+    "DEFAULT_STOP_DEADLINE",
+    "MessageCounter",
+    "StopChannel",
+    "StopChannelError",
+    "StopDatagram",
+    "StopOutcome",
+    "format_reply",
+    "press_stop",
+    "reply_dict",
+]
+
+DEFAULT_STOP_DEADLINE = 3.0  # seconds a stop press keeps trying for an ACK
+_RETRY_GAPS = (0.05, 0.1, 0.2, 0.25)  # pause after the 1st, 2nd, 3rd, later failed attempts
 
 
 class StopChannelError(OSError):
@@ -74,16 +90,16 @@ class StopChannel:
 
     def connect(self) -> None:
         with self._lock:
-            self._connect()
+            self._connect(self.timeout)
 
-    def _connect(self) -> socket.socket:
+    def _connect(self, timeout: float) -> socket.socket:
         if self._sock is not None:
             return self._sock
         try:
-            sock = socket.create_connection((self.host, self.port), timeout=self.timeout)
+            sock = socket.create_connection((self.host, self.port), timeout=timeout)
         except TimeoutError:
             raise StopChannelError(f"connecting to {self.host}:{self.port} timed out after "
-                                   f"{self.timeout:g} s") from None
+                                   f"{timeout:g} s") from None
         except OSError as exc:
             raise StopChannelError(f"cannot connect to {self.host}:{self.port}: "
                                    f"{exc.strerror or exc}") from None
@@ -112,6 +128,14 @@ class StopChannel:
         with self._lock:
             return self._seq
 
+    def take_seq(self) -> int:
+        """The next seq of this channel's own counter, used up (for a request sent later with
+        an explicit seq)."""
+        with self._lock:
+            seq = self._seq
+            self._seq = (seq + 1) & 0xFFFFFFFF
+            return seq
+
     def stop(self, seq: int | None = None) -> Reply:
         return self.request(self.stop_id, seq)
 
@@ -121,31 +145,34 @@ class StopChannel:
     def status(self, seq: int | None = None) -> Reply:
         return self.request(tcp.STATUS, seq)
 
-    def request(self, msg_id: int, seq: int | None = None) -> Reply:
-        """Send ``Request(msg_id, seq)`` (seq: the next of this channel's own counter)."""
+    def request(self, msg_id: int, seq: int | None = None, *,
+                timeout: float | None = None) -> Reply:
+        """Send ``Request(msg_id, seq)`` (seq: the next of this channel's own counter) and
+        wait for its reply, at most ``timeout`` seconds (default: the channel's)."""
         with self._lock:
             if seq is None:
                 seq = self._seq
             self._seq = (seq + 1) & 0xFFFFFFFF
             frame = Request(msg_id, seq).encode()
+            wait = self.timeout if timeout is None else timeout
             try:
-                sock = self._connect()
+                sock = self._connect(wait)
                 sock.sendall(frame)
-                return self._await_reply(sock, seq)
+                return self._await_reply(sock, seq, wait)
             except StopChannelError:
                 self._close()
                 raise
             except TimeoutError:
                 self._close()
                 raise StopChannelError(f"no reply from {self.host}:{self.port} within "
-                                       f"{self.timeout:g} s") from None
+                                       f"{wait:g} s") from None
             except OSError as exc:
                 self._close()
                 raise StopChannelError(f"connection to {self.host}:{self.port} failed: "
                                        f"{exc.strerror or exc}") from None
 
-    def _await_reply(self, sock: socket.socket, seq: int) -> Reply:
-        deadline = time.monotonic() + self.timeout
+    def _await_reply(self, sock: socket.socket, seq: int, timeout: float) -> Reply:
+        deadline = time.monotonic() + timeout
         while True:
             left = deadline - time.monotonic()
             if left <= 0:
@@ -165,3 +192,153 @@ class StopChannel:
                     raise StopChannelError(f"reply seq {reply.seq} does not match request "
                                            f"seq {seq}")
                 return reply
+
+
+# ----------------------------------------------------------------------- the stop button
+
+class MessageCounter:
+    """The u64 counter a remote raises with every message (spec section 5). It starts at the
+    wall clock in microseconds, so a remote started again continues above the counters it
+    used before. Thread-safe."""
+
+    def __init__(self, start: int | None = None) -> None:
+        self._last = (time.time_ns() // 1000 if start is None else start) - 1
+        self._lock = threading.Lock()
+
+    def next(self) -> int:
+        with self._lock:
+            self._last = (self._last + 1) & 0xFFFFFFFFFFFFFFFF
+            return self._last
+
+
+class StopDatagram:
+    """Sends the stop datagram of spec section 1 to the unit's UDP control port: a 48-byte
+    request frame whose msg_id is the stop ID. Without a key its tag is 16 zero bytes; the
+    session is 0 unless one is known; the counter rises with every datagram. The unit stops on
+    it whatever its tag says, without waiting for a TCP handshake.
+
+    ``send(seq)`` writes one datagram (the seq of the TCP request it goes with); it raises
+    OSError when the socket refuses. ``transmit`` replaces the plain ``sendto`` (the remote
+    passes its link model)."""
+
+    def __init__(self, host: str, port: int, *, stop_id: int = tcp.DEFAULT_STOP_ID,
+                 key: bytes | None = None, remote_id: int = 0,
+                 counter: MessageCounter | None = None,
+                 session: Callable[[], int] | None = None,
+                 transmit: Callable[[bytes], None] | None = None) -> None:
+        self.addr = (host, port)
+        self.stop_id = tcp.check_stop_id(stop_id)
+        self.key = None if key is None else auth.check_key(key)
+        self.remote_id = remote_id
+        self.counter = counter or MessageCounter()
+        self._session = session or (lambda: 0)
+        self._transmit = transmit
+        self._sock: socket.socket | None = None
+        self.sent = 0
+
+    def encode(self, seq: int) -> bytes:
+        return auth.stop_datagram(seq, self.counter.next(), key=self.key,
+                                  session=self._session(), remote_id=self.remote_id,
+                                  stop_id=self.stop_id)
+
+    def send(self, seq: int) -> None:
+        data = self.encode(seq)
+        if self._transmit is not None:
+            self._transmit(data)
+        else:
+            if self._sock is None:
+                family = socket.AF_INET6 if ":" in self.addr[0] else socket.AF_INET
+                self._sock = socket.socket(family, socket.SOCK_DGRAM)
+            self._sock.sendto(data, self.addr)
+        self.sent += 1
+
+    def close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+            self._sock = None
+
+
+@dataclass(frozen=True, slots=True)
+class StopOutcome:
+    """What one press of the stop button achieved."""
+
+    reply: Reply | None  # the unit's answer, None when none came before the deadline
+    attempts: int  # TCP requests tried (each retry on a fresh connection)
+    datagrams: int  # stop datagrams sent
+    elapsed: float  # seconds from the press to the outcome
+    deadline: float  # seconds the press was allowed
+    errors: tuple[str, ...] = ()  # why each failed attempt failed (one line each)
+
+    @property
+    def acked(self) -> bool:
+        return self.reply is not None and self.reply.ack
+
+    @property
+    def tries(self) -> str:
+        """``1 attempt``, ``2 attempts``, ..."""
+        return f"{self.attempts} attempt{'' if self.attempts == 1 else 's'}"
+
+    def summary(self) -> str:
+        """``ACK after 2 attempts``, ``NAK after 1 attempt`` or
+        ``no ACK within 3 s: 5 attempts failed (last: ...)``."""
+        if self.reply is not None:
+            return f"{'ACK' if self.reply.ack else 'NAK'} after {self.tries}"
+        last = self.errors[-1] if self.errors else "none"
+        return f"no ACK within {self.deadline:g} s: {self.tries} failed (last: {last})"
+
+    def line(self) -> str:
+        """The reply line with the attempts (``ACK seq=1 ... flags=0x00 (after 2 attempts)``),
+        or the failure summary."""
+        if self.reply is None:
+            return self.summary()
+        return f"{format_reply(self.reply)} (after {self.tries})"
+
+
+def press_stop(channel: StopChannel, *, deadline: float = DEFAULT_STOP_DEADLINE,
+               seq: int | None = None, datagram: StopDatagram | None = None,
+               delay: Callable[[], None] | None = None) -> StopOutcome:
+    """Press the stop button: STOP over TCP until the unit answers or ``deadline`` seconds
+    have passed, each retry on a fresh connection (a failed one is closed), and a stop
+    datagram (if given) with the first try and again with each retry.
+
+    A NAK ends the press too: the unit answered, and the same request would get the same
+    answer. ``seq`` fixes the seq of every try (default: the channel's next for each).
+    ``delay`` is called before and after each TCP try (the remote's link delay).
+    Never raises :class:`StopChannelError`: failures are in the outcome.
+    """
+    if not deadline > 0:
+        raise ValueError(f"stop deadline must be > 0 s, got {deadline!r}")
+    t0 = time.monotonic()
+    end = t0 + deadline
+    attempts = 0
+    errors: list[str] = []
+
+    def outcome(reply: Reply | None) -> StopOutcome:
+        return StopOutcome(reply, attempts, datagram.sent if datagram else 0,
+                           time.monotonic() - t0, deadline, tuple(errors))
+
+    while True:
+        this_seq = channel.take_seq() if seq is None else seq
+        if datagram is not None:
+            try:
+                datagram.send(this_seq)
+            except OSError as exc:
+                errors.append(f"stop datagram not sent: {exc.strerror or exc}")
+        attempts += 1
+        try:
+            if delay is not None:
+                delay()
+            left = end - time.monotonic()
+            reply = channel.request(channel.stop_id, this_seq,
+                                    timeout=max(0.01, min(channel.timeout, left)))
+            if delay is not None:
+                delay()
+            return outcome(reply)
+        except StopChannelError as exc:
+            errors.append(str(exc))
+        left = end - time.monotonic()
+        if left <= 0:
+            return outcome(None)
+        time.sleep(min(_RETRY_GAPS[min(attempts, len(_RETRY_GAPS)) - 1], left))
+        if time.monotonic() >= end:
+            return outcome(None)

@@ -1,8 +1,12 @@
-"""TCP stop channel, remote <-> unit (spec section 2).
+"""TCP stop channel, remote <-> unit (spec section 2): the plain 16-byte frames.
 
-Every frame is 16 bytes, little-endian, the last 4 bytes a CRC-32 (as zlib.crc32) of bytes
-0..11. Requests: ``u32 msg_id, u32 seq, u32 arg, u32 crc``. Replies:
+Every plain frame is 16 bytes, little-endian, the last 4 bytes a CRC-32 (as zlib.crc32) of
+bytes 0..11. Requests: ``u32 msg_id, u32 seq, u32 arg, u32 crc``. Replies:
 ``u32 ACK/NAK, u32 seq, u8 state, u8 reason, u8 flags, u8 nak_code, u32 crc``.
+
+The stream also carries the 48-byte request frames of section 5.2 (codecs in
+:mod:`estop.protocol.auth`): the first 4 bytes of each frame decide its form, ``ESQ2`` a
+48-byte request, anything else a 16-byte plain frame (:class:`RequestAssembler`).
 """
 
 from __future__ import annotations
@@ -23,14 +27,18 @@ __all__ = [
     "NAK",
     "NAK_NAMES",
     "RELEASE",
+    "REQUEST_MAGIC",
+    "REQUEST_MAGIC_ID",
     "RESERVED_MSG_IDS",
     "STATUS",
+    "V2_FRAME_SIZE",
     "CrcMismatch",
     "FrameAssembler",
     "FrameError",
     "NakCode",
     "Reply",
     "Request",
+    "RequestAssembler",
     "check_stop_id",
     "release_request",
     "status_request",
@@ -45,6 +53,9 @@ RELEASE = 0x00000002
 ACK = 0x00000080
 NAK = 0x00000081
 RESERVED_MSG_IDS = frozenset((0, STATUS, RELEASE))
+REQUEST_MAGIC = b"ESQ2"  # first 4 bytes of a 48-byte request frame (section 5.2)
+REQUEST_MAGIC_ID = 0x32515345  # the same 4 bytes read as a u32 msg_id: never a stop ID
+V2_FRAME_SIZE = 48  # request and reply frames of sections 5.2 and 5.3
 
 _REQ = struct.Struct("<III")
 _REP = struct.Struct("<IIBBBB")
@@ -57,6 +68,7 @@ class NakCode(IntEnum):
     UNKNOWN_MSG_ID = 1
     NO_LIVE_LINK = 2
     NOT_NEUTRAL = 3
+    NOT_AUTHENTICATED = 4
 
 
 NAK_NAMES: dict[int, str] = {
@@ -64,6 +76,7 @@ NAK_NAMES: dict[int, str] = {
     NakCode.UNKNOWN_MSG_ID: "unknown_msg_id",
     NakCode.NO_LIVE_LINK: "no_live_link",
     NakCode.NOT_NEUTRAL: "not_neutral",
+    NakCode.NOT_AUTHENTICATED: "not_authenticated",
 }
 
 
@@ -82,10 +95,11 @@ def _u32(name: str, value: int) -> int:
 
 
 def check_stop_id(stop_id: int) -> int:
-    """Return ``stop_id`` if it may be a vehicle's stop ID (a u32 other than 0, 1, 2)."""
+    """Return ``stop_id`` if it may be a vehicle's stop ID: a u32 other than 0, 1, 2 and
+    0x32515345 (that one would read as the magic of a 48-byte request frame)."""
     _u32("stop ID", stop_id)
-    if stop_id in RESERVED_MSG_IDS:
-        raise ValueError(f"stop ID may not be 0, 1 or 2, got {stop_id}")
+    if stop_id in RESERVED_MSG_IDS or stop_id == REQUEST_MAGIC_ID:
+        raise ValueError(f"stop ID may not be 0, 1, 2 or 0x32515345, got {stop_id:#x}")
     return stop_id
 
 
@@ -107,7 +121,7 @@ def _open(frame: bytes | bytearray | memoryview, what: str) -> bytes:
 
 @dataclass(frozen=True, slots=True)
 class Request:
-    """A request frame. ``arg`` is 0 in protocol version 1."""
+    """A plain request frame. ``arg`` is 0 (spec section 2)."""
 
     msg_id: int
     seq: int
@@ -161,7 +175,7 @@ class Reply:
     nak_code: int = NakCode.NONE
 
     def validate(self) -> None:
-        """Raise :class:`FrameError` unless the fields are a reply spec version 1 allows
+        """Raise :class:`FrameError` unless the fields are a reply spec version 2 allows
         (known state/reason/flags/nak code, consistent with each other)."""
         _u32("seq", self.seq)
         try:
@@ -169,7 +183,7 @@ class Reply:
         except ContentError as exc:
             raise FrameError(f"reply: {exc}") from exc
         if self.nak_code not in NAK_NAMES:
-            raise FrameError(f"reply nak code {self.nak_code} unknown (0..3)")
+            raise FrameError(f"reply nak code {self.nak_code} unknown (0..4)")
         if self.ack and self.nak_code != NakCode.NONE:
             raise FrameError(f"ACK with nak code {self.nak_code} (must be 0)")
         if not self.ack and self.nak_code == NakCode.NONE:
@@ -190,7 +204,7 @@ class Reply:
         """Decode a reply; raise :class:`CrcMismatch` / :class:`FrameError`.
 
         The msg_id must be ACK or NAK. With ``strict`` (default) the other fields must hold
-        values spec version 1 defines (see :meth:`validate`).
+        values spec version 2 defines (see :meth:`validate`).
         """
         msg_id, seq, state, reason, flags, nak_code = _REP.unpack(_open(frame, "reply"))
         if msg_id not in (ACK, NAK):
@@ -202,7 +216,8 @@ class Reply:
 
 
 class FrameAssembler:
-    """Cut a byte stream, split anywhere, into 16-byte frames.
+    """Cut a byte stream, split anywhere, into frames of one fixed size (default 16; a client
+    that sent 48-byte requests reads 48-byte replies).
 
     ``feed(data)`` returns the complete frames now available (possibly none, possibly several);
     the remainder is kept for the next call. CRCs are not checked here.
@@ -223,6 +238,46 @@ class FrameAssembler:
             del self._buf[:n]
             for i in range(0, n, self._size):
                 yield chunk[i:i + self._size]
+
+    @property
+    def pending(self) -> int:
+        """Bytes held back waiting for the rest of a frame."""
+        return len(self._buf)
+
+    def reset(self) -> None:
+        self._buf.clear()
+
+
+class RequestAssembler:
+    """The unit's side of the stream: cut it, split anywhere, into request frames whose
+    length the first 4 bytes decide (``ESQ2``: 48 bytes, anything else: 16).
+
+    ``feed(data)`` returns the complete frames now available, in order; the remainder is
+    kept. Neither CRCs nor tags are checked here.
+    """
+
+    def __init__(self) -> None:
+        self._buf = bytearray()
+
+    @staticmethod
+    def frame_size(head: bytes | bytearray | memoryview) -> int | None:
+        """Length of the frame that starts with ``head``; None while fewer than 4 bytes."""
+        if len(head) < 4:
+            return None
+        return V2_FRAME_SIZE if bytes(head[:4]) == REQUEST_MAGIC else FRAME_SIZE
+
+    def feed(self, data: bytes | bytearray | memoryview) -> list[bytes]:
+        self._buf += data
+        frames: list[bytes] = []
+        start = 0
+        while True:
+            size = self.frame_size(self._buf[start:start + 4])
+            if size is None or len(self._buf) - start < size:
+                break
+            frames.append(bytes(self._buf[start:start + size]))
+            start += size
+        del self._buf[:start]
+        return frames
 
     @property
     def pending(self) -> int:

@@ -21,7 +21,7 @@ from cffi import FFI
 
 ROOT = Path(__file__).resolve().parent.parent
 CORE_DIR = ROOT / "firmware" / "core"
-HEADERS = ["estop_core.h", "estop_blake2s.h"]
+HEADERS = ["estop_blake2s.h", "estop_core.h"]  # in the order the core header needs them
 SOURCES = ["estop_core.c", "estop_crc.c", "estop_blake2s.c"]
 
 _DEFINE = re.compile(r"^#define\s+(ESTOP_[A-Z0-9_]+)\s+\S+")

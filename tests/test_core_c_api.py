@@ -22,6 +22,7 @@ class Raw:
         self.consumed = ffi.new("size_t *")
         cfg = ffi.new("estop_config_t *")
         lib.estop_config_default(cfg)
+        cfg.session = 1  # the host's to draw; the defaults leave it 0, which init refuses
         assert lib.estop_init(self.core, cfg, now & U32) == lib.ESTOP_OK
 
     def tick(self, t: int) -> int:
@@ -68,6 +69,10 @@ BAD_CONFIGS = [
     ({"status_period_us": 9_999}, "bad_status_period"),
     ({"status_period_us": 1_000_001}, "bad_status_period"),
     ({"brake_period_us": 20_000, "status_period_us": 15_000}, "bad_status_period"),
+    ({"key": bytes(31)}, "bad_key"),
+    ({"key": bytes(33)}, "bad_key"),
+    ({"session": 0}, "bad_session"),
+    ({"session": 0, "key": bytes(32)}, "bad_session"),
 ]
 
 
@@ -86,6 +91,8 @@ def test_failed_init_leaves_an_unusable_core() -> None:
     out = ffi.new("estop_out_t *")
     cfg = ffi.new("estop_config_t *")
     lib.estop_config_default(cfg)
+    assert lib.estop_init(core, cfg, 0) == lib.ESTOP_ERR_SESSION  # the host must draw one
+    cfg.session = 7
     assert lib.estop_init(core, cfg, 0) == lib.ESTOP_OK
     cfg.stop_id = 0
     assert lib.estop_init(core, cfg, 0) == lib.ESTOP_ERR_STOP_ID
@@ -252,9 +259,10 @@ def test_status_period_holds_when_the_tick_goes_back_while_armed() -> None:
 
 def test_err_name_of_any_int_is_safe() -> None:
     """-INT_MIN overflowed (UBSan reported it under the instrumented build)."""
-    for code in (-(2**31), 2**31 - 1, 1, -13, -10**6):
+    for code in (-(2**31), 2**31 - 1, 1, -15, -10**6):
         assert ffi.string(lib.estop_err_name(code)) == b"unknown_error"
     assert ffi.string(lib.estop_err_name(-12)) == b"slot_closed"
+    assert ffi.string(lib.estop_err_name(-14)) == b"bad_session"
 
 
 def test_wrapper_refuses_time_going_backwards() -> None:

@@ -32,17 +32,23 @@ def main() -> int:
         print(f"mcu_instructions: error: {exc}", file=sys.stderr)
         return 1
     from estop.core import ffi, lib
-    results = {v.name: mcuinsns.scenario(v, ffi, lib) for v in mcubuild.VARIANTS}
-    first = results[mcubuild.VARIANTS[0].name]
     print("Cortex-M instructions per call (unicorn, exact counts)")
-    print("| call | " + " | ".join(v.label for v in mcubuild.VARIANTS) + " |")
-    print("| --- |" + " ---: |" * len(mcubuild.VARIANTS))
-    for i, c in enumerate(first):
-        cells = " | ".join(str(results[v.name][i].instructions) for v in mcubuild.VARIANTS)
-        print(f"| {c.fn}: {c.label} | {cells} |")
+    data: dict[str, list[dict[str, object]]] = {v.name: [] for v in mcubuild.VARIANTS}
+    for keyed in mcuinsns.modes(ffi):
+        results = {v.name: mcuinsns.scenario(v, ffi, lib, keyed) for v in mcubuild.VARIANTS}
+        first = results[mcubuild.VARIANTS[0].name]
+        unit = "unit with a key" if keyed else "unit without a key"
+        print(f"| {unit} | " + " | ".join(v.label for v in mcubuild.VARIANTS) + " |")
+        print("| --- |" + " ---: |" * len(mcubuild.VARIANTS))
+        for i, c in enumerate(first):
+            cells = " | ".join(str(results[v.name][i].instructions) for v in mcubuild.VARIANTS)
+            print(f"| {c.fn}: {c.label} | {cells} |")
+        print()
+        for name, counts in results.items():
+            data[name] += [{"keyed": keyed, "fn": c.fn, "call": c.label,
+                            "instructions": c.instructions, "stack_bytes": c.stack}
+                           for c in counts]
     args.out.mkdir(parents=True, exist_ok=True)
-    data = {name: [{"fn": c.fn, "call": c.label, "instructions": c.instructions,
-                    "stack_bytes": c.stack} for c in counts] for name, counts in results.items()}
     (args.out / "mcu_instructions.json").write_text(json.dumps(data, indent=1) + "\n")
     return 0
 

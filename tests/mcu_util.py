@@ -18,7 +18,7 @@ import mcubuild  # noqa: E402
 from mcubuild import McuError, Variant  # noqa: E402
 from mcuemu import ArmCore, CortexM, HostCore, Result, difference  # noqa: E402
 
-from estop.core import ffi, lib  # noqa: E402
+from estop.core import TEST_SESSION, ffi, lib  # noqa: E402
 
 __all__ = ["ArmCore", "CortexM", "HostCore", "Mismatch", "Twin", "TwinUnit", "config_bytes",
            "ensure_built", "mcubuild"]
@@ -46,11 +46,20 @@ def ensure_built() -> None:
         pytest.fail(problem, pytrace=False)
 
 
-def config_bytes(**changes: Any) -> bytes:
-    """An estop_config_t as bytes: the core's defaults with some fields changed, laid out by the
+CONFIG_FIELDS = {name for name, _ in ffi.typeof("estop_config_t").fields}
+
+
+def config_bytes(auth_key: bytes | None = None, **changes: Any) -> bytes:
+    """An estop_config_t as bytes: the core's defaults with the test session (a host draws one
+    at boot), auth_key if given (key and key_len), and some fields changed; laid out by the
     host's cffi module (test_mcu_layout.py checks that ARM lays it out the same)."""
     cfg = ffi.new("estop_config_t *")
     lib.estop_config_default(cfg)
+    if "session" in CONFIG_FIELDS:
+        cfg.session = TEST_SESSION
+    if auth_key is not None:
+        cfg.key_len = len(auth_key)
+        ffi.memmove(cfg.key, auth_key, len(auth_key))
     for name, value in changes.items():
         if isinstance(value, bytes):
             ffi.memmove(getattr(cfg, name), value, len(value))
@@ -112,6 +121,12 @@ def _short(v: Any) -> str:
     return repr(v)
 
 
+def reply_len(out: Any) -> int:
+    """Bytes of the reply: reply_len where the output has it (version 2), else all."""
+    names = {name for name, _ in ffi.typeof(out).item.fields}
+    return int(out.reply_len) if "reply_len" in names else len(out.reply)
+
+
 def frames_of(out: Any) -> list[tuple[int, bytes]]:
     return [(out.can[i].id, bytes(out.can[i].data[0:out.can[i].dlc])) for i in range(out.n_can)]
 
@@ -121,6 +136,7 @@ class TwinUnit:
     core asks, TCP bytes fed until consumed. Keeps every CAN frame and reply."""
 
     def __init__(self, twin: Twin, start: int = 0, cfg: bytes | None = None) -> None:
+        self.udp_counter = self.tcp_counter = 0
         self.twin = twin
         self.t = start
         self.frames: list[tuple[int, int, bytes]] = []
@@ -134,7 +150,7 @@ class TwinUnit:
         if res.ret == lib.ESTOP_OK:
             self.frames.extend((self.t, i, d) for i, d in frames_of(out))
             if out.has_reply:
-                self.replies.append(bytes(out.reply))
+                self.replies.append(bytes(out.reply)[:reply_len(out)])
             self.next_call = self.t + ((out.next_call_us - self.t) & U32)
         return res
 

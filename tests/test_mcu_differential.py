@@ -11,6 +11,7 @@ for byte (mcu_util.Twin checks it; the layouts are the same, see test_mcu_layout
 
 from __future__ import annotations
 
+import hashlib
 import math
 import shutil
 import struct
@@ -35,8 +36,11 @@ from core_util import (
     reply_fields,
     request,
 )
-from estop.core import ffi, lib
+from estop.core import TEST_SESSION, ffi, lib
+from estop.protocol import auth
+from estop.protocol.udp import ControlPacket
 from mcu_util import U32, Mismatch, Twin, TwinUnit, config_bytes, mcubuild
+from test_core_auth import V_CONTROL, V_RELEASE, V_STATUS, V_STATUS_REPLY, V_STOP
 from test_spec_vectors import (
     BRAKE_ARMED_7,
     BRAKE_BOOT_0,
@@ -48,6 +52,22 @@ from test_spec_vectors import (
 
 STATUS, RELEASE = 0x00000001, 0x00000002
 NEUTRAL = packet()
+K = bytes(range(32))        # the key of PROTOCOL.md 5.4
+N = TEST_SESSION            # ... and its session
+RID = 7
+
+
+def beat(counter: int, gas: float = 0.0, *, rid: int = RID, key: bytes | None = K,
+         session: int = N, gear: int = 4) -> bytes:
+    """An authenticated control packet (PROTOCOL.md 5.1)."""
+    body = ControlPacket(gas_brake=gas, gear=gear)
+    return auth.AuthControlPacket(rid, session, counter, body).encode(key, validate=False)
+
+
+def frame(msg_id: int, seq: int, counter: int, *, rid: int = RID, key: bytes | None = K,
+          session: int = N) -> bytes:
+    """A request frame (PROTOCOL.md 5.2)."""
+    return auth.AuthRequest(msg_id, seq, rid, session, counter).encode(key)
 MINUTES = 60
 ACK, NAK = 0x80, 0x81
 
@@ -98,21 +118,77 @@ def test_spec_vectors_on_the_mcu_builds() -> None:
     assert twin.calls > 100
 
 
+def test_spec_vectors_of_section_5_on_the_mcu_builds() -> None:
+    """The 5.4 vectors on a unit with the key K and session N: the STATUS reply byte for byte,
+    the control packet, RELEASE and STOP."""
+    twin = Twin()
+    u = TwinUnit(twin, cfg=config_bytes(auth_key=K))
+    u.open(0)
+    assert u.tcp(0, V_STATUS) == [V_STATUS_REPLY]
+    u.wait(20 * MS)
+    u.udp(V_CONTROL)
+    twin.call("estop_get_status")
+    assert twin.host.objects["estop_status_t"].counters.udp_valid == 1
+    for counter in range(2, 7):
+        u.wait(20 * MS)
+        u.udp(beat(counter))
+    (rep,) = u.tcp(0, V_RELEASE)
+    r = auth.AuthReply.decode(rep, K, auth.request_tag(V_RELEASE))
+    assert (r.ack, r.state, r.session, r.counter) == (True, ARMED, N, 2)
+    (rep,) = u.tcp(0, V_STOP)
+    r = auth.AuthReply.decode(rep, K, auth.request_tag(V_STOP))
+    assert (r.ack, r.state, r.reason, r.counter) == (True, STOPPED, TCP_STOP, 3)
+
+
 # -- an hour of driving, compressed --------------------------------------------------------------
-def drive_packet(i: int) -> bytes:
+def drive_body(i: int) -> tuple[float, float, int, int, int]:
     gas = 0.6 * math.sin(i / 7.0)
     steer = max(-1.0, min(1.0, math.cos(i / 5.0)))
-    return packet(gas=gas, steer=steer, gear=8 if gas > 0 else 4, turn=i % 4, horn=i % 2)
+    return gas, steer, 8 if gas > 0 else 4, i % 4, i % 2
 
 
-def test_an_hour_of_driving_compressed() -> None:
+class Remote:
+    """The tablet: plain packets and frames, or (keyed) authenticated ones with its counters."""
+
+    def __init__(self, keyed: bool) -> None:
+        self.keyed = keyed
+        self.udp_counter = self.tcp_counter = 0
+
+    def packet(self, gas: float = 0.0, steer: float = 0.0, gear: int = 4, turn: int = 0,
+               horn: int = 0) -> bytes:
+        if not self.keyed:
+            return packet(gas=gas, steer=steer, gear=gear, turn=turn, horn=horn)
+        self.udp_counter += 1
+        body = ControlPacket(gas, steer, gear, turn, horn)
+        return auth.AuthControlPacket(RID, N, self.udp_counter, body).encode(K)
+
+    def request(self, msg_id: int, seq: int) -> bytes:
+        if not self.keyed:
+            return request(msg_id, seq)
+        self.tcp_counter += 1
+        return frame(msg_id, seq, self.tcp_counter)
+
+
+def fields(rep: bytes, req: bytes) -> tuple[int, int, int, int]:
+    """(ACK/NAK, seq, state, reason) of a plain reply, or of a 48-byte one that verifies under
+    the key as the answer to req."""
+    if len(rep) == 48:
+        r = auth.AuthReply.decode(rep, K, auth.request_tag(req))
+        return r.msg_id, r.seq, r.state, r.reason
+    return reply_fields(rep)[:4]
+
+
+@pytest.mark.parametrize("keyed", [False, True], ids=["plain", "keyed"])
+def test_an_hour_of_driving_compressed(keyed: bool) -> None:
     """Each minute: the gap since the last one (one tick), heartbeats at 50 Hz, a RELEASE, a
     second of driving with STATUS requests split across reads, then one of six endings. The
-    clock starts half an hour before its 32-bit wrap. The stack every entry point used is
-    measured and must stay within the static bound of test_mcu_footprint.py."""
+    clock starts half an hour before its 32-bit wrap. Keyed: every packet and request is
+    authenticated, and the endings include a replay and forged tags. The stack every entry
+    point used is measured and must stay within the static bound of test_mcu_footprint.py."""
     twin = Twin(measure_stack=True)
     start = (1 << 32) - 1_800_000_000
-    u = TwinUnit(twin, start)
+    u = TwinUnit(twin, start, cfg=config_bytes(auth_key=K if keyed else None))
+    remote = Remote(keyed)
     u.open(0)
     u.open(1)
     seq = 0
@@ -121,26 +197,30 @@ def test_an_hour_of_driving_compressed() -> None:
         u.jump(start + minute * 60_000_000 + 1)
         for _ in range(6):
             u.wait(20 * MS)
-            u.udp(NEUTRAL)
+            u.udp(remote.packet())
         seq += 1
-        (rep,) = u.tcp(0, request(RELEASE, seq))
-        assert reply_fields(rep)[:3] == (ACK, seq, ARMED), f"minute {minute}"
+        req = remote.request(RELEASE, seq)
+        (rep,) = u.tcp(0, req)
+        assert fields(rep, req)[:3] == (ACK, seq, ARMED), f"minute {minute}"
+        last = b""
         for i in range(50):
             u.wait(20 * MS)
-            u.udp(drive_packet(minute * 50 + i))
+            last = remote.packet(*drive_body(minute * 50 + i))
+            u.udp(last)
             if i % 10 == 5:
                 seq += 1
-                frame = request(STATUS, seq)
-                assert u.tcp(1, frame[:5]) == []
+                req = remote.request(STATUS, seq)
+                assert u.tcp(1, req[:5]) == []
                 u.wait(1 * MS)
-                (rep,) = u.tcp(1, frame[5:])
-                assert reply_fields(rep)[:3] == (ACK, seq, ARMED)
-        ending = ("tcp_stop", "silence", "fault", "bad_crc", "legacy", "invalid")[minute % 6]
+                (rep,) = u.tcp(1, req[5:])
+                assert fields(rep, req)[:3] == (ACK, seq, ARMED)
+        ending = ("tcp_stop", "silence", "fault", "bad_crc", "stale", "invalid")[minute % 6]
         endings[ending] += 1
         if ending == "tcp_stop":
             seq += 1
-            (rep,) = u.tcp(0, request(STOP_ID, seq))
-            assert reply_fields(rep)[2:4] == (STOPPED, TCP_STOP)
+            req = remote.request(STOP_ID, seq)
+            (rep,) = u.tcp(0, req)
+            assert fields(rep, req)[2:4] == (STOPPED, TCP_STOP)
         elif ending == "silence":
             u.wait(250 * MS)
             assert u.reason == UDP_TIMEOUT
@@ -156,22 +236,23 @@ def test_an_hour_of_driving_compressed() -> None:
             u.tcp(1, request(STOP_ID, seq) + request(STATUS, seq + 1))
             seq += 1
             assert u.reason == TCP_STOP
-        elif ending == "legacy":
+        elif ending == "stale":
+            # Keyed: the last packet replayed; plain: the older 16-byte form (valid).
             for _ in range(25):
                 u.wait(20 * MS)
-                u.udp(packet(legacy=True))
-            assert u.state == ARMED
+                u.udp(last if keyed else packet(legacy=True))
             u.wait(300 * MS)
             assert u.reason == UDP_TIMEOUT
         else:
             for _ in range(15):
                 u.wait(20 * MS)
-                u.udp(struct.pack("<ffiii", math.nan, 0.0, 4, 0, 0))
+                u.udp(last[:44] + bytes(16) if keyed
+                      else struct.pack("<ffiii", math.nan, 0.0, 4, 0, 0))
             assert u.reason == UDP_TIMEOUT
         u.wait(300 * MS)
         assert u.state == STOPPED
     assert u.t > 1 << 32 and set(endings) == {"tcp_stop", "silence", "fault", "bad_crc",
-                                               "legacy", "invalid"}
+                                               "stale", "invalid"}
     for v in twin.arms:
         bounds = mcubuild.stack_per_entry(v.variant)
         for (name, fn), used in twin.max_stack.items():
@@ -236,18 +317,32 @@ config_change = st.one_of(
 dt = st.one_of(st.integers(0, 25_000), st.integers(0, 25_000), st.integers(0, 400_000),
                st.integers(0, 0x7FFFFFFF), st.sampled_from([0x7FFFFFFF, 0x80000000, U32]),
                st.integers(-50_000, -1))
+short = st.integers(0, 25_000)
+
+# Authenticated messages are made at run time from these choices, with the remote's counters.
+rid = st.one_of(st.just(RID), st.just(RID), st.integers(0, 10))
+counter_mode = st.sampled_from(["next", "next", "next", "same", "jump", "zero", "max"])
+session_mode = st.sampled_from(["N", "N", "N", "N", "zero", "other"])
+msg_id = st.one_of(st.sampled_from([RELEASE, STOP_ID, STATUS]), st.integers(0, U32))
 
 step = st.one_of(
     st.tuples(st.just("tick"), dt),
     st.tuples(st.just("udp"), dt, udp_data),
     st.tuples(st.just("udp"), dt, udp_data),
     st.tuples(st.just("beats"), dt, st.integers(1, 8)),
-    st.tuples(st.just("beats"), st.integers(0, 25_000), st.integers(5, 8)),
-    st.tuples(st.just("tcp"), st.integers(0, 25_000), st.just(0), release_now),
-    st.tuples(st.just("arm"), st.integers(0, 25_000), st.integers(0, U32)),
-    st.tuples(st.just("arm"), st.integers(0, 25_000), st.integers(0, U32)),
+    st.tuples(st.just("beats"), short, st.integers(5, 8)),
+    st.tuples(st.just("tcp"), short, st.just(0), release_now),
+    st.tuples(st.just("arm"), short, st.integers(0, U32)),
+    st.tuples(st.just("arm"), short, st.integers(0, U32)),
     st.tuples(st.just("tcp"), dt, st.integers(0, 3), tcp_bytes),
     st.tuples(st.just("tcp"), dt, st.integers(0, 3), tcp_bytes),
+    st.tuples(st.just("auth_udp"), short, rid, counter_mode, st.sampled_from([0.0, -0.5, 0.5]),
+              st.booleans() | st.just(True), session_mode),
+    st.tuples(st.just("auth_udp"), dt, rid, counter_mode, st.sampled_from([0.0, 2.0]),
+              st.booleans(), session_mode),
+    st.tuples(st.just("auth_tcp"), short, st.integers(0, 3), msg_id, st.integers(0, U32), rid,
+              counter_mode, st.booleans() | st.just(True), session_mode, st.integers(0, 47)),
+    st.tuples(st.just("stop_dgram"), dt, st.booleans(), st.integers(0, U32)),
     st.tuples(st.just("open"), dt, st.integers(0, MAX_SLOTS + 1)),
     st.tuples(st.just("close"), dt, st.integers(0, MAX_SLOTS + 1)),
     st.tuples(st.just("fault"), dt),
@@ -263,19 +358,32 @@ step = st.one_of(
 
 start_time = st.one_of(st.integers(0, U32), st.integers(U32 - 3_000_000, U32))
 SEEN: Counter[str] = Counter()
+U64 = (1 << 64) - 1
+SESSIONS = {"N": N, "zero": 0, "other": N ^ 0x10}
 
 
 class Driver:
-    def __init__(self, twin: Twin, t: int) -> None:
-        self.twin, self.t = twin, t
+    def __init__(self, twin: Twin, t: int, keyed: bool) -> None:
+        self.twin, self.t, self.keyed = twin, t, keyed
         self.wrapped = self.armed = False
+        self.counters: dict[tuple[int, str], int] = {}
 
     def call(self, fn: str, **values: Any) -> Any:
         return self.twin.call(fn, **values)
 
+    def counter(self, remote: int, channel: str, mode: str) -> int:
+        last = self.counters.get((remote, channel), 0)
+        value = {"next": last + 1, "same": last, "jump": last + 1000, "zero": 0,
+                 "max": U64}[mode] & U64
+        self.counters[(remote, channel)] = value
+        return value
+
+    def beat(self) -> bytes:
+        return beat(self.counter(RID, "udp", "next")) if self.keyed else NEUTRAL
+
     def run(self, s: tuple[Any, ...]) -> None:
         kind = s[0]
-        if kind in ("tick", "udp", "beats", "arm", "tcp", "open", "close", "fault", "init"):
+        if isinstance(s[1], int) and kind not in ("status", "null", "config", "name"):
             before, self.t = self.t, (self.t + s[1]) & U32
             if s[1] > 0 and self.t < before:
                 self.wrapped = True
@@ -289,10 +397,26 @@ class Driver:
                 before, self.t = self.t, (self.t + 20_000) & U32
                 self.wrapped |= self.t < before
                 self.call("estop_tick", now_us=self.t)
-                self.call("estop_udp_rx", data=NEUTRAL, now_us=self.t)
+                self.call("estop_udp_rx", data=self.beat(), now_us=self.t)
         elif kind == "arm":
             self.run(("beats", 0, 6))
-            self.run(("tcp", 1000, 0, request(RELEASE, s[2])))
+            release = (frame(RELEASE, s[2], self.counter(RID, "tcp", "next")) if self.keyed
+                       else request(RELEASE, s[2]))
+            self.run(("tcp", 1000, 0, release))
+        elif kind == "auth_udp":
+            _, _, remote, mode, gas, tag_ok, session = s
+            pkt = beat(self.counter(remote, "udp", mode), gas, rid=remote,
+                       session=SESSIONS[session])
+            self.call("estop_udp_rx", data=pkt if tag_ok else pkt[:-1] + b"\x00", now_us=now)
+        elif kind == "auth_tcp":
+            _, _, slot, msg, seq, remote, mode, tag_ok, session, cut = s
+            req = frame(msg, seq, self.counter(remote, "tcp", mode), rid=remote,
+                        session=SESSIONS[session], key=K if tag_ok else bytes(32))
+            self.run(("tcp", 0, slot, req[:cut] if cut else req))
+        elif kind == "stop_dgram":
+            dgram = auth.stop_datagram(s[3], self.counter(RID, "udp", "next"),
+                                       key=K if s[2] else None, session=N, remote_id=RID)
+            self.call("estop_udp_rx", data=dgram, now_us=now)
         elif kind == "tcp":
             data = s[3]
             for _ in range(len(data) + 1):
@@ -313,7 +437,8 @@ class Driver:
             names = {p.name for p in self.twin.host.proto(fn).params}
             self.call(fn, **{k: v for k, v in values.items() if k in names})
         elif kind == "init":
-            self.call("estop_init", cfg=config_bytes(**s[2]), now_us=now)
+            self.call("estop_init", cfg=config_bytes(auth_key=K if self.keyed else None, **s[2]),
+                      now_us=now)
         elif kind == "config":
             self.call("estop_config_check", cfg=config_bytes(**s[1]))
             self.call("estop_config_default", cfg=bytes(ffi.sizeof("estop_config_t")))
@@ -337,12 +462,14 @@ def shared_twin() -> Twin:
 
 
 @settings(max_examples=500, deadline=None)
-@given(t0=start_time,
+@given(keyed=st.booleans(), t0=start_time,
        steps=st.integers(1, 50).flatmap(lambda n: st.lists(step, min_size=n, max_size=n)))
-def test_random_traces_match_the_host_build(t0: int, steps: list[tuple[Any, ...]]) -> None:
+def test_random_traces_match_the_host_build(keyed: bool, t0: int,
+                                            steps: list[tuple[Any, ...]]) -> None:
+    """Plain and keyed units (key K): every call on both builds, compared after each."""
     twin = shared_twin()
-    d = Driver(twin, t0)
-    d.call("estop_init", cfg=config_bytes(), now_us=t0)
+    d = Driver(twin, t0, keyed)
+    d.call("estop_init", cfg=config_bytes(auth_key=K if keyed else None), now_us=t0)
     d.call("estop_tick", now_us=t0)
     d.call("estop_tcp_open", slot=0, now_us=t0)
     for s in steps:
@@ -352,6 +479,8 @@ def test_random_traces_match_the_host_build(t0: int, steps: list[tuple[Any, ...]
     SEEN["steps"] += len(steps)
     SEEN["wrapped"] += d.wrapped
     SEEN["armed"] += d.armed
+    SEEN["keyed"] += keyed
+    SEEN["keyed_armed"] += keyed and d.armed
 
 
 def test_random_traces_reached_the_interesting_states() -> None:
@@ -360,6 +489,7 @@ def test_random_traces_reached_the_interesting_states() -> None:
     if SEEN["traces"] < 100:
         test_random_traces_match_the_host_build()
     assert SEEN["armed"] > 0.2 * SEEN["traces"], SEEN
+    assert SEEN["keyed_armed"] > 0.1 * SEEN["keyed"] > 0.03 * SEEN["traces"], SEEN
     assert SEEN["wrapped"] > 0.05 * SEEN["traces"], SEEN
 
 
@@ -380,3 +510,31 @@ def test_the_comparison_catches_a_build_that_differs(tmp_path: Path) -> None:
     with pytest.raises(Mismatch, match=r"byte \d+ \((brake_counter|can\[\d\]\.data\[[67]\])\)"):
         for _ in range(20):
             u.wait(10 * MS)
+
+
+# -- BLAKE2s: the MCU build against the host build and against hashlib --------------------------
+@settings(max_examples=150, deadline=None)
+@given(key=st.binary(max_size=33), msg=st.binary(max_size=200), outlen=st.integers(0, 33),
+       flip=st.integers(0, 15))
+def test_blake2s_on_the_mcu_matches_hashlib(key: bytes, msg: bytes, outlen: int,
+                                            flip: int) -> None:
+    """estop_blake2s, the precomputed-key MAC and the constant-time compare, called on both
+    builds (compared by the twin), and the digests checked against hashlib."""
+    twin = shared_twin()
+    res = twin.call("estop_blake2s", outlen=outlen, key=key, msg=msg)
+    ok = 1 <= outlen <= 32 and len(key) <= 32
+    assert (res.ret == 0) == ok
+    if ok:
+        want = hashlib.blake2s(msg, key=key, digest_size=outlen).digest()
+        assert bytes(twin.host.objects["buf:out"])[:outlen] == want
+    res = twin.call("estop_b2s_key_init", key=key, outlen=outlen)
+    if res.ret == 0:
+        res = twin.call("estop_b2s_mac", msg=msg)
+        assert (res.ret == 0) == (len(msg) > 0)
+        if msg:
+            tag = bytes(twin.host.objects["buf:out"])[:outlen]
+            assert tag == hashlib.blake2s(msg, key=key, digest_size=outlen).digest()
+            other = bytearray(tag)
+            other[flip % len(tag)] ^= 1 << (flip % 8)
+            assert twin.call("estop_ct_equal", a=tag, b=tag).ret == 1
+            assert twin.call("estop_ct_equal", a=tag, b=bytes(other)).ret == 0

@@ -36,7 +36,8 @@ TARGET_NAMES = {"m0plus": "Cortex-M0+", "m4": "Cortex-M4"}
 # The footprint budget of issue 10.
 BUDGET_FLASH = 8 * 1024      # text + rodata of the whole core, M0+ at -Os
 BUDGET_STATE = 1024          # sizeof(estop_core_t)
-BUDGET_STACK = 512           # worst-case stack of any entry point, M0+
+BUDGET_STACK = 512           # worst-case stack of any entry point, M0+ ...
+BUDGET_STACK_VARIANTS = ("m0plus-Os",)   # ... at -Os, the build the flash budget names too
 
 
 class McuError(Exception):

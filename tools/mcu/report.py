@@ -44,6 +44,7 @@ def main() -> int:
     try:
         if not args.no_build:
             mcubuild.build()
+            mcubuild.make("baremetal")
         from estop.core import ffi, lib
         return report(ffi, lib, args.markdown)
     except McuError as exc:
@@ -101,6 +102,13 @@ def report(ffi: object, lib: object, markdown: bool) -> int:
         (deepest[0] <= BUDGET_STACK,
          f"deepest stack on {deepest[1]}: {deepest[0]} of {BUDGET_STACK} ({deepest[2]})"),
     ]
+    image = mcubuild.OUT_DIR / "baremetal" / "estop-an385.elf"
+    if image.exists():
+        shown = image.relative_to(mcubuild.ROOT) if image.is_relative_to(mcubuild.ROOT) else image
+        print(f"Bare-metal image for mps2-an385: {shown}")
+        print("  qemu-system-arm -M mps2-an385 -display none -monitor none -serial none "
+              "-semihosting-config enable=on,target=native -kernel <image>")
+        print()
     print(f"{title} Budget".strip())
     print()
     for ok, text in checks:

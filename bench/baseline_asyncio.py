@@ -216,6 +216,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stop-id", type=lambda s: tcp.check_stop_id(int(s, 0)),
                     default=tcp.DEFAULT_STOP_ID)
     ap.add_argument("--can-log", default="-", metavar="PATH|-")
+    ap.add_argument("--no-auth", action="store_true",
+                    help="accepted for estopd's command line; the baseline has no key")
     ap.add_argument("--check-ms", type=float, default=10.0,
                     help="period of the watchdog check task (default 10 ms, the brake period)")
     args = ap.parse_args(argv)

@@ -255,6 +255,7 @@ def main() -> int:
     p.add_argument("--timeout-ms", type=int, default=200)
     p.add_argument("--stop-id", type=lambda s: int(s, 0), default=tcp.DEFAULT_STOP_ID)
     p.add_argument("--log-json", action="store_true")
+    p.add_argument("--no-auth", action="store_true", help="as estopd; the stand-in has no key")
     p.add_argument("--bug", action="append", choices=["tick", "invalid-alive", "no-fault",
                                                         "bad-crc"])
     d = Daemon(p.parse_args())

@@ -143,7 +143,7 @@ def test_a_peer_that_vanished_without_a_fin_is_found_within_seconds(
     unit, remote = netns_pair
     d = Daemon(tmp_path)
     d.argv = ["ip", "netns", "exec", unit, find_estopd(), "--udp-port", "0", "--tcp-port", "0",
-              "--bind", "10.231.7.1", "--can-log", "-"]
+              "--bind", "10.231.7.1", "--can-log", "-", "--no-auth"]
     client_py = (
         "import socket,sys,time\n"
         "s=socket.create_connection(('10.231.7.1',int(sys.argv[1])),timeout=5)\n"
@@ -327,7 +327,8 @@ def test_can_log_on_a_fifo_without_reader_fails_at_once(tmp_path: Path) -> None:
     fifo = tmp_path / "frames.fifo"
     os.mkfifo(fifo)
     proc = subprocess.Popen([find_estopd(), "--udp-port", "0", "--tcp-port", "0", "--bind",
-                             "127.0.0.1", "--can-log", str(fifo)], stdin=subprocess.DEVNULL,
+                             "127.0.0.1", "--can-log", str(fifo), "--no-auth"],
+                            stdin=subprocess.DEVNULL,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         _, err = proc.communicate(timeout=5)
@@ -405,7 +406,9 @@ def test_slowloris_clients_cannot_delay_a_stop_or_the_timeout(tmp_path: Path) ->
                     s.sendall(frame[i:i + 1])
                 time.sleep(1.0 if i < 2 else 0.0)
             stop = d.wait_frame(lambda f: f.is_brake() and f.reason == R_UDP_TIMEOUT)
-            assert 0.2 - 0.005 <= stop.t - t_last < 0.2 + 0.05, stop.t - t_last
+            # Never early; and not held up by the slow clients (they send a byte a second, a
+            # loop that waited for them would be a second late). The margin is for busy CI.
+            assert 0.2 - 0.002 <= stop.t - t_last < 0.2 + 0.15, stop.t - t_last
             d.arm()  # this connection makes room by closing one slow client
             latency, state = stop_latency(d, 7)
             assert state == STOPPED and latency < 0.1, latency

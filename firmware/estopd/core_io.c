@@ -81,7 +81,7 @@ unsigned cio_done(daemon_t *d, estop_err_t err, const char *what, const estop_ou
     if (out->has_reply && slot >= 0) {
         /* A reply that cannot be written marks the client; it is closed once its input is
          * handled (clients.c), never here in the middle of it. */
-        (void)clients_reply(d, (uint32_t)slot, out->reply, ESTOP_TCP_FRAME_LEN);
+        (void)clients_reply(d, (uint32_t)slot, out->reply, out->reply_len);
     }
     if (out->close_slot) {
         res |= CIO_CLOSE;

@@ -53,6 +53,8 @@ typedef struct {
     uint8_t have_brake;
     uint32_t frames_out;      /* frames handed out so far */
     estop_can_frame_t last_frame;
+    uint64_t stats_last_us;   /* the latest periodic read-out (stats.c) */
+    uint64_t stats_auth_reported; /* authentication failures already in the log */
     int fatal;                /* an unrecoverable error: leave the loop */
     int stop_signal;          /* the signal that asks us to stop, 0 if none */
 } daemon_t;

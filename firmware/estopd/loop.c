@@ -13,6 +13,7 @@
 #include "core_io.h"
 #include "frame.h"
 #include "log.h"
+#include "stats.h"
 #include "udp.h"
 
 #define MAX_EVENTS 16
@@ -137,6 +138,7 @@ static int finish(daemon_t *d)
         can_close(&d->can);
     }
     clients_close_all(d, "exit");
+    stats_final(d, clock_mono_us());
     log_report(clock_mono_us()); /* what is left to say about lost lines, before the exit line */
     {
         log_kv_t kv[] = { KV_NUM("code", code), KV_STR("signal", signal_name(d->stop_signal)) };
@@ -165,6 +167,7 @@ int loop_run(daemon_t *d)
         if (d->fatal) {
             break;
         }
+        stats_tick(d, now);
         arm_timer(d);
         n = epoll_wait(d->epfd, evs, MAX_EVENTS, backstop_ms(d, now));
         if (n < 0) {

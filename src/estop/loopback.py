@@ -108,9 +108,10 @@ class Daemon:
     """
 
     def __init__(self, command: Sequence[str], *, timeout_ms: int = 200,
-                 extra_args: Sequence[str] = ()) -> None:
+                 extra_args: Sequence[str] = (), key_file: str | None = None) -> None:
+        auth = ["--key-file", key_file] if key_file is not None else ["--no-auth"]
         self.argv = [*command, "--bind", "127.0.0.1", "--udp-port", "0", "--tcp-port", "0",
-                     "--timeout-ms", str(timeout_ms), "--can-log", "-", *extra_args]
+                     "--timeout-ms", str(timeout_ms), "--can-log", "-", *auth, *extra_args]
         self.timeout_ms = timeout_ms
         self.frames: queue.Queue[canlog.CanLogRecord] = queue.Queue()
         self.log_lines: list[str] = []

@@ -7,7 +7,7 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 COVDIR := build/cov
 
-.PHONY: setup demo test check coverage hil bench mutants clean
+.PHONY: setup demo test check coverage hil bench mutants mcu clean
 setup: $(STAMP) $(VENV)/bin/estopd
 
 $(STAMP): pyproject.toml setup.py pyext/build_core.py deps/debian-packages.txt $(wildcard firmware/core/*)
@@ -32,11 +32,13 @@ test: setup
 check: setup
 	scripts/ensure-debs check
 	$(MAKE) -C firmware strict
-	$(VENV)/bin/ruff check src tests hil bench pyext
+	$(VENV)/bin/ruff check src tests hil bench pyext tools
 
 # The whole suite runs once against a build of the core instrumented for gcov and UBSan
 # (UB aborts the process), then the spec vectors run again on the installed optimised build.
+# The MCU tests (tests/test_mcu_*.py) build the core for Cortex-M and need the toolchain.
 coverage: setup
+	scripts/ensure-debs mcu
 	rm -rf $(COVDIR) && mkdir -p $(COVDIR)
 	$(VPY) pyext/build_instrumented.py $(COVDIR)
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" PYTHONPATH=$(COVDIR) ESTOP_CORE_MODULE=_estop_core_cov \
@@ -49,11 +51,19 @@ hil: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" hil/run
 
 # Benchmarks (not part of `make test`): stop latency vs the asyncio baseline, memory soak,
-# instructions per input. Reports land in bench/out/.
+# instructions per input (host and Cortex-M). Reports land in bench/out/.
 bench: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/stop_latency.py
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/rss_soak.py
 	$(VPY) bench/core_instructions.py
+	scripts/ensure-debs mcu
+	$(VPY) bench/mcu_instructions.py
+
+# The core on Cortex-M0+ and M4 (-Os, -O2) under build/mcu/: footprint, stack per entry point,
+# instructions per call in the emulator, checked against the budget (docs/MCU.md).
+mcu: setup
+	scripts/ensure-debs mcu
+	$(VPY) tools/mcu/report.py
 
 # Mutation testing of the core (about 1.5 minutes; not part of `make test`).
 mutants: setup

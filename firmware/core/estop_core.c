@@ -118,6 +118,24 @@ static int non_positive_bits(uint32_t bits)
     return ((bits & FLOAT_SIGN_BIT) != 0u) || (bits == 0u);
 }
 
+/* Byte loops instead of struct assignment: gcc compiles a large struct copy or zeroing into a
+ * call to memcpy/memset, which a freestanding build without libc cannot link (docs/MCU.md). */
+static void zero_bytes(uint8_t *dst, size_t n)
+{
+    size_t i;
+    for (i = 0u; i < n; i++) {
+        dst[i] = 0u;
+    }
+}
+
+static void copy_bytes(uint8_t *dst, const uint8_t *src, size_t n)
+{
+    size_t i;
+    for (i = 0u; i < n; i++) {
+        dst[i] = src[i];
+    }
+}
+
 /* ---- configuration ------------------------------------------------------------------------ */
 
 void estop_config_default(estop_config_t *cfg)
@@ -183,12 +201,11 @@ estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t n
 {
     estop_err_t err = ESTOP_ERR_NULL_ARG;
     if (core != NULL) {
-        estop_core_t fresh = {0};
-        *core = fresh; /* magic 0: unusable until the checks below pass */
+        zero_bytes((uint8_t *)core, sizeof(*core)); /* magic 0: unusable until checked below */
         err = estop_config_check(cfg);
         if (err == ESTOP_OK) {
             uint32_t i;
-            core->cfg = *cfg;
+            copy_bytes((uint8_t *)&core->cfg, (const uint8_t *)cfg, sizeof(*cfg));
             if (cfg->key_len == ESTOP_KEY_LEN) {
                 /* Every tag starts from the state after the key block; the key itself is not
                  * kept (a key of valid length cannot fail here). */
@@ -837,7 +854,8 @@ estop_err_t estop_get_status(const estop_core_t *core, estop_status_t *status)
         status->link_live = link_live(core) ? 1u : 0u;
         status->valid_run = core->valid_run;
         status->link_age_us = (core->link_fresh != 0u) ? link_age(core) : 0xFFFFFFFFu;
-        status->counters = core->counters;
+        copy_bytes((uint8_t *)&status->counters, (const uint8_t *)&core->counters,
+                   sizeof(core->counters));
     }
     return err;
 }

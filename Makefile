@@ -7,7 +7,7 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 COVDIR := build/cov
 
-.PHONY: setup demo test check coverage hil bench mutants mcu clean
+.PHONY: setup demo test check coverage hil bench mutants mcu clean install
 setup: $(STAMP) $(VENV)/bin/estopd
 
 $(STAMP): pyproject.toml setup.py pyext/build_core.py deps/debian-packages.txt $(wildcard firmware/core/*)
@@ -71,3 +71,26 @@ mutants: setup
 
 clean:
 	rm -rf build firmware/build $(VENV) src/estop/_core*.so
+
+# Installation on a car (README: "Run it on a car"). PREFIX and SYSCONFDIR as usual; DESTDIR
+# for staging. A key is made only where none exists (never overwritten), mode 0600; the same
+# for the config. Then: systemctl daemon-reload && systemctl enable --now estopd.
+PREFIX     ?= /usr/local
+SYSCONFDIR ?= /etc
+BINDIR     := $(PREFIX)/bin
+UNITDIR    ?= $(PREFIX)/lib/systemd/system
+DOCDIR     := $(PREFIX)/share/doc/estop
+install: firmware/build/estopd
+	install -D -m 0755 firmware/build/estopd $(DESTDIR)$(BINDIR)/estopd
+	install -d -m 0755 $(DESTDIR)$(UNITDIR) $(DESTDIR)$(DOCDIR)
+	sed -e 's|@BINDIR@|$(BINDIR)|g' -e 's|@SYSCONFDIR@|$(SYSCONFDIR)|g' -e 's|@DOCDIR@|$(DOCDIR)|g' \
+	  deploy/estopd.service.in > $(DESTDIR)$(UNITDIR)/estopd.service
+	chmod 0644 $(DESTDIR)$(UNITDIR)/estopd.service
+	install -m 0644 docs/PROTOCOL.md deploy/estopd.conf.example $(DESTDIR)$(DOCDIR)/
+	install -d -m 0700 $(DESTDIR)$(SYSCONFDIR)/estop
+	test -e $(DESTDIR)$(SYSCONFDIR)/estop/estopd.conf || \
+	  install -m 0644 deploy/estopd.conf.example $(DESTDIR)$(SYSCONFDIR)/estop/estopd.conf
+	test -e $(DESTDIR)$(SYSCONFDIR)/estop/key || scripts/new-key $(DESTDIR)$(SYSCONFDIR)/estop/key
+
+firmware/build/estopd: $(wildcard firmware/core/* firmware/estopd/*)
+	$(MAKE) -C firmware

@@ -8,6 +8,7 @@
 #include "can.h"
 #include "canlog.h"
 #include "estop_core.h"
+#include "notify.h"
 #include "opts.h"
 
 /* epoll tags (data.u64). */
@@ -56,6 +57,7 @@ typedef struct {
     uint64_t stats_last_us;   /* the latest periodic read-out (stats.c) */
     uint64_t stats_auth_reported; /* authentication failures already in the log */
     uint32_t stats_valid_reported; /* valid packets in the latest link_histogram */
+    notify_t notify;          /* the systemd notify protocol (no-op without NOTIFY_SOCKET) */
     int fatal;                /* an unrecoverable error: leave the loop */
     int stop_signal;          /* the signal that asks us to stop, 0 if none */
 } daemon_t;

@@ -132,6 +132,7 @@ static int finish(daemon_t *d)
 {
     int code = d->fatal ? 1 : 0;
 
+    notify_send(&d->notify, "STOPPING=1");
     last_frame(d);
     if (d->can_on) {
         can_drain(&d->can, d->opt.cfg.brake_period_us); /* a refused last frame gets a period */
@@ -168,6 +169,7 @@ int loop_run(daemon_t *d)
             break;
         }
         stats_tick(d, now);
+        notify_loop(&d->notify, now, d->fatal, d->frames_out);
         arm_timer(d);
         n = epoll_wait(d->epfd, evs, MAX_EVENTS, backstop_ms(d, now));
         if (n < 0) {

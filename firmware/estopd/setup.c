@@ -200,7 +200,9 @@ int setup(daemon_t *d, char *err, size_t errlen)
     clients_init(d);
     /* Signals are blocked first, so the output threads inherit the mask and leave them to
      * the loop's signalfd. */
+    d->notify.fd = -1;
     if (setup_signals(d, err, errlen) != 0 || log_start(d->opt.log_json, err, errlen) != 0 ||
+        notify_open(&d->notify, err, errlen) != 0 ||
         setup_auth(d, err, errlen) != 0 || setup_realtime(d, err, errlen) != 0 ||
         setup_fds(d, err, errlen) != 0 || setup_can(d, err, errlen) != 0) {
         return -1;
@@ -214,5 +216,6 @@ int setup(daemon_t *d, char *err, size_t errlen)
         (void)snprintf(err, errlen, "the core failed to start");
         return -1;
     }
+    notify_send(&d->notify, "READY=1\nSTATUS=watching: STOPPED (boot)");
     return 0;
 }

@@ -1,0 +1,233 @@
+"""estopd as a service on the car (issue 7, section 3): the systemd notify protocol against a
+fake $NOTIFY_SOCKET, the unit file checked by systemd-analyze, and `make install`.
+
+A stalled loop is made with an LD_PRELOAD shim: a datagram "ESTOP-TEST-STALL" on the control
+port makes the daemon's recvfrom sleep 1.5 s in the loop's own thread, as a stuck call would.
+The output threads keep running meanwhile; no WATCHDOG=1 may come from them.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from daemon_util import ROOT, Daemon, find_estopd
+
+pytestmark = pytest.mark.timeout(120)
+
+STALL_SHIM_C = r"""
+#define _GNU_SOURCE
+#include <dlfcn.h>
+#include <string.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+typedef ssize_t (*recvfrom_fn)(int, void *, size_t, int, struct sockaddr *, socklen_t *);
+
+ssize_t recvfrom(int fd, void *buf, size_t len, int flags, struct sockaddr *src,
+                 socklen_t *slen)
+{
+    static recvfrom_fn real;
+    ssize_t n;
+    if (real == NULL) {
+        real = (recvfrom_fn)dlsym(RTLD_NEXT, "recvfrom");
+    }
+    n = real(fd, buf, len, flags, src, slen);
+    if (n == 16 && memcmp(buf, "ESTOP-TEST-STALL", 16) == 0) {
+        usleep(1500000); /* the loop is stuck in a call, as a wedged driver would leave it */
+    }
+    return n;
+}
+"""
+
+
+@pytest.fixture(scope="module")
+def stall_shim(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    cc = shutil.which("cc") or shutil.which("gcc")
+    assert cc, "no C compiler for the stall shim"
+    d = tmp_path_factory.mktemp("stall")
+    (d / "stall.c").write_text(STALL_SHIM_C)
+    so = d / "stall.so"
+    subprocess.run([cc, "-shared", "-fPIC", "-O1", "-o", str(so), str(d / "stall.c"), "-ldl"],
+                   check=True, timeout=60)
+    return so
+
+
+class Supervisor:
+    """The systemd side of sd_notify: a datagram socket that collects (time, message)."""
+
+    def __init__(self, tmp_path: Path, abstract: bool = False) -> None:
+        self.sock = socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM)
+        if abstract:
+            name = f"estop-notify-{os.getpid()}-{time.monotonic_ns()}"
+            self.sock.bind("\0" + name)
+            self.env_value = "@" + name
+        else:
+            path = tmp_path / "notify.sock"
+            self.sock.bind(str(path))
+            self.env_value = str(path)
+        self.sock.settimeout(0.05)
+        self.messages: list[tuple[float, str]] = []
+
+    def collect(self, seconds: float) -> list[tuple[float, str]]:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            try:
+                data = self.sock.recv(4096)
+            except TimeoutError:
+                continue
+            self.messages.append((time.monotonic(), data.decode()))
+        return self.messages
+
+    def wait_for(self, text: str, timeout: float = 5.0) -> float:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            for t, msg in self.messages:
+                if text in msg.split("\n"):
+                    return t
+            self.collect(0.05)
+        raise AssertionError(f"no {text!r} within {timeout} s: {self.messages}")
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+@pytest.fixture
+def supervisor(tmp_path: Path) -> Iterator[Supervisor]:
+    s = Supervisor(tmp_path)
+    yield s
+    s.close()
+
+
+def pings(messages: list[tuple[float, str]], after: float = 0.0,
+          before: float = float("inf")) -> list[float]:
+    return [t for t, m in messages if "WATCHDOG=1" in m.split("\n") and after <= t < before]
+
+
+def test_ready_then_watchdog_pings_then_stopping(tmp_path: Path,
+                                                 supervisor: Supervisor) -> None:
+    d = Daemon(tmp_path)
+    d.env = {"NOTIFY_SOCKET": supervisor.env_value, "WATCHDOG_USEC": "400000"}
+    with d:
+        t_ready = supervisor.wait_for("READY=1")
+        supervisor.collect(1.0)
+        assert d.signal(signal.SIGTERM) == 0
+        supervisor.collect(0.3)
+    first = supervisor.messages[0][1].split("\n")
+    assert first[0] == "READY=1"  # nothing before READY
+    got = pings(supervisor.messages, after=t_ready)
+    assert len(got) >= 5, supervisor.messages  # every 100 ms (a quarter of 400 ms)
+    assert max(b - a for a, b in zip(got, got[1:], strict=False)) < 0.4
+    assert supervisor.messages[-1][1] == "STOPPING=1"
+
+
+def test_abstract_notify_socket(tmp_path: Path) -> None:
+    sup = Supervisor(tmp_path, abstract=True)
+    try:
+        d = Daemon(tmp_path)
+        d.env = {"NOTIFY_SOCKET": sup.env_value}
+        with d:
+            sup.wait_for("READY=1")
+            sup.collect(0.3)
+        assert pings(sup.messages) == []  # no WATCHDOG_USEC: no pings
+    finally:
+        sup.close()
+
+
+def test_no_ping_while_the_loop_is_stalled(tmp_path: Path, supervisor: Supervisor,
+                                           stall_shim: Path) -> None:
+    d = Daemon(tmp_path)
+    d.env = {"NOTIFY_SOCKET": supervisor.env_value, "WATCHDOG_USEC": "200000",
+             "LD_PRELOAD": str(stall_shim)}
+    with d:
+        supervisor.wait_for("READY=1")
+        supervisor.collect(0.5)
+        assert len(pings(supervisor.messages)) >= 5
+        t_stall = time.monotonic()
+        d.send_udp(b"ESTOP-TEST-STALL")
+        supervisor.collect(2.5)
+    stalled = pings(supervisor.messages, after=t_stall + 0.1, before=t_stall + 1.4)
+    assert stalled == [], stalled  # the loop is stuck: systemd must see silence
+    assert pings(supervisor.messages, after=t_stall + 1.5)  # and pings once it runs again
+
+
+def test_watchdog_for_another_pid_is_not_ours(tmp_path: Path, supervisor: Supervisor) -> None:
+    d = Daemon(tmp_path)
+    d.env = {"NOTIFY_SOCKET": supervisor.env_value, "WATCHDOG_USEC": "200000",
+             "WATCHDOG_PID": "1"}
+    with d:
+        supervisor.wait_for("READY=1")
+        supervisor.collect(0.5)
+    assert pings(supervisor.messages) == []
+
+
+# -- the unit file and make install --------------------------------------------------------------
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    root = tmp_path_factory.mktemp("install")
+    subprocess.run(["make", "-s", "install", f"PREFIX={root}/usr", f"SYSCONFDIR={root}/etc"],
+                   cwd=ROOT, check=True, timeout=300, capture_output=True)
+    return root
+
+
+def test_make_install_puts_everything_in_place(installed: Path) -> None:
+    exe = installed / "usr/bin/estopd"
+    assert os.access(exe, os.X_OK)
+    key = installed / "etc/estop/key"
+    assert key.stat().st_mode & 0o777 == 0o600
+    text = key.read_text()
+    assert len(text) == 65 and text.endswith("\n") and int(text, 16) >= 0
+    assert (installed / "etc/estop/estopd.conf").exists()
+    unit = (installed / "usr/lib/systemd/system/estopd.service").read_text()
+    assert f"ExecStart={installed}/usr/bin/estopd --key-file" in unit
+    assert "@" not in unit.replace("@system-service", "").replace("@memlock", "")
+    res = subprocess.run([str(exe), "--version"], capture_output=True, text=True, timeout=10,
+                         check=False)
+    assert res.returncode == 0 and res.stdout.startswith("estopd 2.")
+
+
+def test_installed_key_is_accepted_and_never_overwritten(installed: Path,
+                                                         tmp_path: Path) -> None:
+    key = installed / "etc/estop/key"
+    before = key.read_text()
+    with Daemon(tmp_path, "--key-file", str(key)) as d:
+        assert "auth=key" in d.start_line
+    subprocess.run(["make", "-s", "install", f"PREFIX={installed}/usr",
+                    f"SYSCONFDIR={installed}/etc"], cwd=ROOT, check=True, timeout=300,
+                   capture_output=True)
+    assert key.read_text() == before
+    res = subprocess.run([str(ROOT / "scripts/new-key"), str(key)], capture_output=True,
+                         text=True, timeout=10, check=False)
+    assert res.returncode == 1 and "not overwritten" in res.stderr
+
+
+def test_systemd_analyze_verifies_the_unit(installed: Path) -> None:
+    analyze = shutil.which("systemd-analyze")
+    assert analyze, "systemd-analyze is missing (Debian package systemd, group check)"
+    unit = installed / "usr/lib/systemd/system/estopd.service"
+    res = subprocess.run([analyze, "verify", str(unit)], capture_output=True, text=True,
+                         timeout=60, check=False)
+    assert res.returncode == 0, res.stderr
+    assert res.stderr.strip() == "", res.stderr  # unknown keys are only warnings: none allowed
+    # The check can fail: a misspelt key is reported.
+    bad = installed / "bad.service"
+    bad.write_text(unit.read_text().replace("WatchdogSec=", "WatchdogSecs="))
+    res = subprocess.run([analyze, "verify", str(bad)], capture_output=True, text=True,
+                         timeout=60, check=False)
+    assert "WatchdogSecs" in res.stderr
+
+
+def test_unit_asks_for_what_the_issue_names(installed: Path) -> None:
+    unit = (installed / "usr/lib/systemd/system/estopd.service").read_text()
+    for line in ("Type=notify", "Restart=always", "CPUSchedulingPolicy=fifo", "WatchdogSec=1s",
+                 "NoNewPrivileges=yes", "ProtectSystem=strict", "CapabilityBoundingSet=\n"):
+        assert line in unit, line
+    assert find_estopd()

@@ -142,3 +142,12 @@ def test_stop_id_option(tmp_path: Path) -> None:
         assert reply.nak == 1
         reply = d.request(0x12345678, 4)
         assert reply.state == STOPPED
+
+
+def test_start_line_shows_sub_millisecond_warn_time(tmp_path: Path) -> None:
+    """--timeout-ms 1 gives a warn time of 500 us: the start line said warn_ms=0."""
+    with Daemon(tmp_path, "--timeout-ms", "1") as d:
+        assert " timeout_ms=1 " in d.start_line and " warn_ms=0.5 " in d.start_line
+    with Daemon(tmp_path, "--timeout-ms", "1", "--log-json") as d:
+        start = json.loads(d.start_line)
+        assert (start["timeout_ms"], start["warn_ms"]) == (1, 0.5)

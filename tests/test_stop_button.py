@@ -49,12 +49,12 @@ def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, s
 def check_stop_datagrams(datagrams: list[bytes], *, seqs: list[int] | None = None,
                          stop_id: int = tcp.DEFAULT_STOP_ID) -> None:
     """Each is a keyless stop datagram: a 48-byte request frame, msg_id the stop ID, session
-    0, tag 16 zero bytes; counters rise."""
+    0, remote id 1 (the default), tag 16 zero bytes; counters rise."""
     counters = []
     for i, data in enumerate(datagrams):
         assert len(data) == 48 and data[:4] == b"ESQ2"
         msg_id, seq, remote_id, session, counter = struct.unpack("<IIIQQ", data[4:32])
-        assert msg_id == stop_id and session == 0 and remote_id == 0
+        assert msg_id == stop_id and session == 0 and remote_id == 1
         assert data[32:] == bytes(16)
         if seqs is not None:
             assert seq == seqs[i]

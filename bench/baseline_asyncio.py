@@ -52,7 +52,7 @@ class Unit:
         self.reason: int = R_BOOT
         self.last_valid = 0.0  # monotonic time of the latest valid packet (0: none)
         self.last_neutral = False
-        self.valid_since_stop = 0
+        self.valid_run = 0
         self.brake_counter = 0
         self.status_counter = 0
         self.n_valid = self.n_invalid = self.n_bad_crc = self.n_stops = 0
@@ -98,14 +98,14 @@ class Unit:
         self.send_brake()
 
     def stop(self, reason: int, src: str) -> None:
-        self.valid_since_stop = 0
+        self.valid_run = 0
         if self.state == ARMED:
             self.n_stops += 1
             self.set_state(STOPPED, reason, src)
 
     def link_live(self) -> bool:
         return (self.last_valid > 0 and time.monotonic() - self.last_valid < self.timeout_s
-                and self.valid_since_stop >= RELEASE_PACKETS)
+                and self.valid_run >= RELEASE_PACKETS)
 
     def on_udp(self, data: bytes) -> None:
         try:
@@ -116,7 +116,7 @@ class Unit:
         self.n_valid += 1
         self.last_valid = time.monotonic()
         self.last_neutral = pkt.is_neutral
-        self.valid_since_stop += 1
+        self.valid_run += 1
 
     def on_request(self, req: tcp.Request, src: str) -> bytes:
         kind = req.kind(self.stop_id)
@@ -216,6 +216,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--stop-id", type=lambda s: tcp.check_stop_id(int(s, 0)),
                     default=tcp.DEFAULT_STOP_ID)
     ap.add_argument("--can-log", default="-", metavar="PATH|-")
+    ap.add_argument("--no-auth", action="store_true",
+                    help="accepted for estopd's command line; the baseline has no key")
     ap.add_argument("--check-ms", type=float, default=10.0,
                     help="period of the watchdog check task (default 10 ms, the brake period)")
     args = ap.parse_args(argv)

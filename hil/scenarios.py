@@ -176,7 +176,7 @@ class Run:
     def argv(self) -> list[str]:
         return [*self.dut, "--can", self.iface, "--udp-port", str(self.udp_port),
                 "--tcp-port", str(self.tcp_port), "--bind", "127.0.0.1",
-                "--timeout-ms", str(TIMEOUT_MS), "--log-json"]
+                "--timeout-ms", str(TIMEOUT_MS), "--log-json", "--no-auth"]
 
     def start_daemon(self) -> tuple[Daemon, Frame]:
         """Start the daemon; returns it and its first ESTOP_BRAKE frame."""

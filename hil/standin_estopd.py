@@ -46,7 +46,7 @@ class Daemon:
         self.warn_us = self.timeout_us // 2
         self.state, self.reason = 0, 1
         self.last_valid: int | None = None
-        self.valid_since_stop = 0
+        self.valid_run = 0
         self.neutral = False
         self.ctr_b = self.ctr_s = 0
         self.n_valid = self.n_invalid = self.n_badcrc = self.n_stops = 0
@@ -121,7 +121,7 @@ class Daemon:
 
     # ---- state
     def stop(self, reason: int, t: int, src: str) -> None:
-        self.valid_since_stop = 0
+        self.valid_run = 0
         if self.state == 0:
             return
         self.n_stops += 1
@@ -132,7 +132,7 @@ class Daemon:
 
     def live(self, t: int) -> bool:
         return (self.last_valid is not None and t - self.last_valid < self.timeout_us
-                and self.valid_since_stop >= 5)
+                and self.valid_run >= 5)
 
     def on_udp(self, t: int) -> None:
         while True:
@@ -145,7 +145,7 @@ class Daemon:
                 self.last_valid = t
                 if ok:
                     self.n_valid += 1
-                    self.valid_since_stop += 1
+                    self.valid_run += 1
                     self.neutral = udp.decode(data).is_neutral
             else:
                 self.n_invalid += 1
@@ -255,6 +255,7 @@ def main() -> int:
     p.add_argument("--timeout-ms", type=int, default=200)
     p.add_argument("--stop-id", type=lambda s: int(s, 0), default=tcp.DEFAULT_STOP_ID)
     p.add_argument("--log-json", action="store_true")
+    p.add_argument("--no-auth", action="store_true", help="as estopd; the stand-in has no key")
     p.add_argument("--bug", action="append", choices=["tick", "invalid-alive", "no-fault",
                                                         "bad-crc"])
     d = Daemon(p.parse_args())

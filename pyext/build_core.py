@@ -1,10 +1,11 @@
 """cffi (API mode) build of the firmware core into ``estop._core``.
 
 The strict C99 warning gate runs on the core sources separately (see firmware/Makefile); the
-generated wrapper is compiled with the compiler's defaults. The declarations are read from
-``firmware/core/estop_core.h`` itself, so the header stays the only description of the
-interface: preprocessor lines are dropped, every ``#define`` constant is re-declared as
-``#define NAME ...`` and array lengths as ``[...]``, so that the C compiler supplies the values.
+generated wrapper is compiled with the compiler's defaults. The declarations are read from the
+public headers themselves (``estop_core.h``, ``estop_blake2s.h``), so each header stays the only
+description of its interface: preprocessor lines are dropped, every ``#define`` constant is
+re-declared as ``#define NAME ...`` and array lengths as ``[...]``, so that the C compiler
+supplies the values.
 
 ``make_builder`` also serves the instrumented builds (coverage, UndefinedBehaviorSanitizer),
 which compile the very same sources under another module name.
@@ -20,8 +21,8 @@ from cffi import FFI
 
 ROOT = Path(__file__).resolve().parent.parent
 CORE_DIR = ROOT / "firmware" / "core"
-HEADER = CORE_DIR / "estop_core.h"
-SOURCES = ["estop_core.c", "estop_crc.c"]
+HEADERS = ["estop_blake2s.h", "estop_core.h"]  # in the order the core header needs them
+SOURCES = ["estop_core.c", "estop_crc.c", "estop_blake2s.c"]
 
 _DEFINE = re.compile(r"^#define\s+(ESTOP_[A-Z0-9_]+)\s+\S+")
 
@@ -50,14 +51,16 @@ def make_builder(module: str, extra_compile_args: list[str] | None = None,
                  extra_link_args: list[str] | None = None, relative: bool = True,
                  core_dir: Path = CORE_DIR) -> FFI:
     ffi = FFI()
-    text = (core_dir / HEADER.name).read_text()
-    # The C++ guard's closing brace is the only bare "}" line at top level after the prototypes.
-    text = text.replace('#ifdef __cplusplus\n}\n#endif', "")
-    ffi.cdef(cdef_from_header(text))
+    for header in HEADERS:
+        text = (core_dir / header).read_text()
+        # The C++ guard's closing brace is the only bare "}" line at top level after the
+        # prototypes.
+        text = text.replace('#ifdef __cplusplus\n}\n#endif', "")
+        ffi.cdef(cdef_from_header(text))
     base = Path(os.path.relpath(core_dir, ROOT)) if relative else core_dir
     ffi.set_source(
         module,
-        '#include "estop_core.h"\n',
+        "".join(f'#include "{header}"\n' for header in HEADERS),
         sources=[str(base / name) for name in SOURCES],
         include_dirs=[str(base)],
         extra_compile_args=list(extra_compile_args or []),

@@ -134,9 +134,18 @@ def find_estopd() -> str:
     pytest.fail("estopd binary not found: build it with `make -C firmware` (or set $ESTOPD)")
 
 
-def run_estopd(args: Iterable[str], timeout: float = 10.0) -> subprocess.CompletedProcess[str]:
-    """Runs estopd to completion (for options that end it at once)."""
-    return subprocess.run([find_estopd(), *args], capture_output=True, text=True,
+def with_auth(args: Iterable[str]) -> list[str]:
+    """args plus --no-auth, unless they choose a key (or no key) themselves."""
+    args = list(args)
+    return args if {"--key-file", "--no-auth"} & set(args) else [*args, "--no-auth"]
+
+
+def run_estopd(args: Iterable[str], timeout: float = 10.0,
+               auth: bool = True) -> subprocess.CompletedProcess[str]:
+    """Runs estopd to completion (for options that end it at once); with `auth`, --no-auth is
+    added where the arguments name neither it nor --key-file."""
+    argv = with_auth(args) if auth else list(args)
+    return subprocess.run([find_estopd(), *argv], capture_output=True, text=True,
                           timeout=timeout, stdin=subprocess.DEVNULL, check=False)
 
 
@@ -165,8 +174,8 @@ class Daemon:
     """One estopd process on loopback; use as a context manager (always killed on exit)."""
 
     def __init__(self, tmp_path: Path, *extra: str) -> None:
-        self.argv = [find_estopd(), "--udp-port", "0", "--tcp-port", "0", "--bind",
-                     "127.0.0.1", "--can-log", "-", *extra]
+        self.argv = [find_estopd(), *with_auth(["--udp-port", "0", "--tcp-port", "0", "--bind",
+                                                "127.0.0.1", "--can-log", "-", *extra])]
         self.out_path = tmp_path / f"canlog-{id(self)}.log"
         self.err_path = tmp_path / f"stderr-{id(self)}.log"
         self.proc: subprocess.Popen[bytes] | None = None

@@ -21,6 +21,7 @@ ACK, NAK = 0x80, 0x81
 STATUS_ID, RELEASE_ID = 1, 2
 NAK_UNKNOWN, NAK_NO_LINK, NAK_NOT_NEUTRAL = 1, 2, 3
 MAX_STEP_US = 0x7FFFFFFF
+REQUEST_MAGIC = b"ESQ2"
 
 
 @dataclass(frozen=True)
@@ -71,7 +72,7 @@ class Model:
         self.reason = BOOT
         self.last_valid: int | None = None
         self.last_gas = 1.0
-        self.valid_since_stop = 0
+        self.valid_run = 0
         self.brake_due = now
         self.status_due = now
         self.brake_counter = 0
@@ -82,6 +83,7 @@ class Model:
         self.stops = 0
         self.valid = 0
         self.invalid = 0
+        self.udp_stops = 0
         self.slots: dict[int, bytearray] = {}
 
     # -- derived ------------------------------------------------------------------------
@@ -95,7 +97,7 @@ class Model:
         return int(self.state == ARMED and age is not None and age >= self.cfg.warn_us)
 
     def link_live(self) -> bool:
-        return self.link_age() is not None and self.valid_since_stop >= self.cfg.release_packets
+        return self.link_age() is not None and self.valid_run >= self.cfg.release_packets
 
     # -- frames -------------------------------------------------------------------------
     def _frame(self, step: ModelStep, can_id: int, data_id: int, body: bytes, ctr: int) -> None:
@@ -126,7 +128,7 @@ class Model:
         self.brake_due = self.now + self.cfg.brake_period_us
 
     def _stop(self, reason: int, step: ModelStep) -> None:
-        self.valid_since_stop = 0
+        self.valid_run = 0
         if self.state == ARMED:
             self.state, self.reason = STOPPED, reason
             self.stops += 1
@@ -167,11 +169,18 @@ class Model:
 
     def udp(self, data: bytes, now: int) -> ModelStep:
         step = self.begin(now)
+        if (len(data) == 48 and data[:4] == REQUEST_MAGIC
+                and struct.unpack_from("<I", data, 4)[0] == self.cfg.stop_id):
+            self.udp_stops += 1  # a stop datagram: anyone may stop, the tag is not read
+            self._stop(TCP_STOP, step)
+            return step
         ok, gas = parse_control(data)
         if ok:
+            if self.last_valid is None or now - self.last_valid >= self.cfg.timeout_us:
+                self.valid_run = 0  # the link was silent for the timeout: count afresh
             self.valid += 1
             self.window_valid += 1
-            self.valid_since_stop += 1
+            self.valid_run += 1
             self.last_valid = now
             self.last_gas = gas
         else:

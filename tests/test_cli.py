@@ -55,7 +55,7 @@ class FakeUnit:
     raw_requests: list[bytes] = field(default_factory=list)
     state: int = 0
     reason: int = 1
-    valid_since_stop: int = 0
+    valid_run: int = 0
     last_valid: ControlPacket | None = None
     last_valid_t: float = -1e9
 
@@ -106,7 +106,7 @@ class FakeUnit:
                     self.last_valid = udp.decode(data)
                     self.last_valid_t = now
                     if self.state == 0:
-                        self.valid_since_stop += 1
+                        self.valid_run += 1
 
     def _expire(self, now: float) -> None:
         if self.state == 1 and now - self.last_valid_t >= self.timeout:
@@ -115,7 +115,7 @@ class FakeUnit:
     def _enter_stop(self, reason: int) -> None:
         if self.state == 1:
             self.state, self.reason = 0, reason
-        self.valid_since_stop = 0
+        self.valid_run = 0
 
     # TCP side
     def _tcp_loop(self) -> None:
@@ -173,7 +173,7 @@ class FakeUnit:
             if kind == "stop":
                 self._enter_stop(2)
             elif kind == "release" and self.state == 0:
-                live = now - self.last_valid_t < self.timeout and self.valid_since_stop >= 5
+                live = now - self.last_valid_t < self.timeout and self.valid_run >= 5
                 if not live:
                     nak = tcp.NakCode.NO_LIVE_LINK
                 elif self.last_valid is None or not self.last_valid.is_neutral:

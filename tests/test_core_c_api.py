@@ -22,6 +22,7 @@ class Raw:
         self.consumed = ffi.new("size_t *")
         cfg = ffi.new("estop_config_t *")
         lib.estop_config_default(cfg)
+        cfg.session = 1  # the host's to draw; the defaults leave it 0, which init refuses
         assert lib.estop_init(self.core, cfg, now & U32) == lib.ESTOP_OK
 
     def tick(self, t: int) -> int:
@@ -57,6 +58,7 @@ BAD_CONFIGS = [
     ({"stop_id": 0}, "bad_stop_id"),
     ({"stop_id": 1}, "bad_stop_id"),
     ({"stop_id": 2}, "bad_stop_id"),
+    ({"stop_id": 0x32515345}, "bad_stop_id"),  # "ESQ2": a plain STOP would read as a magic
     ({"brake_can_id": 0x800}, "bad_can_id"),
     ({"status_can_id": 0x800}, "bad_can_id"),
     ({"status_can_id": 0x050}, "bad_can_id"),
@@ -67,6 +69,10 @@ BAD_CONFIGS = [
     ({"status_period_us": 9_999}, "bad_status_period"),
     ({"status_period_us": 1_000_001}, "bad_status_period"),
     ({"brake_period_us": 20_000, "status_period_us": 15_000}, "bad_status_period"),
+    ({"key": bytes(31)}, "bad_key"),
+    ({"key": bytes(33)}, "bad_key"),
+    ({"session": 0}, "bad_session"),
+    ({"session": 0, "key": bytes(32)}, "bad_session"),
 ]
 
 
@@ -85,6 +91,8 @@ def test_failed_init_leaves_an_unusable_core() -> None:
     out = ffi.new("estop_out_t *")
     cfg = ffi.new("estop_config_t *")
     lib.estop_config_default(cfg)
+    assert lib.estop_init(core, cfg, 0) == lib.ESTOP_ERR_SESSION  # the host must draw one
+    cfg.session = 7
     assert lib.estop_init(core, cfg, 0) == lib.ESTOP_OK
     cfg.stop_id = 0
     assert lib.estop_init(core, cfg, 0) == lib.ESTOP_ERR_STOP_ID
@@ -216,6 +224,45 @@ def test_tick_that_goes_backwards_is_a_fault_stop() -> None:
     st = ffi.new("estop_status_t *")
     lib.estop_get_status(raw.core, st)
     assert st.counters.faults == 1 and not st.link_live
+
+
+def _frame_times(raw: Raw, start: int, end: int, step: int, can_id: int) -> list[int]:
+    """Ticks the raw core every `step` us from start to end; the times frames of can_id left."""
+    times = []
+    for t in range(start, end, step):
+        raw.tick(t)
+        times += [t for i in range(raw.out.n_can) if raw.out.can[i].id == can_id]
+    return times
+
+
+@pytest.mark.parametrize("back_us", [1, 1_000_000, 2**31 - 1])
+def test_brake_period_holds_when_the_tick_goes_back_while_stopped(back_us: int) -> None:
+    """A 1 s step back used to silence ESTOP_BRAKE for 1 s, until the tick caught up."""
+    raw = Raw(5_000_000)
+    _frame_times(raw, 5_000_000, 5_100_001, 1_000, 0x050)  # last tick at 5.1 s, a frame then
+    back = 5_100_000 - back_us
+    times = _frame_times(raw, back, back + 100_000, 1_000, 0x050)
+    assert times[0] - back <= 10_000  # no later than one period after the step back
+    assert all(b - a <= 10_000 for a, b in zip(times, times[1:], strict=False))
+    assert len(times) >= 10
+    assert raw.state() == (0, 1)  # still STOPPED, still the first reason
+
+
+def test_status_period_holds_when_the_tick_goes_back_while_armed() -> None:
+    raw = Raw(1_000_000)
+    last = arm_raw(raw, 1_000_000)
+    back = last - 500_000
+    status = _frame_times(raw, back, back + 150_000, 1_000, 0x051)
+    assert status[0] == back and status[1] - status[0] == 100_000
+    assert raw.state() == (0, 4)
+
+
+def test_err_name_of_any_int_is_safe() -> None:
+    """-INT_MIN overflowed (UBSan reported it under the instrumented build)."""
+    for code in (-(2**31), 2**31 - 1, 1, -15, -10**6):
+        assert ffi.string(lib.estop_err_name(code)) == b"unknown_error"
+    assert ffi.string(lib.estop_err_name(-12)) == b"slot_closed"
+    assert ffi.string(lib.estop_err_name(-14)) == b"bad_session"
 
 
 def test_wrapper_refuses_time_going_backwards() -> None:

@@ -92,6 +92,35 @@ def test_release_count_restarts_after_every_stop() -> None:
     assert u.ask(RELEASE)[5] == 0
 
 
+def test_release_needs_five_packets_since_the_link_was_last_silent() -> None:
+    """Version 2: 5 packets, 10 s of silence, 1 packet, RELEASE must be NAK 2 (it was ACKed)."""
+    u = Unit()
+    u.drive(5)
+    u.wait(10 * 1000 * MS)
+    u.drive(1)
+    assert u.ask(RELEASE)[0::5] == (NAK, 2)
+    assert u.wd.status().valid_run == 1
+    u.drive(3)
+    assert u.ask(RELEASE)[5] == 2
+    u.drive(1)
+    assert u.ask(RELEASE)[0::5] == (ACK, 0)
+
+
+def test_silence_just_short_of_the_timeout_keeps_the_count() -> None:
+    u = Unit()
+    u.drive(4)
+    u.drive(1, gap=200 * MS - 1)
+    assert u.ask(RELEASE)[5] == 0
+
+
+def test_silence_of_exactly_the_timeout_restarts_the_count() -> None:
+    u = Unit()
+    u.drive(4)
+    u.drive(1, gap=200 * MS)
+    assert u.ask(RELEASE)[5] == 2
+    assert u.wd.status().valid_run == 1
+
+
 # -- 3. ... and a neutral latest packet (gas_brake <= 0), otherwise NAK 3 ---------------------
 @pytest.mark.parametrize("gas", [1e-45, 0.01, 0.5, 1.0])
 def test_release_refused_when_latest_packet_not_neutral_nak_3(gas: float) -> None:
@@ -136,6 +165,44 @@ def test_stop_frame_stops_armed_unit_with_reason_tcp_stop() -> None:
     assert (msg, seq, state, reason, nak) == (ACK, 9, STOPPED, TCP_STOP, 0)
     t, i, data = u.frames[n]
     assert (t, i) == (u.t, BRAKE_ID) and data[:4] == bytes([1, 100, STOPPED, TCP_STOP])
+
+
+def stop_datagram(msg_id: int = STOP_ID, tail: bytes = bytes(40)) -> bytes:
+    """A 48-byte request frame (PROTOCOL.md 5.2) as sent over UDP; the tail is everything after
+    the msg_id (seq, remote id, session, counter, tag), here whatever the caller likes."""
+    return b"ESQ2" + struct.pack("<I", msg_id) + tail
+
+
+@pytest.mark.parametrize("tail", [bytes(40), bytes(range(40)), b"\xff" * 40])
+def test_stop_datagram_stops_an_armed_unit_whatever_its_tag(tail: bytes) -> None:
+    u = Unit()
+    u.arm()
+    step = u.udp(stop_datagram(tail=tail))
+    assert step.state_changed and (u.state, u.reason) == (STOPPED, TCP_STOP)
+    assert step.frames[-1].data[:4] == bytes([1, 100, STOPPED, TCP_STOP])
+    assert step.reply is None  # no reply over UDP
+    st = u.wd.status()
+    assert st.counters.udp_stops == 1 and st.counters.udp_invalid == 0
+    assert st.valid_run == 0  # like every stop, it restarts the release count
+
+
+def test_stop_datagram_while_stopped_keeps_the_first_reason() -> None:
+    u = Unit()
+    u.udp(stop_datagram())
+    assert (u.state, u.reason) == (STOPPED, BOOT)
+
+
+@pytest.mark.parametrize("frame", [
+    stop_datagram(msg_id=1), stop_datagram(msg_id=2), stop_datagram(msg_id=0xE570E571),
+    stop_datagram()[:47], stop_datagram() + b"\x00", b"ESQ3" + stop_datagram()[4:],
+])
+def test_other_request_datagrams_are_invalid_and_do_not_stop(frame: bytes) -> None:
+    u = Unit()
+    u.arm()
+    u.udp(frame)
+    assert u.state == ARMED
+    counters = u.wd.status().counters
+    assert (counters.udp_invalid, counters.udp_stops) == (1, 0)
 
 
 def test_stop_id_is_configurable() -> None:

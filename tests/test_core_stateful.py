@@ -53,7 +53,14 @@ invalid_packets = st.one_of(
               st.just(False)),
     st.builds(control, unit, unit, st.just(4), st.just(0), st.sampled_from([2, -1, 7]),
               st.just(False)),
+    # request frames over UDP that are not stop datagrams (another msg_id, another length)
+    st.builds(lambda msg_id, tail: b"ESQ2" + struct.pack("<I", msg_id) + tail,
+              st.sampled_from([0, 1, 2, CFG.stop_id ^ 1]), st.binary(min_size=40, max_size=40)),
+    st.builds(lambda tail: b"ESQ2" + struct.pack("<I", CFG.stop_id) + tail,
+              st.binary(max_size=48).filter(lambda b: len(b) != 40)),
 )
+stop_datagrams = st.builds(lambda tail: b"ESQ2" + struct.pack("<I", CFG.stop_id) + tail,
+                           st.binary(min_size=40, max_size=40))
 request_kinds = st.sampled_from(["stop", "status", "release", "unknown", "badcrc"])
 small_dt = st.integers(0, 30_000)
 
@@ -132,6 +139,12 @@ class CoreVsModel(RuleBasedStateMachine):
 
     @rule(data=invalid_packets, dt=small_dt)
     def invalid_packet(self, data: bytes, dt: int) -> None:
+        self.run_host_until(self.now + dt)
+        self._compare(self.core.udp(data, self.now), self.model.udp(data, self.now))
+
+    @rule(data=stop_datagrams, dt=small_dt)
+    def stop_datagram(self, data: bytes, dt: int) -> None:
+        """Anyone may stop: a request frame with the stop ID over UDP, any tag."""
         self.run_host_until(self.now + dt)
         self._compare(self.core.udp(data, self.now), self.model.udp(data, self.now))
 

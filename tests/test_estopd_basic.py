@@ -73,7 +73,7 @@ def test_help_and_version() -> None:
     res = run_estopd(["--help"])
     assert res.returncode == 0 and "--can-log" in res.stdout and res.stderr == ""
     res = run_estopd(["--version"])
-    assert res.returncode == 0 and res.stdout.startswith("estopd 1.")
+    assert res.returncode == 0 and res.stdout.startswith("estopd 2.")  # protocol version 2
 
 
 @pytest.mark.parametrize("args", [

@@ -110,21 +110,23 @@ def test_five_clients_at_once_any_may_stop(tmp_path: Path) -> None:
                 s.close()
 
 
-def test_clients_beyond_the_slots_are_closed_at_once(tmp_path: Path) -> None:
+def test_a_ninth_client_gets_the_place_of_the_one_quiet_longest(tmp_path: Path) -> None:
+    """PROTOCOL.md 2 (version 2): a new connection is never turned away; the connection that
+    has been quiet longest (no complete frame) is closed to make room."""
     with Daemon(tmp_path) as d:
         socks = [d.connect() for _ in range(8)]
         try:
             for i, s in enumerate(socks):
-                assert d.request(MSG_STATUS, i, sock=s).seq == i  # all 8 are served
+                if i != 3:
+                    assert d.request(MSG_STATUS, i, sock=s).seq == i  # all but #3 talk
             extra = d.connect()
-            assert _closed_by_peer(extra)
-            extra.close()
-            d.wait_log(lambda s: " client_reject " in s)
-            socks[0].close()
-            d.wait_log(lambda s: " client_close " in s and "slot=0" in s)
-            again = d.connect()  # a freed slot is reused
-            socks[0] = again
-            assert d.request(MSG_STATUS, 99, sock=again).seq == 99
+            assert d.request(MSG_STATUS, 99, sock=extra).seq == 99  # served at once
+            assert _closed_by_peer(socks[3])  # the one that never sent a frame made room
+            d.wait_log(lambda s: " client_evict " in s)
+            for i, s in enumerate(socks):
+                if i != 3:
+                    assert d.request(MSG_STATUS, 100 + i, sock=s).seq == 100 + i
+            socks[3] = extra
         finally:
             for s in socks:
                 s.close()

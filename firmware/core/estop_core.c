@@ -13,7 +13,6 @@
 #include "estop_crc.h"
 
 #define CORE_MAGIC 0x45535450u    /* "ESTP" */
-#define HALF_RANGE 0x80000000u    /* wrap-safe comparisons: differences below this are ahead */
 #define FLOAT_ONE_BITS 0x3F800000u  /* IEEE-754 single 1.0f */
 #define FLOAT_ABS_MASK 0x7FFFFFFFu
 #define FLOAT_SIGN_BIT 0x80000000u
@@ -21,6 +20,13 @@
 #define COUNTER_MODULO 15u        /* alive counter runs 0..14; 15 is never sent */
 #define SAT8_MAX 255u
 #define LINK_AGE_NONE_MS 0xFFFFu
+#define PLAIN_FRAME_LEN ESTOP_TCP_FRAME_LEN
+#define MAGIC_LEN 4u               /* the first bytes of a frame decide its form */
+#define CONTROL_BODY_AT 24u        /* 5.1: the control body inside an authenticated packet */
+#define CONTROL_TAG_AT 44u         /* 5.1: the tag covers bytes 0..43 */
+#define REQUEST_TAG_AT 32u         /* 5.2: the tag covers bytes 0..31 */
+#define CHANNEL_UDP 0u
+#define CHANNEL_TCP 1u
 
 /* ---- small helpers ------------------------------------------------------------------------ */
 
@@ -38,10 +44,15 @@ static void wr_u32le(uint8_t *p, uint32_t v)
     p[3] = (uint8_t)(v >> 24);
 }
 
-/* True when tick `now` is at or after `due` (both wrapping, less than half a range apart). */
-static int reached(uint32_t now, uint32_t due)
+static uint64_t rd_u64le(const uint8_t *p)
 {
-    return (uint32_t)(now - due) < HALF_RANGE;
+    return (uint64_t)rd_u32le(p) | ((uint64_t)rd_u32le(p + 4) << 32);
+}
+
+static void wr_u64le(uint8_t *p, uint64_t v)
+{
+    wr_u32le(p, (uint32_t)(v & 0xFFFFFFFFu));
+    wr_u32le(p + 4, (uint32_t)(v >> 32));
 }
 
 static uint8_t sat8_inc(uint8_t v)
@@ -101,7 +112,7 @@ estop_err_t estop_config_check(const estop_config_t *cfg)
     } else if ((cfg->warn_us == 0u) || (cfg->warn_us >= cfg->timeout_us)) {
         err = ESTOP_ERR_WARN;
     } else if ((cfg->stop_id == 0u) || (cfg->stop_id == ESTOP_MSG_STATUS) ||
-               (cfg->stop_id == ESTOP_MSG_RELEASE)) {
+               (cfg->stop_id == ESTOP_MSG_RELEASE) || (cfg->stop_id == ESTOP_MAGIC_REQUEST)) {
         err = ESTOP_ERR_STOP_ID;
     } else if ((cfg->brake_can_id > ESTOP_CAN_ID_MAX) || (cfg->status_can_id > ESTOP_CAN_ID_MAX) ||
                (cfg->brake_can_id == cfg->status_can_id)) {
@@ -117,6 +128,10 @@ estop_err_t estop_config_check(const estop_config_t *cfg)
                (cfg->status_period_us > ESTOP_STATUS_PERIOD_MAX_US) ||
                (cfg->status_period_us < cfg->brake_period_us)) {
         err = ESTOP_ERR_STATUS_PERIOD;
+    } else if ((cfg->key_len != 0u) && (cfg->key_len != ESTOP_KEY_LEN)) {
+        err = ESTOP_ERR_KEY;
+    } else if (cfg->session == 0u) {
+        err = ESTOP_ERR_SESSION;
     } else {
         err = ESTOP_OK;
     }
@@ -131,7 +146,16 @@ estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t n
         *core = fresh; /* magic 0: unusable until the checks below pass */
         err = estop_config_check(cfg);
         if (err == ESTOP_OK) {
+            uint32_t i;
             core->cfg = *cfg;
+            if (cfg->key_len == ESTOP_KEY_LEN) {
+                /* Every tag starts from the state after the key block; the key itself is not
+                 * kept (a key of valid length cannot fail here). */
+                (void)estop_b2s_key_init(&core->mac, cfg->key, ESTOP_KEY_LEN, ESTOP_TAG_LEN);
+            }
+            for (i = 0u; i < ESTOP_KEY_LEN; i++) {
+                core->cfg.key[i] = 0u;
+            }
             core->now_us = now_us;
             core->state = (uint8_t)ESTOP_STATE_STOPPED;
             core->reason = (uint8_t)ESTOP_REASON_BOOT;
@@ -164,7 +188,7 @@ static uint8_t current_flags(const estop_core_t *core)
  * than the timeout. */
 static int link_live(const estop_core_t *core)
 {
-    return (core->link_fresh != 0u) && (core->valid_since_stop >= core->cfg.release_packets);
+    return (core->link_fresh != 0u) && (core->valid_run >= core->cfg.release_packets);
 }
 
 /* ---- CAN frames --------------------------------------------------------------------------- */
@@ -235,7 +259,7 @@ static void state_changed(estop_core_t *core, estop_out_t *out)
 /* Every stop request restarts the release count; only the first one sets the reason. */
 static void stop(estop_core_t *core, uint8_t reason, estop_out_t *out)
 {
-    core->valid_since_stop = 0u;
+    core->valid_run = 0u;
     if (core->state == ESTOP_STATE_ARMED) {
         core->state = (uint8_t)ESTOP_STATE_STOPPED;
         core->reason = reason;
@@ -265,6 +289,7 @@ static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
     }
     if ((core->link_fresh != 0u) && (link_age(core) >= core->cfg.timeout_us)) {
         core->link_fresh = 0u; /* latched: a wrapped tick can never make this link young again */
+        core->valid_run = 0u;  /* a RELEASE needs its packets from after the silence */
     }
     if ((core->state == ESTOP_STATE_ARMED) && (core->link_fresh == 0u)) {
         stop(core, (uint8_t)ESTOP_REASON_UDP_TIMEOUT, out);
@@ -274,11 +299,20 @@ static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
     }
 }
 
-/* Next due time on a fixed grid; a caller that fell a whole period behind restarts it. */
+/* A frame is due unless its due time lies in (now, now + period]. So a due time that has been
+ * reached is due, and so is one that lies further ahead than a period: that only happens when
+ * the tick went backwards, and the period must hold whatever the clock does. */
+static int frame_due(uint32_t now, uint32_t due, uint32_t period)
+{
+    return ((uint32_t)(due - now) - 1u) >= period;
+}
+
+/* Next due time on a fixed grid; a caller that fell a whole period behind, or whose clock went
+ * backwards, restarts the grid from now. */
 static uint32_t next_due(uint32_t due, uint32_t period, uint32_t now)
 {
     uint32_t next = due + period;
-    if (reached(now, next)) {
+    if (frame_due(now, next, period)) {
         next = now + period;
     }
     return next;
@@ -286,11 +320,11 @@ static uint32_t next_due(uint32_t due, uint32_t period, uint32_t now)
 
 static void send_due_frames(estop_core_t *core, estop_out_t *out)
 {
-    if (reached(core->now_us, core->brake_due_us)) {
+    if (frame_due(core->now_us, core->brake_due_us, core->cfg.brake_period_us)) {
         send_brake(core, out);
         core->brake_due_us = next_due(core->brake_due_us, core->cfg.brake_period_us, core->now_us);
     }
-    if (reached(core->now_us, core->status_due_us)) {
+    if (frame_due(core->now_us, core->status_due_us, core->cfg.status_period_us)) {
         send_status(core, out);
         core->status_due_us =
             next_due(core->status_due_us, core->cfg.status_period_us, core->now_us);
@@ -348,19 +382,96 @@ estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out)
     return err;
 }
 
-/* Section 1: exactly 20 bytes, or 16 (no horn), every field in range. */
-static int control_packet_valid(const uint8_t *d, size_t len)
+/* Section 1: every field of a control body in range (the 16-byte form has no horn). */
+static int body_valid(const uint8_t *b, int has_horn)
 {
-    int valid = 0;
-    if ((d != NULL) && ((len == ESTOP_UDP_LEN) || (len == ESTOP_UDP_LEN_NO_HORN))) {
-        uint32_t gear = rd_u32le(d + 8);
-        uint32_t turn = rd_u32le(d + 12);
-        uint32_t horn = (len == ESTOP_UDP_LEN) ? rd_u32le(d + 16) : 0u;
-        valid = unit_range_bits(rd_u32le(d)) && unit_range_bits(rd_u32le(d + 4)) &&
-                ((gear == 1u) || (gear == 2u) || (gear == 4u) || (gear == 8u)) && (turn <= 3u) &&
-                (horn <= 1u);
+    uint32_t gear = rd_u32le(b + 8);
+    uint32_t turn = rd_u32le(b + 12);
+    uint32_t horn = has_horn ? rd_u32le(b + 16) : 0u;
+    return unit_range_bits(rd_u32le(b)) && unit_range_bits(rd_u32le(b + 4)) &&
+           ((gear == 1u) || (gear == 2u) || (gear == 4u) || (gear == 8u)) && (turn <= 3u) &&
+           (horn <= 1u);
+}
+
+static estop_remote_t *find_remote(estop_core_t *core, uint32_t id)
+{
+    estop_remote_t *found = NULL;
+    uint32_t i;
+    for (i = 0u; (i < ESTOP_MAX_REMOTES) && (found == NULL); i++) {
+        if ((core->remotes[i].used != 0u) && (core->remotes[i].id == id)) {
+            found = &core->remotes[i];
+        }
     }
-    return valid;
+    for (i = 0u; (i < ESTOP_MAX_REMOTES) && (found == NULL); i++) {
+        if (core->remotes[i].used == 0u) {
+            found = &core->remotes[i];
+            found->used = 1u;
+            found->id = id;
+            found->seen = 0u;
+        }
+    }
+    return found;
+}
+
+/* Section 5: msg[0 .. tag_at-1] is covered by the tag at msg[tag_at]; remote id, session and
+ * counter are at the offsets of both message forms' layouts (given by the caller). True when
+ * the message is authenticated; the new counter is then kept. A failure is counted by the
+ * first check that failed. Only called on a unit with a key. */
+static int authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, uint32_t remote,
+                        uint64_t session, uint64_t counter, uint32_t channel)
+{
+    uint8_t tag[ESTOP_TAG_LEN];
+    const uint8_t bit = (uint8_t)(1u << channel);
+    int ok = 0;
+    (void)estop_b2s_mac(&core->mac, msg, tag_at, tag);
+    if (!estop_ct_equal(tag, msg + tag_at, ESTOP_TAG_LEN)) {
+        core->counters.auth_bad_tag++;
+    } else if (session != core->cfg.session) {
+        core->counters.auth_bad_session++;
+    } else {
+        /* A new remote id gets a place only here, with a right tag and session. */
+        estop_remote_t *r = find_remote(core, remote);
+        if (r == NULL) {
+            core->counters.auth_table_full++;
+        } else if (((r->seen & bit) != 0u) && (counter <= r->counter[channel])) {
+            core->counters.auth_old_counter++;
+        } else {
+            r->counter[channel] = counter;
+            r->seen = (uint8_t)(r->seen | bit);
+            ok = 1;
+        }
+    }
+    return ok;
+}
+
+/* Section 1: the control body of a valid packet of the form the unit expects (plain without
+ * a key, authenticated with one), or NULL. */
+static const uint8_t *valid_body(estop_core_t *core, const uint8_t *d, size_t len)
+{
+    const uint8_t *body = NULL;
+    if (d == NULL) {
+        body = NULL;
+    } else if (core->cfg.key_len == 0u) {
+        if ((len == ESTOP_UDP_LEN) && body_valid(d, 1)) {
+            body = d;
+        } else if ((len == ESTOP_UDP_LEN_NO_HORN) && body_valid(d, 0)) {
+            body = d;
+        }
+    } else if ((len == ESTOP_UDP_AUTH_LEN) && (rd_u32le(d) == ESTOP_MAGIC_CONTROL) &&
+               body_valid(d + CONTROL_BODY_AT, 1) &&
+               authenticate(core, d, CONTROL_TAG_AT, rd_u32le(d + 4), rd_u64le(d + 8),
+                            rd_u64le(d + 16), CHANNEL_UDP)) {
+        body = d + CONTROL_BODY_AT;
+    }
+    return body;
+}
+
+/* Section 1: a request frame with the stop ID. Anyone may stop, so its tag, session and counter
+ * are never looked at. */
+static int stop_datagram(const estop_core_t *core, const uint8_t *d, size_t len)
+{
+    return (d != NULL) && (len == ESTOP_REQ_FRAME_LEN) && (rd_u32le(d) == ESTOP_MAGIC_REQUEST) &&
+           (rd_u32le(d + 4) == core->cfg.stop_id);
 }
 
 estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
@@ -368,16 +479,23 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
 {
     estop_err_t err = begin(core, now_us, out);
     if (err == ESTOP_OK) {
-        if (control_packet_valid(data, len)) {
-            core->counters.udp_valid++;
-            core->status_valid = sat8_inc(core->status_valid);
-            core->valid_since_stop = sat32_inc(core->valid_since_stop);
-            core->last_valid_us = now_us;
-            core->link_fresh = 1u;
-            core->last_neutral = non_positive_bits(rd_u32le(data)) ? 1u : 0u;
+        const uint8_t *body = NULL;
+        if (stop_datagram(core, data, len)) {
+            core->counters.udp_stops++;
+            stop(core, (uint8_t)ESTOP_REASON_TCP_STOP, out);
         } else {
-            core->counters.udp_invalid++;
-            core->status_invalid = sat8_inc(core->status_invalid);
+            body = valid_body(core, data, len);
+            if (body != NULL) {
+                core->counters.udp_valid++;
+                core->status_valid = sat8_inc(core->status_valid);
+                core->valid_run = sat32_inc(core->valid_run);
+                core->last_valid_us = now_us;
+                core->link_fresh = 1u;
+                core->last_neutral = non_positive_bits(rd_u32le(body)) ? 1u : 0u;
+            } else {
+                core->counters.udp_invalid++;
+                core->status_invalid = sat8_inc(core->status_invalid);
+            }
         }
         finish(core, out);
     }
@@ -421,23 +539,63 @@ estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, 
     return set_slot(core, slot, 0u, now_us, out);
 }
 
-static void reply(const estop_core_t *core, uint32_t seq, uint8_t nak_code, estop_out_t *out)
+/* The reply fields shared by both forms: ACK/NAK, seq, state, reason, flags, nak code. */
+static void reply_head(const estop_core_t *core, uint8_t *r, uint32_t seq, uint8_t nak_code)
 {
-    wr_u32le(out->reply, (nak_code == ESTOP_NAK_NONE) ? ESTOP_MSG_ACK : ESTOP_MSG_NAK);
-    wr_u32le(out->reply + 4, seq);
-    out->reply[8] = core->state;
-    out->reply[9] = core->reason;
-    out->reply[10] = current_flags(core);
-    out->reply[11] = nak_code;
+    wr_u32le(r, (nak_code == ESTOP_NAK_NONE) ? ESTOP_MSG_ACK : ESTOP_MSG_NAK);
+    wr_u32le(r + 4, seq);
+    r[8] = core->state;
+    r[9] = core->reason;
+    r[10] = current_flags(core);
+    r[11] = nak_code;
+}
+
+/* Section 2: the 16-byte reply to a plain frame. */
+static void reply_plain(const estop_core_t *core, uint32_t seq, uint8_t nak_code, estop_out_t *out)
+{
+    reply_head(core, out->reply, seq, nak_code);
     wr_u32le(out->reply + 12, estop_crc32(out->reply, 12u));
+    out->reply_len = (uint8_t)ESTOP_TCP_FRAME_LEN;
     out->has_reply = 1u;
 }
 
-/* Section 3: a RELEASE needs a live link and a neutral latest packet. */
-static uint8_t release(estop_core_t *core, estop_out_t *out)
+/* Section 5.3: the 48-byte reply to a request frame, tagged over the request's tag and the
+ * reply's first 32 bytes (zero tag without a key). */
+static void reply_request(const estop_core_t *core, const uint8_t *req, uint8_t nak_code,
+                          estop_out_t *out)
+{
+    uint8_t *r = out->reply;
+    uint32_t i;
+    wr_u32le(r, ESTOP_MAGIC_REPLY);
+    reply_head(core, r + 4, rd_u32le(req + 8), nak_code);
+    wr_u64le(r + 16, core->cfg.session);
+    wr_u64le(r + 24, rd_u64le(req + 24));
+    if (core->cfg.key_len != 0u) {
+        uint8_t m[ESTOP_TAG_LEN + REQUEST_TAG_AT];
+        for (i = 0u; i < ESTOP_TAG_LEN; i++) {
+            m[i] = req[REQUEST_TAG_AT + i];
+        }
+        for (i = 0u; i < REQUEST_TAG_AT; i++) {
+            m[ESTOP_TAG_LEN + i] = r[i];
+        }
+        (void)estop_b2s_mac(&core->mac, m, sizeof m, r + REQUEST_TAG_AT);
+    } else {
+        for (i = 0u; i < ESTOP_TAG_LEN; i++) {
+            r[REQUEST_TAG_AT + i] = 0u;
+        }
+    }
+    out->reply_len = (uint8_t)ESTOP_REPLY_MAX;
+    out->has_reply = 1u;
+}
+
+/* Section 3: a RELEASE that is authenticated (or needs no authentication) still needs a live
+ * link and a neutral latest packet. */
+static uint8_t release(estop_core_t *core, int authenticated, estop_out_t *out)
 {
     uint8_t nak = (uint8_t)ESTOP_NAK_NONE;
-    if (core->state == ESTOP_STATE_STOPPED) {
+    if (!authenticated) {
+        nak = (uint8_t)ESTOP_NAK_NOT_AUTHENTICATED;
+    } else if (core->state == ESTOP_STATE_STOPPED) {
         if (!link_live(core)) {
             nak = (uint8_t)ESTOP_NAK_NO_LIVE_LINK;
         } else if (core->last_neutral == 0u) {
@@ -445,17 +603,37 @@ static uint8_t release(estop_core_t *core, estop_out_t *out)
         } else {
             arm(core, out);
         }
-        if (nak == ESTOP_NAK_NONE) {
-            core->counters.releases_accepted++;
-        } else {
-            core->counters.releases_refused++;
-        }
+    } else {
+        nak = (uint8_t)ESTOP_NAK_NONE; /* already ARMED: acknowledged, nothing changes */
+    }
+    if ((nak == ESTOP_NAK_NONE) && (out->state_changed != 0u)) {
+        core->counters.releases_accepted++;
+    } else if (nak != ESTOP_NAK_NONE) {
+        core->counters.releases_refused++;
     }
     return nak;
 }
 
-/* One whole 16-byte request frame. */
-static void handle_frame(estop_core_t *core, estop_slot_t *slot, estop_out_t *out)
+/* What a good frame of either form asks for; returns the NAK code of its reply. */
+static uint8_t handle_msg(estop_core_t *core, uint32_t msg_id, int release_authenticated,
+                          estop_out_t *out)
+{
+    uint8_t nak = (uint8_t)ESTOP_NAK_NONE;
+    core->counters.tcp_frames++;
+    if (msg_id == core->cfg.stop_id) {
+        stop(core, (uint8_t)ESTOP_REASON_TCP_STOP, out);
+    } else if (msg_id == ESTOP_MSG_RELEASE) {
+        nak = release(core, release_authenticated, out);
+    } else if (msg_id != ESTOP_MSG_STATUS) {
+        core->counters.tcp_unknown_id++;
+        nak = (uint8_t)ESTOP_NAK_UNKNOWN_ID;
+    }
+    return nak;
+}
+
+/* Section 2: one whole 16-byte plain frame. A plain RELEASE is authenticated only on a unit
+ * without a key. */
+static void handle_plain(estop_core_t *core, estop_slot_t *slot, estop_out_t *out)
 {
     const uint8_t *f = slot->buf;
     if (estop_crc32(f, 12u) != rd_u32le(f + 12)) {
@@ -464,19 +642,33 @@ static void handle_frame(estop_core_t *core, estop_slot_t *slot, estop_out_t *ou
         slot->open = 0u;
         out->close_slot = 1u;
     } else {
-        uint32_t msg_id = rd_u32le(f);
-        uint8_t nak = (uint8_t)ESTOP_NAK_NONE;
-        core->counters.tcp_frames++;
-        if (msg_id == core->cfg.stop_id) {
-            stop(core, (uint8_t)ESTOP_REASON_TCP_STOP, out);
-        } else if (msg_id == ESTOP_MSG_RELEASE) {
-            nak = release(core, out);
-        } else if (msg_id != ESTOP_MSG_STATUS) {
-            core->counters.tcp_unknown_id++;
-            nak = (uint8_t)ESTOP_NAK_UNKNOWN_ID;
-        }
-        reply(core, rd_u32le(f + 4), nak, out);
+        uint8_t nak = handle_msg(core, rd_u32le(f), core->cfg.key_len == 0u, out);
+        reply_plain(core, rd_u32le(f + 4), nak, out);
     }
+}
+
+/* Section 5.2: one whole 48-byte request frame. Only a RELEASE needs authentication; a STOP is
+ * honoured and a STATUS answered whatever the tag says. */
+static void handle_request(estop_core_t *core, const estop_slot_t *slot, estop_out_t *out)
+{
+    const uint8_t *f = slot->buf;
+    uint32_t msg_id = rd_u32le(f + 4);
+    int authenticated = 0;
+    uint8_t nak;
+    if ((msg_id == ESTOP_MSG_RELEASE) && (core->cfg.key_len != 0u)) {
+        authenticated = authenticate(core, f, REQUEST_TAG_AT, rd_u32le(f + 12),
+                                     rd_u64le(f + 16), rd_u64le(f + 24), CHANNEL_TCP);
+    }
+    nak = handle_msg(core, msg_id, authenticated, out);
+    reply_request(core, f, nak, out);
+}
+
+/* A frame's length, known once its first 4 bytes are in. */
+static uint32_t frame_len(const estop_slot_t *s)
+{
+    return ((s->fill >= MAGIC_LEN) && (rd_u32le(s->buf) == ESTOP_MAGIC_REQUEST))
+               ? ESTOP_REQ_FRAME_LEN
+               : PLAIN_FRAME_LEN;
 }
 
 estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data, size_t len,
@@ -496,19 +688,21 @@ estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data,
     }
     if (err == ESTOP_OK) {
         estop_slot_t *s = &core->slots[slot];
-        size_t take = ESTOP_TCP_FRAME_LEN - (size_t)s->fill;
-        size_t i;
-        if (take > len) {
-            take = len;
+        size_t take = 0u;
+        /* Up to one whole frame; its length is decided by its first bytes as they come. */
+        while ((take < len) && (s->fill < frame_len(s))) {
+            s->buf[s->fill] = data[take];
+            s->fill++;
+            take++;
         }
-        for (i = 0u; i < take; i++) {
-            s->buf[s->fill + i] = data[i];
-        }
-        s->fill = (uint8_t)(s->fill + take);
         *consumed = take;
-        if (s->fill == ESTOP_TCP_FRAME_LEN) {
+        if (s->fill == frame_len(s)) {
             s->fill = 0u;
-            handle_frame(core, s, out);
+            if (rd_u32le(s->buf) == ESTOP_MAGIC_REQUEST) {
+                handle_request(core, s, out);
+            } else {
+                handle_plain(core, s, out);
+            }
             if (out->close_slot != 0u) {
                 *consumed = len; /* the rest of a broken stream is dropped */
             }
@@ -541,7 +735,7 @@ estop_err_t estop_get_status(const estop_core_t *core, estop_status_t *status)
         status->reason = core->reason;
         status->flags = current_flags(core);
         status->link_live = link_live(core) ? 1u : 0u;
-        status->valid_since_stop = core->valid_since_stop;
+        status->valid_run = core->valid_run;
         status->link_age_us = (core->link_fresh != 0u) ? link_age(core) : 0xFFFFFFFFu;
         status->counters = core->counters;
     }
@@ -556,11 +750,12 @@ const char *estop_err_name(estop_err_t err)
         "ok",           "null_arg",         "bad_timeout",  "bad_warn_time",
         "bad_stop_id",  "bad_can_id",       "bad_data_id",  "bad_release_count",
         "bad_brake_period", "bad_status_period", "not_initialised", "bad_slot",
-        "slot_closed"};
+        "slot_closed",  "bad_key",          "bad_session"};
     const char *name = "unknown_error";
-    int idx = -(int)err;
-    if ((idx >= 0) && (idx < (int)(sizeof(names) / sizeof(names[0])))) {
-        name = names[idx];
+    const int count = (int)(sizeof(names) / sizeof(names[0]));
+    /* Range first: negating an arbitrary int (INT_MIN) would overflow. */
+    if (((int)err <= 0) && ((int)err > -count)) {
+        name = names[-(int)err];
     }
     return name;
 }

@@ -2,7 +2,8 @@
  * estop_core: the portable emergency-stop state machine (PROTOCOL.md sections 1-4).
  *
  * Portable C99. All state lives in a caller-owned estop_core_t; there is no heap, no mutable
- * global, no I/O and no clock read. Time comes in as a wrapping uint32 microsecond tick.
+ * global, no I/O, no clock read and no randomness: time comes in as a wrapping uint32
+ * microsecond tick, the key and the session (PROTOCOL.md 5) with the configuration.
  *
  * Host contract:
  *  - Call estop_init() once, then estop_tick() at once (the boot frames are due at init time).
@@ -15,6 +16,12 @@
  *    backwards) is treated as an internal fault: the unit stops.
  *  - TCP bytes are consumed at most one frame per call: call estop_tcp_rx() again with the
  *    rest until everything is consumed, so the reply buffer is never more than one frame.
+ *    A frame's first 4 bytes decide its length: "ESQ2" starts a 48-byte request frame
+ *    (answered by a 48-byte reply), anything else a 16-byte plain frame (16-byte reply).
+ *  - With a key (cfg.key_len 32), only authenticated control packets (60 bytes) keep the unit
+ *    alive and only an authenticated RELEASE (48-byte request frame) releases it; anyone may
+ *    stop (plain STOP, request frame, stop datagram, whatever its tag). Without a key, plain
+ *    control packets keep it alive and RELEASE is plain; a request-frame RELEASE gets NAK 4.
  */
 #ifndef ESTOP_CORE_H
 #define ESTOP_CORE_H
@@ -22,17 +29,29 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#include "estop_blake2s.h"
+
 #ifdef __cplusplus
 extern "C" {
 #endif
 
-#define ESTOP_VERSION_MAJOR 1u
+#define ESTOP_VERSION_MAJOR 2u
 #define ESTOP_VERSION_MINOR 0u
 
 /* Wire sizes (PROTOCOL.md 1, 2, 4). */
 #define ESTOP_UDP_LEN 20u
 #define ESTOP_UDP_LEN_NO_HORN 16u
 #define ESTOP_TCP_FRAME_LEN 16u
+#define ESTOP_REQ_FRAME_LEN 48u        /* request frame of PROTOCOL.md 5.2 (also the stop datagram) */
+#define ESTOP_REPLY_MAX 48u            /* reply frame of PROTOCOL.md 5.3; plain replies are 16 */
+#define ESTOP_UDP_AUTH_LEN 60u         /* authenticated control packet of PROTOCOL.md 5.1 */
+#define ESTOP_MAGIC_REQUEST 0x32515345u /* "ESQ2" read as a little-endian u32 */
+#define ESTOP_MAGIC_CONTROL 0x32555345u /* "ESU2" */
+#define ESTOP_MAGIC_REPLY 0x32525345u   /* "ESR2" */
+#define ESTOP_KEY_LEN 32u
+#define ESTOP_TAG_LEN 16u
+/* Remote ids the unit keeps counters for in one session (PROTOCOL.md 5). */
+#define ESTOP_MAX_REMOTES 8u
 #define ESTOP_CAN_DLC 8u
 
 /* TCP message ids and reply codes (PROTOCOL.md 2). */
@@ -44,6 +63,7 @@ extern "C" {
 #define ESTOP_NAK_UNKNOWN_ID 1u
 #define ESTOP_NAK_NO_LIVE_LINK 2u
 #define ESTOP_NAK_NOT_NEUTRAL 3u
+#define ESTOP_NAK_NOT_AUTHENTICATED 4u
 
 /* States, reasons, flags (PROTOCOL.md 3). */
 #define ESTOP_STATE_STOPPED 0u
@@ -89,7 +109,7 @@ typedef enum {
     ESTOP_ERR_NULL_ARG = -1,
     ESTOP_ERR_TIMEOUT = -2,        /* timeout_us outside its range */
     ESTOP_ERR_WARN = -3,           /* warn_us not in 1 .. timeout_us-1 */
-    ESTOP_ERR_STOP_ID = -4,        /* stop_id is 0, 1 or 2 */
+    ESTOP_ERR_STOP_ID = -4,        /* stop_id is 0, 1, 2 or ESTOP_MAGIC_REQUEST */
     ESTOP_ERR_CAN_ID = -5,         /* CAN id over 11 bits, or both ids equal */
     ESTOP_ERR_DATA_ID = -6,        /* both data ids equal */
     ESTOP_ERR_RELEASE_COUNT = -7,  /* release_packets is 0 */
@@ -97,7 +117,9 @@ typedef enum {
     ESTOP_ERR_STATUS_PERIOD = -9,  /* status_period_us outside its range or below the brake period */
     ESTOP_ERR_NOT_INIT = -10,      /* the core was never initialised, or its init failed */
     ESTOP_ERR_SLOT = -11,          /* slot index out of range */
-    ESTOP_ERR_SLOT_CLOSED = -12    /* bytes for a slot that is not open */
+    ESTOP_ERR_SLOT_CLOSED = -12,   /* bytes for a slot that is not open */
+    ESTOP_ERR_KEY = -13,           /* key_len is neither 0 (no key) nor ESTOP_KEY_LEN */
+    ESTOP_ERR_SESSION = -14        /* session is 0 */
 } estop_err_t;
 
 typedef struct {
@@ -111,6 +133,10 @@ typedef struct {
     uint32_t release_packets;  /* valid packets needed since the stop before a RELEASE */
     uint32_t brake_period_us;
     uint32_t status_period_us;
+    uint64_t session;          /* N: drawn by the host from a cryptographic source at every
+                                  boot; never 0 (a unit without a key has one too) */
+    uint8_t key_len;           /* 0: no key; ESTOP_KEY_LEN: key holds the key */
+    uint8_t key[ESTOP_KEY_LEN];
 } estop_config_t;
 
 typedef struct {
@@ -122,6 +148,7 @@ typedef struct {
 typedef struct {
     uint32_t udp_valid;
     uint32_t udp_invalid;
+    uint32_t udp_stops;       /* stop datagrams (PROTOCOL.md 1), whatever their tag */
     uint32_t tcp_frames;      /* frames with a good crc */
     uint32_t tcp_bad_crc;     /* frames with a bad crc (connection closed) */
     uint32_t tcp_unknown_id;  /* good crc, unknown msg_id (NAK 1) */
@@ -129,14 +156,22 @@ typedef struct {
     uint32_t releases_refused;
     uint32_t stops[ESTOP_REASON_COUNT]; /* transitions into STOPPED, by reason; [1] counts boot */
     uint32_t faults;          /* faults reported by the host, in any state */
+    /* Messages that needed authentication (control packets and RELEASE on a unit with a key)
+     * and failed it, by the first check that failed (PROTOCOL.md 5). */
+    uint32_t auth_bad_tag;
+    uint32_t auth_bad_session;
+    uint32_t auth_old_counter; /* replayed or stale: not above the highest kept */
+    uint32_t auth_table_full;  /* a 9th remote id */
 } estop_counters_t;
 
 /* Filled by every entry point. Fields not mentioned stay zero. */
 typedef struct {
     estop_can_frame_t can[ESTOP_OUT_MAX_CAN];
     uint8_t n_can;
-    uint8_t has_reply;                   /* reply holds a 16-byte frame for the input's slot */
-    uint8_t reply[ESTOP_TCP_FRAME_LEN];
+    uint8_t has_reply;                   /* reply holds a frame of reply_len bytes for the
+                                            input's slot */
+    uint8_t reply_len;                   /* 16 (plain) or 48 (reply frame) */
+    uint8_t reply[ESTOP_REPLY_MAX];
     uint8_t close_slot;                  /* the host must close the input's slot (bad crc) */
     uint8_t state_changed;               /* the state changed during this call */
     uint8_t changed_by_clock;            /* ... and the change came from the clock (timeout or a
@@ -150,8 +185,16 @@ typedef struct {
 typedef struct {
     uint8_t open;
     uint8_t fill;
-    uint8_t buf[ESTOP_TCP_FRAME_LEN];
+    uint8_t buf[ESTOP_REQ_FRAME_LEN];
 } estop_slot_t;
+
+/* A remote id and the highest counter authenticated from it, per channel, this session. */
+typedef struct {
+    uint64_t counter[2];       /* [0] UDP, [1] TCP; meaningful where seen has the bit */
+    uint32_t id;
+    uint8_t used;
+    uint8_t seen;              /* bit 0: a UDP counter is kept; bit 1: a TCP counter */
+} estop_remote_t;
 
 /* Caller-owned state. Treat as opaque: read it only through the functions below. */
 typedef struct {
@@ -163,7 +206,8 @@ typedef struct {
     uint8_t link_fresh;        /* a valid packet arrived and has not yet aged past the timeout */
     uint8_t last_neutral;      /* the latest valid packet had gas_brake <= 0 */
     uint32_t last_valid_us;    /* tick of the latest valid packet (meaningful while link_fresh) */
-    uint32_t valid_since_stop; /* saturating */
+    uint32_t valid_run;        /* valid packets since boot, the latest stop or the latest silence
+                                  of the timeout, whichever is latest (saturating) */
     uint32_t brake_due_us;
     uint32_t status_due_us;
     uint8_t brake_counter;
@@ -172,6 +216,8 @@ typedef struct {
     uint8_t status_invalid;    /* invalid packets since the last status frame, saturating */
     estop_counters_t counters;
     estop_slot_t slots[ESTOP_MAX_SLOTS];
+    estop_b2s_key_t mac;       /* the state after the key block (the key itself is not kept) */
+    estop_remote_t remotes[ESTOP_MAX_REMOTES];
 } estop_core_t;
 
 /* A read-out of everything observable. */
@@ -180,12 +226,13 @@ typedef struct {
     uint8_t reason;
     uint8_t flags;
     uint8_t link_live;          /* a RELEASE would pass the link check now */
-    uint32_t valid_since_stop;
+    uint32_t valid_run;
     uint32_t link_age_us;       /* saturates at UINT32_MAX when no fresh packet */
     estop_counters_t counters;
 } estop_status_t;
 
-/* Fills cfg with the defaults of PROTOCOL.md (warn time = half the timeout). */
+/* Fills cfg with the defaults of PROTOCOL.md (warn time = half the timeout, no key). The
+ * session is left 0: the host must draw one (estop_init refuses 0). */
 void estop_config_default(estop_config_t *cfg);
 /* Checks a configuration; returns ESTOP_OK or the first error found. */
 estop_err_t estop_config_check(const estop_config_t *cfg);
@@ -194,7 +241,8 @@ estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t n
 
 /* Advances time: timeout stop, link-degraded flag, periodic frames. */
 estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out);
-/* One UDP datagram of any length (data may be NULL when len is 0). */
+/* One UDP datagram of any length (data may be NULL when len is 0): a control packet, or a stop
+ * datagram (a request frame whose msg_id is the stop ID: it stops the unit whatever its tag). */
 estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
                          estop_out_t *out);
 /* A TCP connection was accepted into slot (0 .. ESTOP_MAX_SLOTS-1). */

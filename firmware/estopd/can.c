@@ -160,7 +160,7 @@ static void note_success(can_t *c, const estop_can_frame_t *f, uint64_t now)
         c->stuck = 0;
         c->fault_reported = 0;
     }
-    canlog_frame(c->log, f, now);
+    canlog_frame(c->log, f);
 }
 
 static void queue_remove(can_t *c, size_t i)

@@ -8,12 +8,11 @@
 
 #include "clock.h"
 #include "log.h"
-#include "outfd.h"
 
 int canlog_open(canlog_t *l, const char *path, const char *iface, char *err, size_t errlen)
 {
-    memset(l, 0, sizeof *l);
     l->fd = -1;
+    l->own = 0;
     (void)snprintf(l->iface, sizeof l->iface, "%s", iface);
     if (path == NULL) {
         return 0;
@@ -21,37 +20,25 @@ int canlog_open(canlog_t *l, const char *path, const char *iface, char *err, siz
     if (strcmp(path, "-") == 0) {
         l->fd = 1;
     } else {
-        /* Append: never clobber an earlier run's log. */
-        l->fd = open(path, O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC, 0644);
+        /* Append: never clobber an earlier run's log. O_NONBLOCK: opening a FIFO with no reader
+         * would otherwise wait for one, with the shutdown signals already blocked. */
+        l->fd = open(path, O_WRONLY | O_CREAT | O_APPEND | O_CLOEXEC | O_NONBLOCK, 0644);
         if (l->fd < 0) {
-            (void)snprintf(err, errlen, "cannot open --can-log '%s': %s", path, strerror(errno));
+            (void)snprintf(err, errlen, "cannot open --can-log '%s': %s", path,
+                           errno == ENXIO ? "a FIFO with no reader (start the reader first)"
+                                          : strerror(errno));
             return -1;
         }
         l->own = 1;
     }
-    if (outfd_prepare(l->fd) != 0) {
-        (void)snprintf(err, errlen, "cannot set up --can-log '%s': %s", path, strerror(errno));
+    if (outq_start(&l->q, l->fd, err, errlen) != 0) {
         return -1;
     }
+    log_watch("can_log", &l->q);
     return 0;
 }
 
-static void canlog_note(canlog_t *l, int ok, int err, uint64_t now_us)
-{
-    char ebuf[16];
-    if (!ok && !l->failing) {
-        log_kv_t kv[] = { KV_STR("err", log_errno_name(err, ebuf, sizeof ebuf)) };
-        l->failing = 1;
-        log_event(now_us, "can_log_error", NULL, kv, 1u);
-    } else if (ok && l->failing) {
-        log_kv_t kv[] = { KV_NUM("dropped", l->dropped) };
-        l->failing = 0;
-        log_event(now_us, "can_log_ok", NULL, kv, 1u);
-        l->dropped = 0;
-    }
-}
-
-void canlog_frame(canlog_t *l, const estop_can_frame_t *f, uint64_t now_us)
+void canlog_frame(canlog_t *l, const estop_can_frame_t *f)
 {
     static const char hex[] = "0123456789ABCDEF";
     char line[96];
@@ -77,18 +64,12 @@ void canlog_frame(canlog_t *l, const estop_can_frame_t *f, uint64_t now_us)
         line[len++] = hex[f->data[i] & 0x0Fu];
     }
     line[len++] = '\n';
-    if (outfd_write(l->fd, line, len) != 0) {
-        l->dropped++;
-        canlog_note(l, 0, errno, now_us);
-    } else {
-        canlog_note(l, 1, 0, now_us);
-    }
+    (void)outq_put(&l->q, line, len); /* a dropped line is counted and reported by the log */
 }
 
-void canlog_close(canlog_t *l)
+void canlog_close(canlog_t *l, uint64_t max_us)
 {
-    if (l->own && l->fd >= 0) {
-        (void)close(l->fd);
+    if (l->fd >= 0) {
+        outq_flush(&l->q, max_us);
     }
-    l->fd = -1;
 }

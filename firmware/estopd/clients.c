@@ -13,10 +13,23 @@
 #include "net.h"
 
 #define ACCEPT_BATCH 16
-#define TCP_READ_MAX 256u /* per wakeup and client: a firehose gets no more than its share */
+#define TCP_READ_MAX 256u  /* per wakeup and client: a firehose gets no more than its share */
+/* Before a close, what the peer has sent is read and handled up to this much: more than the
+ * receive buffer set below can hold, so every complete frame received is handled. */
+#define DRAIN_MAX 65536u
+#define TCP_RCVBUF 8192    /* the kernel doubles it */
 /* Replies a client has not read yet stay below this (the kernel doubles it): an honest
  * client has one or two outstanding, one that never reads is dropped soon. */
 #define TCP_SNDBUF 4096
+/* A peer that vanished without a FIN is found within about KEEP_IDLE + KEEP_CNT * KEEP_INTVL
+ * seconds; one that stops acknowledging replies within USER_TIMEOUT_MS. */
+#define KEEP_IDLE 2
+#define KEEP_INTVL 1
+#define KEEP_CNT 3
+#define USER_TIMEOUT_MS 5000u
+/* accept() failing for want of descriptors or memory: stop watching the listener this long
+ * instead of spinning on it (it stays readable while the backlog is full). */
+#define ACCEPT_PAUSE_US 100000u
 
 void clients_init(daemon_t *d)
 {
@@ -24,6 +37,8 @@ void clients_init(daemon_t *d)
     for (i = 0; i < ESTOP_MAX_SLOTS; i++) {
         d->clients[i].fd = -1;
     }
+    d->accept_paused_until = 0u;
+    d->accept_failures = 0u;
 }
 
 static void log_client(uint64_t now, const char *event, int slot,
@@ -46,18 +61,128 @@ static void log_client(uint64_t now, const char *event, int slot,
         log_kv_t k = KV_STR("why", why);
         kv[n++] = k;
     }
-    log_event(now, event, NULL, kv, n);
+    /* Anyone can connect as often as they like: these lines are rate-limited. */
+    log_limited(LOG_CLASS_CLIENT, now, event, kv, n);
 }
 
-static int free_slot(const daemon_t *d)
+/* A free slot, or else the one quiet longest (no complete frame for the longest time). */
+static int pick_slot(const daemon_t *d, int *evict)
 {
     int i;
+    int quietest = 0;
     for (i = 0; i < (int)ESTOP_MAX_SLOTS; i++) {
         if (d->clients[i].fd < 0) {
+            *evict = 0;
             return i;
         }
+        if (d->clients[i].quiet_since_us < d->clients[quietest].quiet_since_us) {
+            quietest = i;
+        }
     }
-    return -1;
+    *evict = 1;
+    return quietest;
+}
+
+/* Closes the slot's socket and frees the core's slot. */
+static void close_now(daemon_t *d, uint32_t slot, const char *why)
+{
+    client_t *c = &d->clients[slot];
+    estop_out_t out;
+    estop_err_t err;
+    uint64_t now;
+
+    if (c->fd < 0) {
+        return;
+    }
+    (void)close(c->fd); /* also leaves epoll */
+    c->fd = -1;
+    now = cio_prepare(d);
+    memset(&out, 0, sizeof out);
+    err = estop_tcp_close(&d->core, slot, (uint32_t)now, &out);
+    (void)cio_done(d, err, "tcp_close", &out, now, NULL, -1);
+    log_client(now, "client_close", (int)slot, &c->peer, why);
+}
+
+/* Feeds bytes to the core one frame at a time, as the core asks. Returns 0 while the
+ * connection stays usable, -1 once it has been closed. A client that does not read its replies
+ * is not closed here: the rest of what it sent is handled first (see retire). */
+static int feed(daemon_t *d, uint32_t slot, const uint8_t *buf, size_t len)
+{
+    size_t off = 0;
+
+    while (off < len) {
+        estop_out_t out;
+        size_t used = 0;
+        uint64_t now = cio_prepare(d); /* a due deadline goes before any input */
+        estop_err_t err;
+        unsigned res;
+
+        memset(&out, 0, sizeof out);
+        err = estop_tcp_rx(&d->core, slot, buf + off, len - off, &used, (uint32_t)now, &out);
+        res = cio_done(d, err, "tcp_rx", &out, now, &d->clients[slot].peer, (int)slot);
+        if ((res & CIO_ERROR) != 0u) {
+            close_now(d, slot, "core_error");
+            return -1;
+        }
+        if (out.has_reply || out.close_slot) {
+            d->clients[slot].quiet_since_us = now; /* a complete frame */
+        }
+        if ((res & CIO_CLOSE) != 0u) {
+            /* Framing is lost: the frames before this one have been handled. */
+            log_client(now, "bad_crc", (int)slot, &d->clients[slot].peer, NULL);
+            close_now(d, slot, "bad_crc");
+            return -1;
+        }
+        if (used == 0u || used > len - off) {
+            close_now(d, slot, "core_error"); /* would loop forever or overrun */
+            return -1;
+        }
+        off += used;
+    }
+    return 0;
+}
+
+/* Handles everything the peer has sent so far, then closes the connection. */
+static void retire(daemon_t *d, uint32_t slot, const char *why)
+{
+    uint8_t buf[TCP_READ_MAX];
+    size_t total = 0;
+
+    while (d->clients[slot].fd >= 0 && total < DRAIN_MAX) {
+        ssize_t n = recv(d->clients[slot].fd, buf, sizeof buf, MSG_DONTWAIT);
+        if (n < 0 && errno == EINTR) {
+            continue;
+        }
+        if (n <= 0 || feed(d, slot, buf, (size_t)n) != 0) {
+            break;
+        }
+        total += (size_t)n;
+    }
+    close_now(d, slot, why);
+}
+
+static void set_client_options(int fd)
+{
+    /* Replies are single small frames: send them at once, and keep few unread ones. Dead
+     * peers are found by keepalive. Failing here only costs latency or memory, or a slot
+     * held longer (until it is the quietest and a new client needs it), so results are not
+     * checked. */
+    int one = 1;
+    int sndbuf = TCP_SNDBUF;
+    int rcvbuf = TCP_RCVBUF;
+    int idle = KEEP_IDLE;
+    int intvl = KEEP_INTVL;
+    int cnt = KEEP_CNT;
+    unsigned user_timeout = USER_TIMEOUT_MS;
+
+    (void)setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
+    (void)setsockopt(fd, SOL_SOCKET, SO_SNDBUF, &sndbuf, sizeof sndbuf);
+    (void)setsockopt(fd, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);
+    (void)setsockopt(fd, SOL_SOCKET, SO_KEEPALIVE, &one, sizeof one);
+    (void)setsockopt(fd, IPPROTO_TCP, TCP_KEEPIDLE, &idle, sizeof idle);
+    (void)setsockopt(fd, IPPROTO_TCP, TCP_KEEPINTVL, &intvl, sizeof intvl);
+    (void)setsockopt(fd, IPPROTO_TCP, TCP_KEEPCNT, &cnt, sizeof cnt);
+    (void)setsockopt(fd, IPPROTO_TCP, TCP_USER_TIMEOUT, &user_timeout, sizeof user_timeout);
 }
 
 /* Hands a fresh connection to the core and to epoll. Returns 0, or -1 (fd left open). */
@@ -84,8 +209,47 @@ static int client_start(daemon_t *d, int fd, int slot, const struct sockaddr_in 
     }
     d->clients[slot].fd = fd;
     d->clients[slot].peer = *peer;
+    d->clients[slot].quiet_since_us = now;
+    d->clients[slot].reply_err = 0;
     log_client(now, "client_open", slot, peer, NULL);
     return 0;
+}
+
+static void listener_events(daemon_t *d, uint32_t events)
+{
+    struct epoll_event ev;
+    memset(&ev, 0, sizeof ev);
+    ev.events = events;
+    ev.data.u64 = TAG_TCP;
+    (void)epoll_ctl(d->epfd, EPOLL_CTL_MOD, d->tcp_fd, &ev);
+}
+
+/* Out of descriptors or memory: the listener stays readable, so stop watching it for a
+ * while (the loop keeps serving everything else) and say so once per episode. */
+static void pause_accept(daemon_t *d, int e)
+{
+    uint64_t now = clock_mono_us();
+    if (d->accept_failures++ == 0u) {
+        char ebuf[16];
+        log_kv_t kv[] = { KV_STR("err", log_errno_name(e, ebuf, sizeof ebuf)),
+                          KV_MS("retry_ms", ACCEPT_PAUSE_US) };
+        log_event(now, "accept_error", NULL, kv, 2u);
+    }
+    listener_events(d, 0u);
+    d->accept_paused_until = now + ACCEPT_PAUSE_US;
+}
+
+uint64_t clients_next_wakeup(const daemon_t *d)
+{
+    return d->accept_paused_until;
+}
+
+void clients_service(daemon_t *d, uint64_t now)
+{
+    if (d->accept_paused_until != 0u && now >= d->accept_paused_until) {
+        d->accept_paused_until = 0u;
+        listener_events(d, EPOLLIN);
+    }
 }
 
 void clients_accept(daemon_t *d)
@@ -94,8 +258,7 @@ void clients_accept(daemon_t *d)
     for (i = 0; i < ACCEPT_BATCH; i++) {
         struct sockaddr_in peer;
         socklen_t len = sizeof peer;
-        int one = 1;
-        int sndbuf = TCP_SNDBUF;
+        int evict = 0;
         int slot;
         int fd = accept4(d->tcp_fd, (struct sockaddr *)&peer, &len, SOCK_NONBLOCK | SOCK_CLOEXEC);
 
@@ -103,98 +266,52 @@ void clients_accept(daemon_t *d)
             if (errno == EINTR || errno == ECONNABORTED) {
                 continue;
             }
-            if (errno != EAGAIN) {
+            if (errno == EMFILE || errno == ENFILE || errno == ENOBUFS || errno == ENOMEM) {
+                pause_accept(d, errno);
+            } else if (errno != EAGAIN) {
                 char ebuf[16];
                 log_kv_t kv[] = { KV_STR("err", log_errno_name(errno, ebuf, sizeof ebuf)) };
-                log_event(clock_mono_us(), "accept_error", NULL, kv, 1u);
+                log_limited(LOG_CLASS_NET, clock_mono_us(), "accept_error", kv, 1u);
             }
             return;
         }
-        slot = free_slot(d);
-        if (slot < 0) {
-            log_client(clock_mono_us(), "client_reject", -1, &peer, "no_free_slot");
-            (void)close(fd);
-            continue;
+        if (d->accept_failures != 0u) {
+            log_kv_t kv[] = { KV_NUM("pauses", d->accept_failures) };
+            log_event(clock_mono_us(), "accept_ok", NULL, kv, 1u);
+            d->accept_failures = 0u;
         }
-        /* Replies are single small frames: send them at once, and keep few unread ones.
-         * Failing here only costs latency or memory, so the results do not matter. */
-        (void)setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
-        (void)setsockopt(fd, SOL_SOCKET, SO_SNDBUF, &sndbuf, sizeof sndbuf);
+        slot = pick_slot(d, &evict);
+        if (evict) {
+            log_client(clock_mono_us(), "client_evict", slot, &d->clients[slot].peer,
+                       "make_room");
+            retire(d, (uint32_t)slot, "evicted");
+        }
+        set_client_options(fd);
         if (client_start(d, fd, slot, &peer) != 0) {
             (void)close(fd);
         }
     }
 }
 
-int clients_reply(daemon_t *d, uint32_t slot, const uint8_t *reply)
+int clients_reply(daemon_t *d, uint32_t slot, const uint8_t *reply, size_t len)
 {
     ssize_t n;
-    int fd = d->clients[slot].fd;
+    client_t *c = &d->clients[slot];
 
-    if (fd < 0) {
-        return -1;
+    if (c->fd < 0 || c->reply_err != 0) {
+        return c->fd < 0 ? -1 : 0; /* already known: the client goes once its input is handled */
     }
     do {
-        n = send(fd, reply, ESTOP_TCP_FRAME_LEN, MSG_NOSIGNAL | MSG_DONTWAIT);
+        n = send(c->fd, reply, len, MSG_NOSIGNAL | MSG_DONTWAIT);
     } while (n < 0 && errno == EINTR);
-    /* A client that does not read its replies is dropped, never waited for; a partial
-     * write would break its framing, so that drops it too. */
-    return n == (ssize_t)ESTOP_TCP_FRAME_LEN ? 0 : -1;
-}
-
-void clients_close(daemon_t *d, uint32_t slot, const char *why)
-{
-    client_t *c = &d->clients[slot];
-    estop_out_t out;
-    estop_err_t err;
-    uint64_t now;
-
-    if (c->fd < 0) {
-        return;
+    if (n == (ssize_t)len) {
+        return 0;
     }
-    (void)close(c->fd); /* also leaves epoll */
-    c->fd = -1;
-    now = cio_prepare(d);
-    memset(&out, 0, sizeof out);
-    err = estop_tcp_close(&d->core, slot, (uint32_t)now, &out);
-    (void)cio_done(d, err, "tcp_close", &out, now, NULL, -1);
-    log_client(now, "client_close", (int)slot, &c->peer, why);
-}
-
-/* Feeds bytes to the core one frame at a time, as the core asks. */
-static void feed(daemon_t *d, uint32_t slot, const uint8_t *buf, size_t len)
-{
-    size_t off = 0;
-
-    while (off < len) {
-        estop_out_t out;
-        size_t used = 0;
-        uint64_t now = cio_prepare(d); /* a due deadline goes before any input */
-        estop_err_t err;
-        unsigned res;
-
-        memset(&out, 0, sizeof out);
-        err = estop_tcp_rx(&d->core, slot, buf + off, len - off, &used, (uint32_t)now, &out);
-        res = cio_done(d, err, "tcp_rx", &out, now, &d->clients[slot].peer, (int)slot);
-        if ((res & CIO_ERROR) != 0u) {
-            clients_close(d, slot, "core_error");
-            return;
-        }
-        if ((res & CIO_CLOSE) != 0u) {
-            log_client(now, "bad_crc", (int)slot, &d->clients[slot].peer, NULL);
-            clients_close(d, slot, "bad_crc");
-            return;
-        }
-        if ((res & CIO_DROP) != 0u) {
-            clients_close(d, slot, "reply_blocked");
-            return;
-        }
-        if (used == 0u || used > len - off) {
-            clients_close(d, slot, "core_error"); /* would loop forever or overrun */
-            return;
-        }
-        off += used;
-    }
+    /* A client that does not read its replies is never waited for, and a partial write would
+     * break its framing: no further reply goes to it, and it is closed once the input it has
+     * sent is handled. */
+    c->reply_err = (n < 0) ? errno : EAGAIN;
+    return -1;
 }
 
 void clients_event(daemon_t *d, uint32_t slot)
@@ -208,16 +325,21 @@ void clients_event(daemon_t *d, uint32_t slot)
     }
     n = recv(fd, buf, sizeof buf, 0);
     if (n == 0) {
-        clients_close(d, slot, "eof");
+        close_now(d, slot, "eof");
         return;
     }
     if (n < 0) {
         if (errno != EAGAIN && errno != EINTR) {
-            clients_close(d, slot, "error");
+            char ebuf[16];
+            close_now(d, slot, log_errno_name(errno, ebuf, sizeof ebuf));
         }
         return;
     }
-    feed(d, slot, buf, (size_t)n);
+    if (feed(d, slot, buf, (size_t)n) == 0 && d->clients[slot].reply_err != 0) {
+        int e = d->clients[slot].reply_err;
+        char ebuf[16];
+        retire(d, slot, e == EAGAIN ? "reply_blocked" : log_errno_name(e, ebuf, sizeof ebuf));
+    }
 }
 
 void clients_close_all(daemon_t *d, const char *why)

@@ -19,7 +19,7 @@ void cio_emit(daemon_t *d, const estop_can_frame_t *f, uint64_t now)
     if (d->can_on) {
         can_send(&d->can, f, now); /* logged to the can-log once the kernel takes it */
     } else {
-        canlog_frame(&d->canlog, f, now);
+        canlog_frame(&d->canlog, f);
     }
 }
 
@@ -78,8 +78,10 @@ unsigned cio_done(daemon_t *d, estop_err_t err, const char *what, const estop_ou
         return CIO_ERROR;
     }
     d->last_call_us = now;
-    if (out->has_reply && slot >= 0 && clients_reply(d, (uint32_t)slot, out->reply) != 0) {
-        res |= CIO_DROP;
+    if (out->has_reply && slot >= 0) {
+        /* A reply that cannot be written marks the client; it is closed once its input is
+         * handled (clients.c), never here in the middle of it. */
+        (void)clients_reply(d, (uint32_t)slot, out->reply, out->reply_len);
     }
     if (out->close_slot) {
         res |= CIO_CLOSE;
@@ -155,6 +157,8 @@ uint64_t cio_prepare(daemon_t *d)
     if (!d->fatal && now >= d->deadline_us) {
         cio_tick(d, now);
     }
+    clients_service(d, now);
+    log_housekeeping(now);
     if (!d->fatal && d->can_on) {
         can_service(&d->can, now);
         cause = can_take_fault(&d->can);
@@ -168,6 +172,10 @@ uint64_t cio_prepare(daemon_t *d)
 uint64_t cio_wakeup(const daemon_t *d)
 {
     uint64_t wake = d->deadline_us;
+    uint64_t resume = clients_next_wakeup(d);
+    if (resume != 0u && resume < wake) {
+        wake = resume;
+    }
     if (d->can_on) {
         uint64_t retry = can_next_wakeup(&d->can);
         if (retry != 0u && retry < wake) {

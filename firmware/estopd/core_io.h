@@ -10,7 +10,6 @@
 #include "estop_core.h"
 
 /* Results of cio_done for the input's slot. */
-#define CIO_DROP 0x1u   /* the reply could not be written: drop the client */
 #define CIO_CLOSE 0x2u  /* the core asked to close the slot (bad crc) */
 #define CIO_ERROR 0x4u  /* the core call failed */
 

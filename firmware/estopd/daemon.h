@@ -23,6 +23,9 @@ enum {
 typedef struct {
     int fd;                   /* -1: slot free */
     struct sockaddr_in peer;
+    uint64_t quiet_since_us;  /* accepted, or its latest complete frame: who makes room */
+    int reply_err;            /* errno of a reply that could not be written (EAGAIN: the client
+                                 does not read); the client goes once its input is handled */
 } client_t;
 
 typedef struct {
@@ -36,6 +39,8 @@ typedef struct {
     uint16_t udp_port;        /* bound ports (port 0 picks one) */
     uint16_t tcp_port;
     client_t clients[ESTOP_MAX_SLOTS];
+    uint64_t accept_paused_until; /* listener unwatched until then (EMFILE...), 0: watched */
+    uint32_t accept_failures;     /* pauses in the current episode */
     int can_on;
     can_t can;
     canlog_t canlog;
@@ -48,6 +53,8 @@ typedef struct {
     uint8_t have_brake;
     uint32_t frames_out;      /* frames handed out so far */
     estop_can_frame_t last_frame;
+    uint64_t stats_last_us;   /* the latest periodic read-out (stats.c) */
+    uint64_t stats_auth_reported; /* authentication failures already in the log */
     int fatal;                /* an unrecoverable error: leave the loop */
     int stop_signal;          /* the signal that asks us to stop, 0 if none */
 } daemon_t;

@@ -4,22 +4,41 @@
 #include <stdio.h>
 #include <string.h>
 
+#include <unistd.h>
+
 #include "estop_core.h"
-#include "outfd.h"
 
 #define LOG_LINE_MAX 1024u
+#define LOG_BURST 40u
+#define LOG_RATE 20u               /* lines a second, per class, after the burst */
+#define REPORT_EVERY_US 1000000u
+#define WATCH_MAX 2u
 
 typedef struct {
     char buf[LOG_LINE_MAX];
     size_t len;
 } line_t;
 
-static int log_json;
+typedef struct {
+    uint64_t tokens_us;   /* the bucket, in microseconds of credit (1 line = 1e6/LOG_RATE) */
+    uint64_t last_us;
+    uint64_t suppressed;  /* lines not written since the last report */
+} bucket_t;
 
-void log_set_json(int json)
-{
-    log_json = json;
-}
+typedef struct {
+    const char *stream;
+    const outq_t *q;
+    uint64_t reported;    /* lost lines already reported */
+} watch_t;
+
+/* The log is one per process and shared by every part of the daemon. */
+static int log_json;
+static outq_t log_q;
+static bucket_t buckets[LOG_CLASS_COUNT];
+static watch_t watches[WATCH_MAX + 1u]; /* [0] is stderr itself */
+static size_t n_watches;
+static uint64_t last_report_us;
+static const char *const class_names[LOG_CLASS_COUNT] = { "client", "net" };
 
 /* Appends raw text; truncates silently (one byte is always kept for the newline). */
 static void put(line_t *l, const char *s)
@@ -61,10 +80,19 @@ static void put_json_string(line_t *l, const char *s)
     put_char(l, '"');
 }
 
-static void put_num(line_t *l, int64_t v)
+static void put_num(line_t *l, int64_t v, uint8_t kind)
 {
-    char tmp[24];
-    (void)snprintf(tmp, sizeof tmp, "%lld", (long long)v);
+    char tmp[32];
+    if (kind == 2u && v >= 0 && v % 1000 != 0) {
+        /* microseconds as milliseconds without losing the fraction: 500 us is 0.5 ms */
+        int len = snprintf(tmp, sizeof tmp, "%lld.%03lld", (long long)(v / 1000),
+                           (long long)(v % 1000));
+        while (len > 0 && tmp[len - 1] == '0') {
+            tmp[--len] = '\0';
+        }
+    } else {
+        (void)snprintf(tmp, sizeof tmp, "%lld", (long long)(kind == 2u ? v / 1000 : v));
+    }
     put(l, tmp);
 }
 
@@ -96,7 +124,7 @@ static void build_text(line_t *l, uint64_t t_us, const char *event, const char *
         put(l, kv[i].key);
         put_char(l, '=');
         if (kv[i].is_num) {
-            put_num(l, kv[i].num);
+            put_num(l, kv[i].num, kv[i].is_num);
         } else {
             put_text_value(l, kv[i].str != NULL ? kv[i].str : "-");
         }
@@ -115,7 +143,7 @@ static void build_json(line_t *l, uint64_t t_us, const char *event, const log_kv
         put_json_string(l, kv[i].key);
         put_char(l, ':');
         if (kv[i].is_num) {
-            put_num(l, kv[i].num);
+            put_num(l, kv[i].num, kv[i].is_num);
         } else {
             put_json_string(l, kv[i].str != NULL ? kv[i].str : "-");
         }
@@ -126,7 +154,8 @@ static void build_json(line_t *l, uint64_t t_us, const char *event, const log_kv
     l->buf[l->len++] = '}';
 }
 
-void log_event(uint64_t t_us, const char *event, const char *head, const log_kv_t *kv, size_t n)
+static void emit(uint64_t t_us, const char *event, const char *head, const log_kv_t *kv,
+                 size_t n)
 {
     line_t l;
     int saved = errno;
@@ -138,9 +167,107 @@ void log_event(uint64_t t_us, const char *event, const char *head, const log_kv_
         build_text(&l, t_us, event, head, kv, n);
     }
     l.buf[l.len++] = '\n';
-    /* A stderr nobody reads must not stop the unit: the line is dropped instead. */
-    (void)outfd_write(2, l.buf, l.len);
+    if (log_q.running) {
+        (void)outq_put(&log_q, l.buf, l.len); /* a full queue drops the line and counts it */
+    } else {
+        (void)write(2, l.buf, l.len);         /* start-up, before the writer exists */
+    }
     errno = saved;
+}
+
+int log_start(int json, char *err, size_t errlen)
+{
+    log_json = json;
+    watches[0].stream = "log";
+    watches[0].q = &log_q;
+    n_watches = 1u;
+    return outq_start(&log_q, 2, err, errlen);
+}
+
+void log_watch(const char *stream, const outq_t *q)
+{
+    if (n_watches <= WATCH_MAX) {
+        watches[n_watches].stream = stream;
+        watches[n_watches].q = q;
+        watches[n_watches].reported = 0u;
+        n_watches++;
+    }
+}
+
+void log_event(uint64_t t_us, const char *event, const char *head, const log_kv_t *kv, size_t n)
+{
+    emit(t_us, event, head, kv, n);
+}
+
+/* Token bucket per class: LOG_BURST lines of credit, refilled at LOG_RATE lines a second. */
+static int bucket_take(bucket_t *b, uint64_t now)
+{
+    const uint64_t line_us = 1000000u / LOG_RATE;
+    const uint64_t cap = (uint64_t)LOG_BURST * line_us;
+    if (b->last_us == 0u) {
+        b->tokens_us = cap;
+    } else if (now > b->last_us) {
+        b->tokens_us += now - b->last_us;
+        if (b->tokens_us > cap) {
+            b->tokens_us = cap;
+        }
+    }
+    b->last_us = now;
+    if (b->tokens_us < line_us) {
+        b->suppressed++;
+        return 0;
+    }
+    b->tokens_us -= line_us;
+    return 1;
+}
+
+void log_limited(log_class_t cls, uint64_t t_us, const char *event, const log_kv_t *kv, size_t n)
+{
+    if ((unsigned)cls < LOG_CLASS_COUNT && bucket_take(&buckets[cls], t_us)) {
+        emit(t_us, event, NULL, kv, n);
+    }
+}
+
+void log_report(uint64_t now)
+{
+    size_t i;
+    for (i = 0; i < LOG_CLASS_COUNT; i++) {
+        if (buckets[i].suppressed != 0u) {
+            log_kv_t kv[] = { KV_STR("class", class_names[i]),
+                              KV_NUM("lines", buckets[i].suppressed) };
+            buckets[i].suppressed = 0u;
+            emit(now, "log_suppressed", NULL, kv, 2u);
+        }
+    }
+    for (i = 0; i < n_watches; i++) {
+        uint64_t lost = outq_lost(watches[i].q);
+        if (lost != watches[i].reported) {
+            char ebuf[16];
+            log_kv_t kv[] = {
+                KV_STR("stream", watches[i].stream),
+                KV_NUM("dropped", lost - watches[i].reported),
+                KV_NUM("total", lost),
+                KV_STR("err", outq_last_errno(watches[i].q) != 0
+                                  ? log_errno_name(outq_last_errno(watches[i].q), ebuf, sizeof ebuf)
+                                  : "full"),
+            };
+            watches[i].reported = lost;
+            emit(now, "output_dropped", NULL, kv, 4u);
+        }
+    }
+}
+
+void log_housekeeping(uint64_t now_us)
+{
+    if (now_us - last_report_us >= REPORT_EVERY_US) {
+        last_report_us = now_us;
+        log_report(now_us);
+    }
+}
+
+void log_flush(uint64_t max_us)
+{
+    outq_flush(&log_q, max_us);
 }
 
 const char *log_state_name(uint32_t state)

@@ -13,9 +13,11 @@
 #include "core_io.h"
 #include "frame.h"
 #include "log.h"
+#include "stats.h"
 #include "udp.h"
 
 #define MAX_EVENTS 16
+#define EXIT_FLUSH_US 1000000u
 
 /* Arms the timerfd (absolute CLOCK_MONOTONIC) for the next wakeup, when it changed. */
 static void arm_timer(daemon_t *d)
@@ -136,11 +138,20 @@ static int finish(daemon_t *d)
         can_close(&d->can);
     }
     clients_close_all(d, "exit");
+    stats_final(d, clock_mono_us());
+    log_report(clock_mono_us()); /* what is left to say about lost lines, before the exit line */
     {
         log_kv_t kv[] = { KV_NUM("code", code), KV_STR("signal", signal_name(d->stop_signal)) };
         log_event(clock_mono_us(), "exit", NULL, kv, 2u);
     }
-    canlog_close(&d->canlog);
+    {
+        /* Whatever the readers do, the exit is bounded: the outputs share one deadline. */
+        uint64_t start = clock_mono_us();
+        uint64_t spent;
+        canlog_close(&d->canlog, EXIT_FLUSH_US);
+        spent = clock_mono_us() - start;
+        log_flush(spent < EXIT_FLUSH_US ? EXIT_FLUSH_US - spent : 0u);
+    }
     return code;
 }
 
@@ -156,6 +167,7 @@ int loop_run(daemon_t *d)
         if (d->fatal) {
             break;
         }
+        stats_tick(d, now);
         arm_timer(d);
         n = epoll_wait(d->epfd, evs, MAX_EVENTS, backstop_ms(d, now));
         if (n < 0) {

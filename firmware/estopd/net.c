@@ -7,7 +7,7 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
-#define TCP_BACKLOG 16
+#define TCP_BACKLOG 128 /* a connect storm queues here; room is made as they are accepted */
 
 static int net_fail(int fd, const char *what, const char *proto, struct in_addr addr,
                     uint16_t port, char *err, size_t n)

@@ -17,7 +17,11 @@ enum {
     OPT_TIMEOUT_MS,
     OPT_WARN_MS,
     OPT_STOP_ID,
-    OPT_LOG_JSON
+    OPT_LOG_JSON,
+    OPT_KEY_FILE,
+    OPT_NO_AUTH,
+    OPT_RT_PRIO,
+    OPT_MLOCK
 };
 
 static const struct option long_opts[] = {
@@ -30,6 +34,10 @@ static const struct option long_opts[] = {
     { "warn-ms", required_argument, NULL, OPT_WARN_MS },
     { "stop-id", required_argument, NULL, OPT_STOP_ID },
     { "log-json", no_argument, NULL, OPT_LOG_JSON },
+    { "key-file", required_argument, NULL, OPT_KEY_FILE },
+    { "no-auth", no_argument, NULL, OPT_NO_AUTH },
+    { "rt-prio", required_argument, NULL, OPT_RT_PRIO },
+    { "mlock", no_argument, NULL, OPT_MLOCK },
     { "help", no_argument, NULL, 'h' },
     { "version", no_argument, NULL, 'V' },
     { NULL, 0, NULL, 0 }
@@ -38,13 +46,17 @@ static const struct option long_opts[] = {
 static void usage(void)
 {
     (void)printf(
-        "usage: estopd [--can IFACE] [--can-log PATH|-] [--udp-port 5700] [--tcp-port 5701]\n"
-        "              [--bind 0.0.0.0] [--timeout-ms 200] [--warn-ms TIMEOUT/2]\n"
-        "              [--stop-id 0xE570E570] [--log-json] [--help] [--version]\n"
+        "usage: estopd (--key-file PATH | --no-auth) [--can IFACE] [--can-log PATH|-]\n"
+        "              [--udp-port 5700] [--tcp-port 5701] [--bind 0.0.0.0]\n"
+        "              [--timeout-ms 200] [--warn-ms TIMEOUT/2] [--stop-id 0xE570E570]\n"
+        "              [--rt-prio 1..99] [--mlock] [--log-json] [--help] [--version]\n"
         "\n"
         "Emergency-stop unit: watches UDP control packets and TCP stop frames and commands\n"
-        "the brake on CAN (PROTOCOL.md). Without --can, frames go to the can-log (stdout).\n"
-        "Port 0 picks a free port; the start event on stderr shows the ports in use.\n");
+        "the brake on CAN (docs/PROTOCOL.md). --key-file: only packets and RELEASEs made with\n"
+        "this key (64 hex digits, mode 0600) keep the unit alive or release it; anyone may\n"
+        "stop. --no-auth: a unit without a key. Without --can, frames go to the can-log\n"
+        "(stdout). Port 0 picks a free port; the start event on stderr shows the ports.\n"
+        "--rt-prio: SCHED_FIFO for the watchdog loop; --mlock: mlockall (no paging stalls).\n");
 }
 
 /* Strict unsigned number: digits only (no sign, no spaces), optional 0x prefix when
@@ -142,6 +154,24 @@ static int set_one(int c, const char *arg, opts_t *o, int *warn_set, char *err, 
     case OPT_LOG_JSON:
         o->log_json = 1;
         return 0;
+    case OPT_KEY_FILE:
+        if (arg[0] == '\0') {
+            return bad_value("key-file", arg, "a file path", err, n);
+        }
+        o->key_file = arg;
+        return 0;
+    case OPT_NO_AUTH:
+        o->no_auth = 1;
+        return 0;
+    case OPT_RT_PRIO:
+        if (parse_num(arg, 0, 99u, &v) != 0 || v == 0u) {
+            return bad_value("rt-prio", arg, "a real-time priority 1..99", err, n);
+        }
+        o->rt_prio = (int)v;
+        return 0;
+    case OPT_MLOCK:
+        o->mlock = 1;
+        return 0;
     default:
         (void)snprintf(err, n, "internal: unhandled option %d", c);
         return -1;
@@ -153,7 +183,7 @@ static const char *config_hint(estop_err_t e)
     switch (e) {
     case ESTOP_ERR_TIMEOUT: return "--timeout-ms must be 1..60000";
     case ESTOP_ERR_WARN: return "--warn-ms must be at least 1 and below --timeout-ms";
-    case ESTOP_ERR_STOP_ID: return "--stop-id may not be 0, 1 or 2";
+    case ESTOP_ERR_STOP_ID: return "--stop-id may not be 0, 1, 2 or 0x32515345";
     default: return "rejected by the core";
     }
 }
@@ -206,10 +236,18 @@ opts_result_t opts_parse(int argc, char **argv, opts_t *o, char *err, size_t err
         (void)snprintf(err, errlen, "unexpected argument '%s'", argv[optind]);
         return OPTS_ERROR;
     }
+    if ((o->key_file != NULL) == (o->no_auth != 0)) {
+        (void)snprintf(err, errlen, "%s", o->no_auth ? "--key-file and --no-auth exclude each other"
+                                                      : "--key-file PATH or --no-auth is required"
+                                                        " (a unit with a key, or one without)");
+        return OPTS_ERROR;
+    }
     if (!warn_set) {
         o->cfg.warn_us = o->cfg.timeout_us / 2u; /* PROTOCOL.md: half the timeout */
     }
+    o->cfg.session = 1u; /* checked here with a stand-in; the real one is drawn at start-up */
     ce = estop_config_check(&o->cfg);
+    o->cfg.session = 0u;
     if (ce != ESTOP_OK) {
         (void)snprintf(err, errlen, "invalid configuration (%s): %s", estop_err_name(ce),
                        config_hint(ce));

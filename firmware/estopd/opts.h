@@ -1,4 +1,4 @@
-/* estopd command line (PROTOCOL.md 5). */
+/* estopd command line (docs/PROTOCOL.md section 6). */
 #ifndef ESTOPD_OPTS_H
 #define ESTOPD_OPTS_H
 
@@ -16,7 +16,11 @@ typedef struct {
     struct in_addr bind;
     const char *bind_str;
     int log_json;
-    estop_config_t cfg;
+    const char *key_file;   /* --key-file: the unit has a key (loaded at start-up) */
+    int no_auth;            /* --no-auth: the unit has none; exactly one of the two is given */
+    int rt_prio;            /* --rt-prio N: SCHED_FIFO priority of the loop, 0: unchanged */
+    int mlock;              /* --mlock: lock all memory (mlockall) */
+    estop_config_t cfg;     /* session and key are filled in at start-up, not here */
 } opts_t;
 
 typedef enum {

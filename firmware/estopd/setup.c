@@ -4,17 +4,20 @@
 #include <signal.h>
 #include <stdio.h>
 #include <string.h>
+#include <sched.h>
 #include <sys/epoll.h>
+#include <sys/mman.h>
+#include <sys/random.h>
 #include <sys/signalfd.h>
 #include <sys/timerfd.h>
 #include <unistd.h>
 
 #include "clients.h"
+#include "keyfile.h"
 #include "clock.h"
 #include "core_io.h"
 #include "log.h"
 #include "net.h"
-#include "outfd.h"
 
 static int fail(const char *what, char *err, size_t n)
 {
@@ -104,26 +107,81 @@ static int setup_can(daemon_t *d, char *err, size_t n)
                     d->opt.cfg.brake_period_us, &d->canlog, d->epfd, TAG_CAN, err, n);
 }
 
-static void log_start(const daemon_t *d)
+/* PROTOCOL.md 5: a key from --key-file (or none with --no-auth) and a session drawn from
+ * the kernel's cryptographic source at every start, never 0. */
+static int setup_auth(daemon_t *d, char *err, size_t n)
+{
+    estop_config_t *cfg = &d->opt.cfg;
+    uint64_t session = 0u;
+
+    cfg->key_len = 0u;
+    if (d->opt.key_file != NULL) {
+        if (keyfile_load(d->opt.key_file, cfg->key, err, n) != 0) {
+            return -1;
+        }
+        cfg->key_len = (uint8_t)ESTOP_KEY_LEN;
+    }
+    while (session == 0u) {
+        /* Blocks only until the kernel's pool is first seeded: a guessable session would let
+         * an earlier boot's recording be replayed. */
+        ssize_t got = getrandom(&session, sizeof session, 0);
+        if (got < 0 && errno != EINTR) {
+            return fail("getrandom", err, n);
+        }
+        if (got != (ssize_t)sizeof session) {
+            session = 0u;
+        }
+    }
+    cfg->session = session;
+    return 0;
+}
+
+/* --rt-prio and --mlock, for hosts without systemd's CPUSchedulingPolicy= and friends. The
+ * output threads were started with explicit normal priority, so only the loop gets it. */
+static int setup_realtime(daemon_t *d, char *err, size_t n)
+{
+    if (d->opt.mlock && mlockall(MCL_CURRENT | MCL_FUTURE) != 0) {
+        return fail("--mlock: mlockall (needs CAP_IPC_LOCK or a high RLIMIT_MEMLOCK)", err, n);
+    }
+    if (d->opt.rt_prio > 0) {
+        struct sched_param sp;
+        memset(&sp, 0, sizeof sp);
+        sp.sched_priority = d->opt.rt_prio;
+        if (sched_setscheduler(0, SCHED_FIFO, &sp) != 0) {
+            return fail("--rt-prio: sched_setscheduler (needs CAP_SYS_NICE or RLIMIT_RTPRIO)",
+                        err, n);
+        }
+    }
+    return 0;
+}
+
+static void log_start_line(const daemon_t *d)
 {
     char udp[48];
     char tcp[48];
     char stop_id[16];
+    char session[24];
     const char *can_log = d->opt.can_log != NULL ? d->opt.can_log
                           : d->opt.can_iface == NULL ? "-" : "off";
 
     (void)snprintf(udp, sizeof udp, "%s:%u", d->opt.bind_str, (unsigned)d->udp_port);
     (void)snprintf(tcp, sizeof tcp, "%s:%u", d->opt.bind_str, (unsigned)d->tcp_port);
     (void)snprintf(stop_id, sizeof stop_id, "0x%08X", (unsigned)d->opt.cfg.stop_id);
+    /* The session is no secret: every reply carries it. */
+    (void)snprintf(session, sizeof session, "0x%016llX", (unsigned long long)d->opt.cfg.session);
     {
         log_kv_t kv[] = {
             KV_STR("udp", udp),
             KV_STR("tcp", tcp),
             KV_STR("can", d->opt.can_iface != NULL ? d->opt.can_iface : "-"),
             KV_STR("can_log", can_log),
-            KV_NUM("timeout_ms", d->opt.cfg.timeout_us / 1000u),
-            KV_NUM("warn_ms", d->opt.cfg.warn_us / 1000u),
+            KV_MS("timeout_ms", d->opt.cfg.timeout_us),
+            KV_MS("warn_ms", d->opt.cfg.warn_us),
             KV_STR("stop_id", stop_id),
+            KV_STR("auth", d->opt.cfg.key_len != 0u ? "key" : "none"),
+            KV_STR("session", session),
+            KV_NUM("rt_prio", d->opt.rt_prio),
+            KV_NUM("mlock", d->opt.mlock),
             KV_NUM("pid", getpid()),
             KV_NUM("version_major", ESTOP_VERSION_MAJOR),
             KV_NUM("version_minor", ESTOP_VERSION_MINOR),
@@ -134,20 +192,25 @@ static void log_start(const daemon_t *d)
 
 int setup(daemon_t *d, char *err, size_t errlen)
 {
+    int rc;
+
     d->epfd = d->timerfd = d->sigfd = d->udp_fd = d->tcp_fd = -1;
     d->canlog.fd = -1;
     d->can.fd = -1;
     clients_init(d);
-    log_set_json(d->opt.log_json);
-    /* Best effort: on failure stderr merely stays blocking. */
-    (void)outfd_prepare(2);
-    if (setup_signals(d, err, errlen) != 0 || setup_fds(d, err, errlen) != 0 ||
-        setup_can(d, err, errlen) != 0) {
+    /* Signals are blocked first, so the output threads inherit the mask and leave them to
+     * the loop's signalfd. */
+    if (setup_signals(d, err, errlen) != 0 || log_start(d->opt.log_json, err, errlen) != 0 ||
+        setup_auth(d, err, errlen) != 0 || setup_realtime(d, err, errlen) != 0 ||
+        setup_fds(d, err, errlen) != 0 || setup_can(d, err, errlen) != 0) {
         return -1;
     }
     /* The ports go out before the first frame: tests and supervisors read them here. */
-    log_start(d);
-    if (cio_boot(d) != 0) {
+    log_start_line(d);
+    rc = cio_boot(d);
+    /* The core keeps only the state after the key block; no other copy of the key stays. */
+    memset(d->opt.cfg.key, 0, sizeof d->opt.cfg.key);
+    if (rc != 0) {
         (void)snprintf(err, errlen, "the core failed to start");
         return -1;
     }

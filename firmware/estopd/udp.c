@@ -34,7 +34,7 @@ void udp_readable(daemon_t *d)
             if (errno != EAGAIN) {
                 char ebuf[16];
                 log_kv_t kv[] = { KV_STR("err", log_errno_name(errno, ebuf, sizeof ebuf)) };
-                log_event(d->last_call_us, "udp_error", NULL, kv, 1u);
+                log_limited(LOG_CLASS_NET, d->last_call_us, "udp_error", kv, 1u);
             }
             return;
         }

@@ -8,6 +8,8 @@
                                   (:mod:`estop.monitor`)
 ``estop demo``                    the scripted demo (:mod:`estop.demo`)
 ``estop keygen PATH``             write a fresh key file, mode 0600 (:mod:`estop.keyfile`)
+``estop link``                    false stops per hour per timeout from a recording of the
+                                  control link (:mod:`estop.link`)
 ================================  ==========================================================
 
 Exit codes: 0 success/ACK, 1 NAK or problems found, 2 usage error (one line
@@ -31,7 +33,7 @@ _EPILOG = ("exit codes: 0 success/ACK, 1 NAK or problems found, 2 usage error, "
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from estop import keyfile, monitor, oneshot, remote
+    from estop import keyfile, link, monitor, oneshot, remote
 
     parser = ErrorOnlyParser(prog="estop", description="Tools for the estop emergency-stop "
                              "unit (wire contract: docs/PROTOCOL.md).", epilog=_EPILOG)
@@ -62,6 +64,11 @@ def build_parser() -> argparse.ArgumentParser:
                        description=keyfile.DESCRIPTION, epilog=keyfile.EPILOG)
     keyfile.add_arguments(p)
     p.set_defaults(handler=keyfile.run)
+    p = sub.add_parser("link", help="false stops per hour per timeout from a recording of "
+                       "the control link (estopd log, arrival times or pcap)",
+                       description=link.DESCRIPTION, epilog=link.EPILOG)
+    link.add_arguments(p)
+    p.set_defaults(handler=link.run)
 
     # `estop demo ...` is dispatched before parsing (see main); listed here for --help
     sub.add_parser("demo", help="run estopd on loopback and play a scripted drive "

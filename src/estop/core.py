@@ -22,6 +22,10 @@ lib: Any = _mod.lib
 
 MAX_STEP_US: int = lib.ESTOP_MAX_STEP_US
 MAX_SLOTS: int = lib.ESTOP_MAX_SLOTS
+KEY_LEN: int = lib.ESTOP_KEY_LEN
+# The session of the spec's test vectors (PROTOCOL.md 5.4). A real host draws a random one at
+# every boot (estopd: getrandom); tests and simulations want a fixed one.
+TEST_SESSION = 0x0123456789ABCDEF
 _U32 = 0xFFFFFFFF
 
 
@@ -36,7 +40,8 @@ class CoreError(Exception):
 
 @dataclass(frozen=True)
 class Config:
-    """Core configuration; ``warn_us`` of None means half the timeout."""
+    """Core configuration; ``warn_us`` of None means half the timeout. ``key`` None: a unit
+    without a key (plain packets); 32 bytes: a unit with a key (PROTOCOL.md 5)."""
 
     timeout_us: int = lib.ESTOP_DEFAULT_TIMEOUT_US
     warn_us: int | None = None
@@ -48,6 +53,8 @@ class Config:
     release_packets: int = lib.ESTOP_DEFAULT_RELEASE_PACKETS
     brake_period_us: int = lib.ESTOP_DEFAULT_BRAKE_PERIOD_US
     status_period_us: int = lib.ESTOP_DEFAULT_STATUS_PERIOD_US
+    session: int = TEST_SESSION
+    key: bytes | None = None
 
     @property
     def effective_warn_us(self) -> int:
@@ -61,6 +68,11 @@ class Config:
         ):
             setattr(cfg, name, getattr(self, name))
         cfg.warn_us = self.effective_warn_us
+        cfg.session = self.session
+        if self.key is not None:
+            # Any length goes to the core, which decides (a wrong one is ESTOP_ERR_KEY).
+            cfg.key_len = min(len(self.key), 255)
+            ffi.memmove(cfg.key, self.key[:KEY_LEN], min(len(self.key), KEY_LEN))
         return cfg
 
 
@@ -89,6 +101,7 @@ class Step:
 class Counters:
     udp_valid: int
     udp_invalid: int
+    udp_stops: int
     tcp_frames: int
     tcp_bad_crc: int
     tcp_unknown_id: int
@@ -96,6 +109,10 @@ class Counters:
     releases_refused: int
     stops: tuple[int, ...]
     faults: int
+    auth_bad_tag: int
+    auth_bad_session: int
+    auth_old_counter: int
+    auth_table_full: int
 
 
 @dataclass(frozen=True)
@@ -104,7 +121,7 @@ class Status:
     reason: int
     flags: int
     link_live: bool
-    valid_since_stop: int
+    valid_run: int
     link_age_us: int | None
     counters: Counters
 
@@ -177,7 +194,7 @@ class Watchdog:
         next_call = self._now + ((out.next_call_us - (self._now & _U32)) & _U32)
         return Step(
             frames=frames,
-            reply=bytes(ffi.buffer(out.reply, 16)) if out.has_reply else None,
+            reply=bytes(ffi.buffer(out.reply, out.reply_len)) if out.has_reply else None,
             close=bool(out.close_slot),
             state_changed=changed,
             changed_by_clock=by_clock,
@@ -239,14 +256,17 @@ class Watchdog:
             raise CoreError(err, "estop_get_status")
         c = st.counters
         counters = Counters(
-            udp_valid=c.udp_valid, udp_invalid=c.udp_invalid, tcp_frames=c.tcp_frames,
+            udp_valid=c.udp_valid, udp_invalid=c.udp_invalid, udp_stops=c.udp_stops,
+            tcp_frames=c.tcp_frames,
             tcp_bad_crc=c.tcp_bad_crc, tcp_unknown_id=c.tcp_unknown_id,
             releases_accepted=c.releases_accepted, releases_refused=c.releases_refused,
             stops=tuple(c.stops[i] for i in range(lib.ESTOP_REASON_COUNT)), faults=c.faults,
+            auth_bad_tag=c.auth_bad_tag, auth_bad_session=c.auth_bad_session,
+            auth_old_counter=c.auth_old_counter, auth_table_full=c.auth_table_full,
         )
         return Status(
             state=st.state, reason=st.reason, flags=st.flags, link_live=bool(st.link_live),
-            valid_since_stop=st.valid_since_stop,
+            valid_run=st.valid_run,
             link_age_us=None if st.link_age_us == _U32 else st.link_age_us,
             counters=counters,
         )

@@ -29,7 +29,6 @@ __all__ = [
     "Daemon",
     "DaemonError",
     "Link",
-    "auth_args",
     "find_estopd",
     "is_stop_frame",
     "parse_start_ports",
@@ -99,36 +98,20 @@ def find_estopd(explicit: str | None = None) -> str | None:
     return None
 
 
-def auth_args(command: Sequence[str], timeout_s: float = 10.0) -> list[str]:
-    """``["--no-auth"]`` when ``command --help`` lists ``--no-auth`` (a protocol v2 daemon,
-    which will not start without ``--key-file`` or ``--no-auth``), else ``[]``."""
-    try:
-        proc = subprocess.run([*command, "--help"], capture_output=True, text=True,
-                              timeout=timeout_s, stdin=subprocess.DEVNULL, check=False)
-    except (OSError, subprocess.SubprocessError):
-        return []
-    return ["--no-auth"] if "--no-auth" in proc.stdout + proc.stderr else []
-
-
 class Daemon:
     """An estopd-compatible daemon on loopback with free ports and its can-log on a pipe.
 
     ``command`` is the program (and any leading arguments, e.g. ``[python, baseline.py]``).
     Every can-log line arrives as a :class:`canlog.CanLogRecord` on :attr:`frames`; stderr
     lines are kept in :attr:`log_lines`. Use as a context manager: the process is always
-    ended.
-
-    ``auth`` is how the unit is keyed (protocol v2 needs ``--key-file PATH`` or
-    ``--no-auth``); by default ``--no-auth`` is passed when the program's ``--help`` lists it
-    (see :func:`auth_args`), so a daemon of either protocol version runs.
+    ended. The unit has the key in ``key_file``, or none (``--no-auth``).
     """
 
     def __init__(self, command: Sequence[str], *, timeout_ms: int = 200,
-                 extra_args: Sequence[str] = (), auth: Sequence[str] | None = None) -> None:
-        self.command = list(command)
-        self.auth = None if auth is None else list(auth)
-        self.extra_args = list(extra_args)
-        self.argv = self._argv(timeout_ms, self.auth or [])
+                 extra_args: Sequence[str] = (), key_file: str | None = None) -> None:
+        auth = ["--key-file", key_file] if key_file is not None else ["--no-auth"]
+        self.argv = [*command, "--bind", "127.0.0.1", "--udp-port", "0", "--tcp-port", "0",
+                     "--timeout-ms", str(timeout_ms), "--can-log", "-", *auth, *extra_args]
         self.timeout_ms = timeout_ms
         self.frames: queue.Queue[canlog.CanLogRecord] = queue.Queue()
         self.log_lines: list[str] = []
@@ -140,19 +123,11 @@ class Daemon:
         self._started = threading.Event()
         self._threads: list[threading.Thread] = []
 
-    def _argv(self, timeout_ms: int, auth: list[str]) -> list[str]:
-        return [*self.command, *auth, "--bind", "127.0.0.1", "--udp-port", "0",
-                "--tcp-port", "0", "--timeout-ms", str(timeout_ms), "--can-log", "-",
-                *self.extra_args]
-
     @property
     def pid(self) -> int | None:
         return self._proc.pid if self._proc else None
 
     def start(self, wait_s: float = 10.0) -> None:
-        if self.auth is None:
-            self.auth = auth_args(self.command)
-            self.argv = self._argv(self.timeout_ms, self.auth)
         try:
             self._proc = subprocess.Popen(
                 self.argv, stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,

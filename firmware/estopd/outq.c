@@ -1,0 +1,164 @@
+#include "outq.h"
+
+#include <errno.h>
+#include <poll.h>
+#include <sched.h>
+#include <signal.h>
+#include <stdio.h>
+#include <string.h>
+#include <sys/eventfd.h>
+#include <time.h>
+#include <unistd.h>
+
+#define OUTQ_MASK (OUTQ_SIZE - 1u)
+#define WRITER_STACK 65536u /* the writer needs little; a small stack keeps --mlock small too */
+
+static uint32_t load_acq(const uint32_t *p)
+{
+    return __atomic_load_n(p, __ATOMIC_ACQUIRE);
+}
+
+static void store_rel(uint32_t *p, uint32_t v)
+{
+    __atomic_store_n(p, v, __ATOMIC_RELEASE);
+}
+
+static uint64_t count_lines(const char *buf, size_t len)
+{
+    uint64_t n = 0;
+    size_t i;
+    for (i = 0; i < len; i++) {
+        n += (buf[i] == '\n') ? 1u : 0u;
+    }
+    return n;
+}
+
+/* Writes one contiguous piece of the ring. A descriptor someone else made non-blocking is
+ * waited for with poll (this is the writer's own thread, waiting is its job). Anything else
+ * that fails loses the piece: the lines are counted, the writer goes on. */
+static void write_piece(outq_t *q, uint32_t tail, uint32_t len)
+{
+    const char *p = &q->ring[tail & OUTQ_MASK];
+    ssize_t n = write(q->fd, p, len);
+
+    if (n > 0) {
+        store_rel(&q->tail, tail + (uint32_t)n);
+    } else if (n < 0 && (errno == EAGAIN || errno == EWOULDBLOCK)) {
+        struct pollfd pfd;
+        pfd.fd = q->fd;
+        pfd.events = POLLOUT;
+        pfd.revents = 0;
+        (void)poll(&pfd, 1, 1000);
+    } else if (!(n < 0 && errno == EINTR)) {
+        __atomic_store_n(&q->last_errno, n < 0 ? errno : EIO, __ATOMIC_RELAXED);
+        __atomic_add_fetch(&q->lines_failed, count_lines(p, len), __ATOMIC_RELAXED);
+        store_rel(&q->tail, tail + len);
+    }
+}
+
+static void *writer_main(void *arg)
+{
+    outq_t *q = arg;
+    sigset_t all;
+
+    (void)sigfillset(&all);
+    (void)pthread_sigmask(SIG_BLOCK, &all, NULL); /* signals belong to the loop's signalfd */
+    for (;;) {
+        uint32_t head = load_acq(&q->head);
+        uint32_t tail = q->tail;
+        if (head == tail) {
+            uint64_t v;
+            (void)read(q->wake_fd, &v, sizeof v); /* sleeps until the loop queues more */
+        } else {
+            uint32_t len = head - tail;
+            uint32_t room = OUTQ_SIZE - (tail & OUTQ_MASK); /* up to the end of the ring */
+            write_piece(q, tail, len < room ? len : room);
+        }
+    }
+    return NULL;
+}
+
+int outq_start(outq_t *q, int fd, char *err, size_t errlen)
+{
+    pthread_attr_t attr;
+    struct sched_param sp;
+    int rc;
+
+    q->fd = fd;
+    q->head = q->tail = 0u;
+    q->lines_full = q->lines_failed = 0u;
+    q->last_errno = 0;
+    q->running = 0;
+    q->wake_fd = eventfd(0, EFD_CLOEXEC);
+    if (q->wake_fd < 0) {
+        (void)snprintf(err, errlen, "eventfd: %s", strerror(errno));
+        return -1;
+    }
+    memset(&sp, 0, sizeof sp);
+    /* Explicit, ordinary scheduling: under --rt-prio or systemd's CPUSchedulingPolicy the
+     * writer must not inherit real-time priority and compete with the loop. */
+    rc = pthread_attr_init(&attr);
+    if (rc == 0) {
+        (void)pthread_attr_setstacksize(&attr, WRITER_STACK);
+        (void)pthread_attr_setinheritsched(&attr, PTHREAD_EXPLICIT_SCHED);
+        (void)pthread_attr_setschedpolicy(&attr, SCHED_OTHER);
+        (void)pthread_attr_setschedparam(&attr, &sp);
+        rc = pthread_create(&q->thread, &attr, writer_main, q);
+        (void)pthread_attr_destroy(&attr);
+    }
+    if (rc != 0) {
+        (void)snprintf(err, errlen, "cannot start an output thread: %s", strerror(rc));
+        (void)close(q->wake_fd);
+        q->wake_fd = -1;
+        return -1;
+    }
+    q->running = 1;
+    return 0;
+}
+
+int outq_put(outq_t *q, const char *line, size_t len)
+{
+    uint32_t head = q->head;
+    uint32_t tail = load_acq(&q->tail);
+    uint32_t used = head - tail;
+    uint32_t i;
+
+    if (!q->running || len == 0u || len > (size_t)(OUTQ_SIZE - used)) {
+        if (q->running && len > 0u) {
+            q->lines_full++;
+        }
+        return -1;
+    }
+    for (i = 0; i < (uint32_t)len; i++) {
+        q->ring[(head + i) & OUTQ_MASK] = line[i];
+    }
+    store_rel(&q->head, head + (uint32_t)len);
+    if (used == 0u) {
+        /* The writer may be asleep only when it saw the ring empty; an eventfd counts, so a
+         * wake-up sent before it sleeps is not lost. */
+        uint64_t one = 1u;
+        (void)write(q->wake_fd, &one, sizeof one);
+    }
+    return 0;
+}
+
+uint64_t outq_lost(const outq_t *q)
+{
+    return q->lines_full + __atomic_load_n(&q->lines_failed, __ATOMIC_RELAXED);
+}
+
+int outq_last_errno(const outq_t *q)
+{
+    return __atomic_load_n(&q->last_errno, __ATOMIC_RELAXED);
+}
+
+void outq_flush(outq_t *q, uint64_t max_us)
+{
+    uint64_t waited = 0u;
+    const struct timespec step = { 0, 1000000L }; /* 1 ms */
+
+    while (q->running && load_acq(&q->tail) != q->head && waited < max_us) {
+        (void)nanosleep(&step, NULL);
+        waited += 1000u;
+    }
+}

@@ -1,0 +1,66 @@
+"""``estop link``: how often would each timeout stop the car for nothing on this link?
+
+Reads a recording of the control link (estopd's ``--log-json`` log, a file of arrival times,
+or a pcap of the control port), fits a two-state Gilbert loss model at the known send rate and
+prints, for timeouts from 50 ms to 2 s, the gaps seen in the recording and the model's false
+stops per hour, and the shortest timeout that meets ``--target``. The analysis lives in
+:mod:`estop.linkstats` (imported only when the command runs: it needs numpy). Documentation:
+docs/LINK.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+
+from estop.cliutil import EXIT_OK, UsageError, non_negative_float, out, port, positive_float
+
+__all__ = ["DESCRIPTION", "EPILOG", "add_arguments", "run"]
+
+DESCRIPTION = ("Estimate the control link's loss and burst structure (two-state Gilbert model) "
+               "from estopd's --log-json log, a file of arrival times or a pcap of the control "
+               "port, and report false stops per hour for timeouts from 50 ms to 2 s.")
+EPILOG = ("A stop comes at the deadline: with send period T and timeout D it takes "
+          "n = ceil(D/T) - 1 packets lost in a row (50 Hz, 200 ms: 9). "
+          "Exit codes: 0 report written, 2 bad input or usage.")
+
+# --------------------------------------------------------------------------- CLI
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("file", metavar="FILE",
+                        help="estopd --log-json log, arrival times (s, one per line) or pcap")
+    parser.add_argument("--format", choices=("auto", "log", "times", "pcap"), default="auto",
+                        help="kind of FILE (default: recognised from its first bytes)")
+    parser.add_argument("--rate-hz", type=positive_float, default=50.0,
+                        help="the remote's send rate (default 50)")
+    parser.add_argument("--target", type=positive_float, default=0.01,
+                        help="false stops per hour to stay below (default 0.01)")
+    parser.add_argument("--port", type=port, default=5700,
+                        help="pcap: UDP control port (default 5700)")
+    parser.add_argument("--max-gap", type=non_negative_float, default=5.0, metavar="S",
+                        help="gaps of this many seconds or more are the sender pausing "
+                             "(finger lifted), left out of the fit (default 5; 0: none)")
+    parser.add_argument("--tail-from", type=int, default=None, metavar="K",
+                        help="fit the burst law to runs of at least K losses (default: the "
+                             "shortest runs that follow one geometric law; 1: every run)")
+    parser.add_argument("--json", action="store_true", help="print the report as JSON")
+    parser.add_argument("--plot", metavar="PATH",
+                        help="write a PNG: false stops per hour against timeout")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.max_gap and args.max_gap < 2.0:
+        raise UsageError("--max-gap must be 0 or at least 2 s (the longest timeout)")
+    from estop.linkstats import format_report, load, report, report_json, write_plot
+
+    gaps = load(args.file, args.format, args.rate_hz, args.max_gap, args.port)
+    rep = report(gaps, args.rate_hz, args.target, tail_from=args.tail_from)
+    if args.plot:
+        write_plot(rep, args.plot)
+    if args.json:
+        out(json.dumps(report_json(rep), indent=1))
+    else:
+        for line in format_report(rep):
+            out(line)
+    return EXIT_OK

@@ -287,7 +287,7 @@ def test_remote_with_a_key_end_to_end(unit: KeyedUnit, key_path: str, capsys) ->
     assert unit.requests[:2] == [(tcp.STATUS, False, 0, 48), (tcp.RELEASE, True, N, 48)]
     assert unit.requests[2] == (tcp.DEFAULT_STOP_ID, True, N, 48)
     time.sleep(0.1)
-    assert len(unit.packets) >= 15 and unit.rejected == 0  # every packet verified
+    assert len(unit.packets) >= 5 and unit.rejected == 0  # every packet verified
     assert {(rid, session) for rid, session, _, _ in unit.packets} == {(7, N)}
     counters = [c for _, _, c, _ in unit.packets]
     assert counters == sorted(counters) and len(set(counters)) == len(counters)

@@ -190,8 +190,9 @@ def test_remote_stop_after_a_daemon_restart(sink: UdpSink) -> None:
             assert outcome.acked and outcome.attempts == 2
             assert outcome.summary() == "ACK after 2 attempts"
             assert "closed the connection" in outcome.errors[0] or "failed" in outcome.errors[0]
-            reply = r.stop()  # and the fresh connection stays in use
-            assert reply.ack and r.stats.stop_datagrams == 3
+            again = r.press_stop()  # and the fresh connection stays in use
+            assert again.acked and (again.attempts, again.datagrams) == (1, 1)
+            assert r.stats.stop_datagrams == 3
         assert port.connections == 2
     finally:
         port.close()

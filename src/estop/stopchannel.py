@@ -364,10 +364,12 @@ def press_stop(channel: StopChannel, *, deadline: float = DEFAULT_STOP_DEADLINE,
     end = t0 + deadline
     attempts = 0
     errors: list[str] = []
+    sent_before = datagram.sent if datagram is not None else 0
 
     def outcome(reply: Reply | None) -> StopOutcome:
-        return StopOutcome(reply, attempts, datagram.sent if datagram else 0,
-                           time.monotonic() - t0, deadline, tuple(errors))
+        sent = datagram.sent - sent_before if datagram is not None else 0
+        return StopOutcome(reply, attempts, sent, time.monotonic() - t0, deadline,
+                           tuple(errors))
 
     while True:
         this_seq = channel.take_seq() if seq is None else seq

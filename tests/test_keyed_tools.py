@@ -13,7 +13,7 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -185,6 +185,14 @@ def key_path(tmp_path: Path) -> str:
     return str(p)
 
 
+def wait_until(cond: Callable[[], bool], timeout: float = 5.0) -> None:
+    """The unit's threads may lag on a busy machine: wait (bounded) for what must come."""
+    deadline = time.monotonic() + timeout
+    while not cond() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.05)
+
+
 def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
     code = cli.main(list(argv))
     cap = capsys.readouterr()
@@ -237,7 +245,7 @@ def test_stop_with_a_key(unit: KeyedUnit, key_path: str, capsys) -> None:
                            "--remote-id", "9")
     assert code == 0 and out.strip().endswith("(after 1 attempt)")
     assert unit.requests == [(tcp.DEFAULT_STOP_ID, False, 0, 48)]
-    time.sleep(0.1)
+    wait_until(lambda: bool(unit.stop_datagrams))
     assert len(unit.stop_datagrams) == 1
     ok, session, _ = unit.stop_datagrams[0]
     assert session == 0 and not ok  # the session is not known yet: a stop all the same
@@ -286,7 +294,7 @@ def test_remote_with_a_key_end_to_end(unit: KeyedUnit, key_path: str, capsys) ->
     # hold learned the session with a STATUS; the RELEASE was authenticated
     assert unit.requests[:2] == [(tcp.STATUS, False, 0, 48), (tcp.RELEASE, True, N, 48)]
     assert unit.requests[2] == (tcp.DEFAULT_STOP_ID, True, N, 48)
-    time.sleep(0.1)
+    wait_until(lambda: len(unit.packets) >= 5 and bool(unit.stop_datagrams))
     assert len(unit.packets) >= 5 and unit.rejected == 0  # every packet verified
     assert {(rid, session) for rid, session, _, _ in unit.packets} == {(7, N)}
     counters = [c for _, _, c, _ in unit.packets]
@@ -306,7 +314,7 @@ def test_remote_api_refuses_a_forged_reply(key_path: str) -> None:
             with pytest.raises(ReplyNotAuthentic):
                 r.hold()  # it cannot learn the session: it does not start sending
             assert not r.held and r.channel.session == 0
-        time.sleep(0.05)
+        time.sleep(0.1)
         assert u.packets == [] and u.rejected == 0
     finally:
         u.close()

@@ -52,18 +52,28 @@ def keyless() -> Iterator[Daemon]:
         yield d
 
 
-def brake_states(d: Daemon) -> list[tuple[int, int]]:
-    """(state, reason) of every ESTOP_BRAKE frame logged so far, repeats collapsed."""
+def brake_states(d: Daemon, until: tuple[int, int] | None = None,
+                 timeout: float = 5.0) -> list[tuple[int, int]]:
+    """(state, reason) of the ESTOP_BRAKE frames logged so far, repeats collapsed; with
+    ``until``, read on (at most ``timeout`` s: the log reader may lag) until that is the
+    latest."""
     out: list[tuple[int, int]] = []
+    deadline = time.monotonic() + timeout
     while True:
+        rec: canlog.CanLogRecord | None
         try:
-            rec: canlog.CanLogRecord = d.frames.get_nowait()
+            rec = d.frames.get(timeout=0.05)
         except queue.Empty:
-            return out
-        if rec.can_id == can.BRAKE_ID:
+            rec = None
+        if rec is not None and rec.can_id == can.BRAKE_ID:
             f = can.BrakeFrame.decode(rec.data)
             if not out or out[-1] != (f.state, f.reason):
                 out.append((f.state, f.reason))
+        caught_up = rec is None or d.frames.empty()
+        if caught_up and (until is None or (out and out[-1] == until)):
+            return out
+        if time.monotonic() > deadline:
+            return out
 
 
 def key_path_of(d: Daemon) -> str:
@@ -93,8 +103,7 @@ def test_keyed_remote_drives_and_stops(keyed: Daemon, key_path: str, capsys) -> 
         "expect stopped udp_timeout; hold 0.5; release; expect ack armed; stop; "
         "expect ack stopped tcp_stop; lift")
     assert code == 0, out + err
-    time.sleep(0.1)
-    assert brake_states(keyed) == [(0, 1), (1, 0), (0, 3), (1, 0), (0, 2)]
+    assert brake_states(keyed, (0, 2)) == [(0, 1), (1, 0), (0, 3), (1, 0), (0, 2)]
 
 
 def test_keyed_unit_refuses_the_plain_forms(keyed: Daemon, capsys) -> None:
@@ -127,8 +136,7 @@ def test_tools_with_another_key_are_refused_loudly(keyed: Daemon, tmp_path: Path
                                "--stop-deadline", "0.3")
         r.lift()
     assert code == 3 and "does NOT verify" in err
-    time.sleep(0.1)
-    assert brake_states(keyed)[-1] == (0, 2)
+    assert brake_states(keyed, (0, 2))[-1] == (0, 2)
 
 
 def test_stop_datagram_alone_stops_the_unit(keyed: Daemon, capsys) -> None:
@@ -143,8 +151,7 @@ def test_stop_datagram_alone_stops_the_unit(keyed: Daemon, capsys) -> None:
         status = r.status()
         r.lift()
     assert (status.state, status.reason) == (0, 2)
-    time.sleep(0.1)
-    assert brake_states(keyed) == [(0, 1), (1, 0), (0, 2)]
+    assert brake_states(keyed, (0, 2)) == [(0, 1), (1, 0), (0, 2)]
 
 
 def test_keyless_unit_with_the_plain_tools(keyless: Daemon, capsys) -> None:
@@ -154,8 +161,7 @@ def test_keyless_unit_with_the_plain_tools(keyless: Daemon, capsys) -> None:
         "hold 0.5; release; expect ack armed; stop; expect ack stopped tcp_stop; lift")
     assert code == 0, out
     assert "(after 1 attempt)" in out
-    time.sleep(0.1)
-    assert brake_states(keyless) == [(0, 1), (1, 0), (0, 2)]
+    assert brake_states(keyless, (0, 2)) == [(0, 1), (1, 0), (0, 2)]
 
 
 def test_stop_button_survives_a_daemon_restart(key_path: str, tmp_path: Path) -> None:

@@ -46,13 +46,12 @@ class UdpSink:
             time.sleep(0.005)
         return self.count >= n
 
-    def settle(self, quiet: float = 0.3) -> int:
-        """Wait until nothing arrived for ``quiet`` seconds; return the count."""
-        last = -1
-        while self.count != last:
-            last = self.count
-            time.sleep(quiet)
-        return last
+    def settle(self, expected: int, quiet: float = 0.2) -> int:
+        """Wait (up to 10 s) until ``expected`` datagrams are in, then ``quiet`` more seconds
+        for any that should not come; return the count."""
+        self.wait_for(expected, timeout=10.0)
+        time.sleep(quiet)
+        return self.count
 
     def close(self) -> None:
         self._stop.set()

@@ -220,6 +220,10 @@ def test_stop_sends_the_spec_frame_and_prints_ack(unit: FakeUnit, capsys) -> Non
     assert code == 0 and err == ""
     assert unit.raw_requests == [bytes.fromhex("70E570E5010000000000000" "0DC09BF43")]
     assert out.strip() == "ACK seq=1 state=STOPPED reason=boot flags=0x00 (after 1 attempt)"
+    deadline = time.monotonic() + 5  # the fake unit's UDP thread may lag on a busy machine
+    while not unit.stop_datagrams and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.05)
     assert len(unit.stop_datagrams) == 1
 
 
@@ -276,13 +280,16 @@ def test_broken_replies_exit_3(mode: str, message: str, kind: str, capsys) -> No
         t0 = time.monotonic()
         code, out, err = run_cli(capsys, *argv)
         assert time.monotonic() - t0 < 3
+        deadline = time.monotonic() + 5  # the fake unit's UDP thread may lag
+        while kind == "stop" and not u.stop_datagrams and time.monotonic() < deadline:
+            time.sleep(0.01)
     finally:
         u.close()
     assert code == 3 and out == ""
     line = one_error_line(err)
     assert message in line
     if kind == "stop":  # the stop button tried again until its deadline
-        assert "no ACK within 0.5 s: " in line and len(u.stop_datagrams) >= 1
+        assert "no ACK within 0.5 s: " in line and u.stop_datagrams
         assert len(u.requests) >= (1 if mode == "silent" else 2)
 
 
@@ -562,6 +569,9 @@ def test_remote_tcp_refused_exit_3(unit: FakeUnit, capsys) -> None:
                            "--script", "hold 0.1; stop")
     line = one_error_line(err)
     assert code == 3 and "cannot connect" in line and "no ACK within 0.5 s" in line
+    deadline = time.monotonic() + 5
+    while not unit.stop_datagrams and time.monotonic() < deadline:
+        time.sleep(0.01)
     assert unit.stop_datagrams  # the stop datagram went out all the same
 
 

@@ -53,7 +53,7 @@ def test_lift_stops_heartbeats_at_once_when_the_sender_falls_behind(sink: UdpSin
         at_lift = r.stats.delivered
         time.sleep(0.3)
         assert r.stats.delivered == at_lift
-        assert sink.settle() == at_lift
+        assert sink.settle(at_lift) == at_lift
 
 
 def test_lift_at_the_highest_rate_many_times(sink: UdpSink) -> None:
@@ -64,7 +64,7 @@ def test_lift_at_the_highest_rate_many_times(sink: UdpSink) -> None:
             assert sink.wait_for(before + 5)
             assert lift_within(r, 3.0)
             at_lift = r.stats.delivered
-            assert sink.settle(0.1) == at_lift  # not one datagram after lift() returned
+            assert sink.settle(at_lift, 0.1) == at_lift  # not one datagram after lift() returned
             assert r.stats.sent == r.stats.delivered == at_lift
 
 
@@ -79,7 +79,7 @@ def test_packets_in_flight_may_still_arrive_after_lift(sink: UdpSink) -> None:
         assert lift_within(r, 3.0)
         sent = r.stats.sent
         assert sent > 0
-    assert sink.settle(0.3) == sent  # close() flushed the packets in flight, no new ones
+    assert sink.settle(sent) == sent  # close() flushed the packets in flight, no new ones
 
 
 # ------------------------------------------------------------------------------- rates
@@ -131,4 +131,4 @@ def test_cli_max_rate_script_ends_cleanly(sink: UdpSink,
     assert code == 0
     assert time.monotonic() - t0 < 10
     sent = int(out.splitlines()[-1].split()[1])
-    assert sink.settle(0.2) == sent
+    assert sink.settle(sent) == sent

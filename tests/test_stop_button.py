@@ -7,6 +7,7 @@ TCP servers on threads close the first connection, never answer, or NAK.
 
 from __future__ import annotations
 
+import re
 import socket
 import struct
 import threading
@@ -49,12 +50,12 @@ def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, s
 def check_stop_datagrams(datagrams: list[bytes], *, seqs: list[int] | None = None,
                          stop_id: int = tcp.DEFAULT_STOP_ID) -> None:
     """Each is a keyless stop datagram: a 48-byte request frame, msg_id the stop ID, session
-    0, tag 16 zero bytes; counters rise."""
+    0, remote id 1 (the default), tag 16 zero bytes; counters rise."""
     counters = []
     for i, data in enumerate(datagrams):
         assert len(data) == 48 and data[:4] == b"ESQ2"
         msg_id, seq, remote_id, session, counter = struct.unpack("<IIIQQ", data[4:32])
-        assert msg_id == stop_id and session == 0 and remote_id == 0
+        assert msg_id == stop_id and session == 0 and remote_id == 1
         assert data[32:] == bytes(16)
         if seqs is not None:
             assert seq == seqs[i]
@@ -126,18 +127,19 @@ def test_stop_without_any_answer_reaches_its_deadline(sink: UdpSink,
                                  "--udp-port", str(sink.port), "--timeout", "0.4",
                                  "--stop-deadline", "1")
         took = time.monotonic() - t0
-        tries = port.connections
     finally:
         port.close()
     assert code == 3 and out == ""
     lines = err.splitlines()
     assert len(lines) == 1 and "Traceback" not in err
-    assert lines[0].startswith("estop: error: no ACK within 1 s: ")
-    assert f": {tries} attempts failed (last: no reply from {LOCAL}:" in lines[0]
+    m = re.fullmatch(r"estop: error: no ACK within 1 s: (\d+) attempts failed \(last: no reply "
+                     rf"from {LOCAL}:\d+ within [0-9.]+ s\)", lines[0])
+    assert m is not None, lines[0]
+    tries = int(m.group(1))
     assert tries >= 2 and 1.0 <= took < 5.0
-    assert sink.wait_for(tries)
+    assert 2 <= port.connections <= tries
+    assert sink.settle(tries) == tries  # one with the first press and one with each retry
     check_stop_datagrams(sink.datagrams)
-    assert len(sink.datagrams) == tries  # one with the first press and one with each retry
 
 
 def test_stop_refused_tries_until_the_deadline(sink: UdpSink,
@@ -148,7 +150,7 @@ def test_stop_refused_tries_until_the_deadline(sink: UdpSink,
     assert code == 3 and time.monotonic() - t0 >= 0.6
     line = err.strip()
     assert "\n" not in line and "no ACK within 0.6 s: " in line and "cannot connect" in line
-    assert sink.wait_for(3)  # refusals are quick: several tries, a datagram with each
+    assert sink.wait_for(2)  # refusals are quick: several tries, a datagram with each
     check_stop_datagrams(sink.datagrams)
 
 
@@ -188,8 +190,9 @@ def test_remote_stop_after_a_daemon_restart(sink: UdpSink) -> None:
             assert outcome.acked and outcome.attempts == 2
             assert outcome.summary() == "ACK after 2 attempts"
             assert "closed the connection" in outcome.errors[0] or "failed" in outcome.errors[0]
-            reply = r.stop()  # and the fresh connection stays in use
-            assert reply.ack and r.stats.stop_datagrams == 3
+            again = r.press_stop()  # and the fresh connection stays in use
+            assert again.acked and (again.attempts, again.datagrams) == (1, 1)
+            assert r.stats.stop_datagrams == 3
         assert port.connections == 2
     finally:
         port.close()

@@ -17,6 +17,7 @@ __all__ = [
     "ConnectionFailure",
     "ErrorOnlyParser",
     "UsageError",
+    "add_key_arguments",
     "err",
     "non_negative_float",
     "out",
@@ -65,6 +66,19 @@ class ErrorOnlyParser(argparse.ArgumentParser):
         prog = self.prog.split()[0] if self.prog else "estop"
         err(f"{prog}: error: {message}")
         raise SystemExit(EXIT_USAGE)
+
+
+def add_key_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--key-file`` and ``--remote-id`` (spec section 5), for the tools that talk to a unit."""
+    from estop.stopchannel import DEFAULT_REMOTE_ID
+
+    parser.add_argument("--key-file", metavar="PATH",
+                        help="the unit's key (64 hex digits, mode 0600; estop keygen makes "
+                             "one): authenticated 60-byte packets and 48-byte requests, and "
+                             "every reply must verify. Without it: the plain forms")
+    parser.add_argument("--remote-id", type=parse_u32, default=DEFAULT_REMOTE_ID, metavar="N",
+                        help=f"this remote's id among those sharing the key "
+                             f"(default {DEFAULT_REMOTE_ID})")
 
 
 def parse_u32(text: str) -> int:

@@ -15,7 +15,7 @@ import os
 import secrets
 import stat
 
-from estop.cliutil import CliError, out
+from estop.cliutil import CliError, UsageError, out
 from estop.protocol.auth import KEY_SIZE, KeyTextError, check_key, format_key, parse_key
 
 __all__ = [
@@ -23,6 +23,7 @@ __all__ = [
     "EPILOG",
     "KeyFileError",
     "add_arguments",
+    "key_from_args",
     "load_key_file",
     "new_key",
     "run",
@@ -115,6 +116,17 @@ def write_key_file(path: str | os.PathLike[str], key: bytes | None = None) -> by
         raise KeyFileError(f"cannot write {name}: {exc.strerror or exc}") from None
     os.close(fd)
     return raw
+
+
+def key_from_args(args: argparse.Namespace) -> bytes | None:
+    """The key of ``--key-file`` (None without one); a bad key file is a usage error."""
+    path: str | None = getattr(args, "key_file", None)
+    if path is None:
+        return None
+    try:
+        return load_key_file(path)
+    except KeyFileError as exc:
+        raise UsageError(f"--key-file: {exc}") from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

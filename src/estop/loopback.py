@@ -103,8 +103,8 @@ class Daemon:
 
     ``command`` is the program (and any leading arguments, e.g. ``[python, baseline.py]``).
     Every can-log line arrives as a :class:`canlog.CanLogRecord` on :attr:`frames`; stderr
-    lines are
-        kept in :attr:`log_lines`. Use as a context manager: the process is always ended.
+    lines are kept in :attr:`log_lines`. Use as a context manager: the process is always
+    ended. The unit has the key in ``key_file``, or none (``--no-auth``).
     """
 
     def __init__(self, command: Sequence[str], *, timeout_ms: int = 200,

@@ -12,6 +12,10 @@ Opens a connection, sends one frame, prints the decoded reply and exits with:
 section 1; it needs no handshake), then STOP over TCP, and tries both again, each time on a
 fresh connection, until the unit answers or ``--stop-deadline`` (default 3 s) passes. The
 reply line says how many tries it took (``... (after 2 attempts)``).
+
+With ``--key-file`` (spec section 5) requests are 48-byte frames and every reply must verify
+under the key, else exit 3 (``does NOT verify``); ``release`` first asks STATUS on the same
+connection to learn the unit's session.
 """
 
 from __future__ import annotations
@@ -25,14 +29,18 @@ from estop.cliutil import (
     EXIT_NAK,
     ConnectionFailure,
     UsageError,
+    add_key_arguments,
     out,
     parse_u32,
     port,
     positive_float,
 )
+from estop.keyfile import key_from_args
 from estop.protocol import tcp, udp
 from estop.stopchannel import (
+    DEFAULT_REMOTE_ID,
     DEFAULT_STOP_DEADLINE,
+    MessageCounter,
     StopChannel,
     StopChannelError,
     StopDatagram,
@@ -72,29 +80,41 @@ def add_arguments(parser: argparse.ArgumentParser, kind: str = "") -> None:
                             help="try again (fresh connection, another stop datagram) until "
                                  f"the unit answers or S seconds pass "
                                  f"(default {DEFAULT_STOP_DEADLINE:g})")
+    add_key_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print the reply as one JSON line")
 
 
 def send_once(kind: str, host: str, port: int = tcp.DEFAULT_PORT, *, seq: int = 1,
-              stop_id: int = tcp.DEFAULT_STOP_ID, timeout: float = 2.0) -> tcp.Reply:
+              stop_id: int = tcp.DEFAULT_STOP_ID, timeout: float = 2.0,
+              key: bytes | None = None, remote_id: int = DEFAULT_REMOTE_ID) -> tcp.Reply:
     """Send one ``stop``/``release``/``status`` request on a fresh connection; return the reply.
 
-    Raises :class:`estop.stopchannel.StopChannelError` on connection/timeout/reply errors.
+    With ``key`` the request is a 48-byte frame and the reply must verify; a RELEASE is then
+    preceded by a STATUS on the same connection, to learn the unit's session (a RELEASE with
+    another session is not authenticated). Raises
+    :class:`estop.stopchannel.StopChannelError` on connection/timeout/reply errors.
     """
     msg_id = {"stop": stop_id, "release": tcp.RELEASE, "status": tcp.STATUS}[kind]
-    with StopChannel(host, port, timeout=timeout, stop_id=stop_id) as channel:
+    with StopChannel(host, port, timeout=timeout, stop_id=stop_id, key=key,
+                     remote_id=remote_id) as channel:
+        if key is not None and kind == "release":
+            channel.request(tcp.STATUS, seq)
         return channel.request(msg_id, seq)
 
 
 def stop_once(host: str, port: int = tcp.DEFAULT_PORT, udp_port: int = udp.DEFAULT_PORT, *,
               seq: int = 1, stop_id: int = tcp.DEFAULT_STOP_ID, timeout: float = 2.0,
-              deadline: float = DEFAULT_STOP_DEADLINE) -> StopOutcome:
+              deadline: float = DEFAULT_STOP_DEADLINE, key: bytes | None = None,
+              remote_id: int = DEFAULT_REMOTE_ID) -> StopOutcome:
     """Press the stop button once (see :func:`estop.stopchannel.press_stop`): stop datagrams
     to ``udp_port`` and STOP with ``seq`` on fresh connections until an answer or
-    ``deadline``."""
-    datagram = StopDatagram(host, udp_port, stop_id=stop_id)
-    with contextlib.closing(datagram), StopChannel(host, port, timeout=timeout,
-                                                    stop_id=stop_id) as channel:
+    ``deadline`` (with ``key``: 48-byte frames, replies that must verify)."""
+    counter = MessageCounter()
+    channel = StopChannel(host, port, timeout=timeout, stop_id=stop_id, key=key,
+                          remote_id=remote_id, counter=counter)
+    datagram = StopDatagram(host, udp_port, stop_id=stop_id, key=key, remote_id=remote_id,
+                            counter=counter, session=lambda: channel.session)
+    with contextlib.closing(datagram), channel:
         return press_stop(channel, deadline=deadline, seq=seq, datagram=datagram)
 
 
@@ -104,11 +124,12 @@ def run(args: argparse.Namespace) -> int:
         tcp.check_stop_id(args.stop_id)
     except ValueError as exc:
         raise UsageError(f"--stop-id: {exc}") from None
+    key = key_from_args(args)
     if kind == "stop":
-        return _run_stop(args)
+        return _run_stop(args, key)
     try:
         reply = send_once(kind, args.host, args.port, seq=args.seq, stop_id=args.stop_id,
-                          timeout=args.timeout)
+                          timeout=args.timeout, key=key, remote_id=args.remote_id)
     except StopChannelError as exc:
         raise ConnectionFailure(str(exc)) from None
     if args.json:
@@ -118,10 +139,10 @@ def run(args: argparse.Namespace) -> int:
     return EXIT_ACK if reply.ack else EXIT_NAK
 
 
-def _run_stop(args: argparse.Namespace) -> int:
+def _run_stop(args: argparse.Namespace, key: bytes | None) -> int:
     outcome = stop_once(args.host, args.port, args.udp_port, seq=args.seq,
                         stop_id=args.stop_id, timeout=args.timeout,
-                        deadline=args.stop_deadline)
+                        deadline=args.stop_deadline, key=key, remote_id=args.remote_id)
     reply = outcome.reply
     if reply is None:
         raise ConnectionFailure(outcome.summary())

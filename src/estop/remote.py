@@ -6,6 +6,12 @@ button, RELEASE and STATUS go over the TCP stop channel, one connection kept ope
 button also sends a stop datagram to the UDP port at once, and keeps trying (a fresh
 connection and another datagram each time) until the unit answers or ``stop_deadline``
 (default 3 s) passes.
+
+With a key (``--key-file``, spec section 5) the packets are the 60-byte authenticated form and
+the requests 48-byte frames whose replies must verify; the remote learns the unit's session
+from replies (``hold`` asks STATUS first when it does not know it yet) and raises one counter
+with every message it sends.
+
 An optional :class:`estop.linkmodel.LinkModel` makes the UDP link lossy and slow like Wi-Fi;
 its one-way delay (not its loss) is also applied to each TCP request and its reply.
 
@@ -39,7 +45,8 @@ lines, ``#`` starts a comment. Times are seconds.
 ``status``            TCP STATUS, print the reply
 ``expect W...``       the last reply must match every word: ack, nak, stopped, armed, a reason
                       (none, boot, tcp_stop, udp_timeout, fault), a NAK reason (unknown_msg_id,
-                      no_live_link, not_neutral) or link_degraded / link_ok; else exit 1
+                      no_live_link, not_neutral, not_authenticated) or link_degraded /
+                      link_ok; else exit 1
 ====================  ========================================================================
 
 Example: ``hold 1.0; release; expect ack armed; drive 0.3 2.0; lift; wait 0.5; status;
@@ -73,19 +80,24 @@ from estop.cliutil import (
     EXIT_PROBLEM,
     ConnectionFailure,
     UsageError,
+    add_key_arguments,
     non_negative_float,
     out,
     parse_u32,
     port,
     positive_float,
 )
+from estop.keyfile import key_from_args
 from estop.linkmodel import IDEAL, WIFI, LinkConfig, LinkModel
 from estop.protocol import tcp, udp
+from estop.protocol.auth import AuthControlPacket
 from estop.protocol.can import REASON_NAMES, STATE_NAMES
 from estop.protocol.tcp import Reply
 from estop.protocol.udp import ControlPacket, Gear, TurnSignal
 from estop.stopchannel import (
+    DEFAULT_REMOTE_ID,
     DEFAULT_STOP_DEADLINE,
+    MessageCounter,
     StopChannel,
     StopChannelError,
     StopDatagram,
@@ -137,7 +149,7 @@ script (--script TEXT or --script-file FILE): commands separated by ';' or new l
   release | status             TCP request, prints the reply
   expect W...     the last reply must match every word (ack nak stopped armed none boot
                   tcp_stop udp_timeout fault unknown_msg_id no_live_link not_neutral
-                  link_degraded link_ok), else exit 1
+                  not_authenticated link_degraded link_ok), else exit 1
 example: --script "hold 1.0; release; expect ack armed; drive 0.3 2.0; lift; wait 0.5;
   status; expect stopped udp_timeout; stop"
 
@@ -207,17 +219,26 @@ class Remote:
                  link: LinkConfig = IDEAL, seed: int | None = None,
                  stop_id: int = tcp.DEFAULT_STOP_ID, tcp_timeout: float = 2.0,
                  stop_deadline: float = DEFAULT_STOP_DEADLINE, legacy: bool = False,
-                 on_packet: PacketHook | None = None) -> None:
+                 on_packet: PacketHook | None = None, key: bytes | None = None,
+                 remote_id: int = DEFAULT_REMOTE_ID) -> None:
         self._period = 1.0 / check_rate(rate_hz)
         if not stop_deadline > 0 or not math.isfinite(stop_deadline):
             raise ValueError(f"stop deadline must be > 0 s, got {stop_deadline!r}")
         self.stop_deadline = stop_deadline
+        if key is not None and legacy:
+            raise ValueError("with a key the remote sends 60-byte packets, not the 16-byte form")
+        self.key = key
+        self.remote_id = remote_id
+        self.counter = MessageCounter()  # one counter for all its messages: each channel rises
         self.addr = (host, udp_port)
         self.legacy = legacy
         self.on_packet = on_packet
         self.link = LinkModel(link, seed)
-        self.channel = StopChannel(host, tcp_port, timeout=tcp_timeout, stop_id=stop_id)
-        self.datagram = StopDatagram(host, udp_port, stop_id=stop_id,
+        self.channel = StopChannel(host, tcp_port, timeout=tcp_timeout, stop_id=stop_id,
+                                   key=key, remote_id=remote_id, counter=self.counter)
+        self.datagram = StopDatagram(host, udp_port, stop_id=stop_id, key=key,
+                                     remote_id=remote_id, counter=self.counter,
+                                     session=lambda: self.channel.session,
                                      transmit=self._send_datagram)
         self.stats = RemoteStats()
         self._control = ControlPacket()
@@ -280,7 +301,12 @@ class Remote:
             self._cond.notify_all()
 
     def hold(self) -> None:
-        """Finger down: send a packet now and then one every period."""
+        """Finger down: send a packet now and then one every period. With a key and the
+        unit's session not known yet, ask STATUS first to learn it (a packet with another
+        session keeps nothing alive); that may raise
+        :class:`~estop.stopchannel.StopChannelError`."""
+        if self.key is not None and not self.channel.session and not self._held:
+            self.status()
         with self._cond:
             if not self._held:
                 self._held = True
@@ -377,7 +403,11 @@ class Remote:
                 self._cond.wait(min(0.5, max(_MIN_WAIT, timeout)))
 
     def _send_one(self, now: float) -> None:
-        data = self._control.encode(legacy=self.legacy)
+        if self.key is None:
+            data = self._control.encode(legacy=self.legacy)
+        else:
+            data = AuthControlPacket(self.remote_id, self.channel.session, self.counter.next(),
+                                     self._control).encode(self.key)
         self.stats.sent += 1
         t_deliver = self._transmit(now, data, True)
         if t_deliver is None:
@@ -663,7 +693,13 @@ def handle_key(remote: Remote, key: str) -> str | None:
     if key in ("q", "\x03", "\x04"):
         return "quit"
     if key == " ":
-        remote.lift() if remote.held else remote.hold()
+        if remote.held:
+            remote.lift()
+        else:
+            try:
+                remote.hold()
+            except StopChannelError as exc:  # with a key: the session could not be learned
+                return f"hold -> error: {exc}"
     elif key == "s":
         return f"stop -> {remote.press_stop().line()}"
     elif key in ("r", "t"):
@@ -744,7 +780,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         f"another stop datagram) until an ACK or S seconds "
                         f"(default {DEFAULT_STOP_DEADLINE:g})")
     parser.add_argument("--legacy", action="store_true",
-                        help="send the older 16-byte packets (no horn)")
+                        help="send the older 16-byte packets (no horn; not with a key)")
+    add_key_arguments(parser)
     script = parser.add_mutually_exclusive_group()
     script.add_argument("--script", metavar="TEXT", help="run this script instead of keys")
     script.add_argument("--script-file", metavar="FILE", help="run the script in FILE")
@@ -795,10 +832,14 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"script: {exc}") from None
     elif not sys.stdin.isatty():
         raise UsageError("interactive mode needs a terminal; use --script or --script-file")
+    key = key_from_args(args)
+    if key is not None and args.legacy:
+        raise UsageError("--legacy: with --key-file the remote sends 60-byte packets")
     try:
         remote = Remote(args.host, args.udp_port, args.tcp_port, rate_hz=args.rate, link=cfg,
                         seed=args.seed, stop_id=args.stop_id, tcp_timeout=args.timeout,
-                        stop_deadline=args.stop_deadline, legacy=args.legacy)
+                        stop_deadline=args.stop_deadline, legacy=args.legacy, key=key,
+                        remote_id=args.remote_id)
     except OSError as exc:
         raise ConnectionFailure(f"cannot open a UDP socket: {exc}") from None
     code = EXIT_OK

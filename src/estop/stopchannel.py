@@ -18,8 +18,10 @@ from estop.protocol.can import flag_names, reason_name, state_name
 from estop.protocol.tcp import FrameAssembler, Reply, Request
 
 __all__ = [
+    "DEFAULT_REMOTE_ID",
     "DEFAULT_STOP_DEADLINE",
     "MessageCounter",
+    "ReplyNotAuthentic",
     "StopChannel",
     "StopChannelError",
     "StopDatagram",
@@ -30,11 +32,17 @@ __all__ = [
 ]
 
 DEFAULT_STOP_DEADLINE = 3.0  # seconds a stop press keeps trying for an ACK
+DEFAULT_REMOTE_ID = 1  # a remote's id (spec section 5) unless told otherwise
 _RETRY_GAPS = (0.05, 0.1, 0.2, 0.25)  # pause after the 1st, 2nd, 3rd, later failed attempts
 
 
 class StopChannelError(OSError):
     """Connecting, sending or receiving failed, or the reply was malformed. One-line ``str``."""
+
+
+class ReplyNotAuthentic(StopChannelError):
+    """A reply whose tag does not verify under the key: forged, replayed, or from a unit with
+    another key (or none). Nothing in it may be believed."""
 
 
 def format_reply(reply: Reply) -> str:
@@ -71,17 +79,33 @@ class StopChannel:
 
     ``request()`` sends one frame and waits (at most ``timeout`` seconds) for the reply that
     echoes its seq. Any failure closes the connection and raises :class:`StopChannelError`.
+
+    Plain 16-byte frames, or, with ``key`` (or ``framed=True`` without one: zero tags), the
+    48-byte request frames of spec section 5.2, answered by 48-byte replies. With a key each
+    reply must verify against its request (else :class:`ReplyNotAuthentic`) and echo its
+    seq and counter; every reply teaches :attr:`session`, the unit's session, which later
+    requests carry (0 until known). ``counter`` is shared with the remote's other messages.
     """
 
     def __init__(self, host: str, port: int = tcp.DEFAULT_PORT, *, timeout: float = 2.0,
-                 stop_id: int = tcp.DEFAULT_STOP_ID, first_seq: int = 1) -> None:
+                 stop_id: int = tcp.DEFAULT_STOP_ID, first_seq: int = 1,
+                 key: bytes | None = None, framed: bool | None = None,
+                 remote_id: int = DEFAULT_REMOTE_ID,
+                 counter: MessageCounter | None = None) -> None:
         self.host = host
         self.port = port
         self.timeout = timeout
         self.stop_id = tcp.check_stop_id(stop_id)
+        self.key = None if key is None else auth.check_key(key)
+        self.framed = key is not None if framed is None else framed
+        if self.key is not None and not self.framed:
+            raise ValueError("with a key, requests must be 48-byte frames")
+        self.remote_id = remote_id
+        self.counter = counter or MessageCounter()
+        self.session = 0  # the unit's session as last seen in a reply (0: not known yet)
         self._seq = first_seq & 0xFFFFFFFF
         self._sock: socket.socket | None = None
-        self._asm = FrameAssembler()
+        self._asm = FrameAssembler(auth.REPLY_SIZE if self.framed else tcp.FRAME_SIZE)
         self._lock = threading.Lock()
 
     @property
@@ -153,12 +177,19 @@ class StopChannel:
             if seq is None:
                 seq = self._seq
             self._seq = (seq + 1) & 0xFFFFFFFF
-            frame = Request(msg_id, seq).encode()
+            if self.framed:
+                req = auth.AuthRequest(msg_id, seq, self.remote_id, self.session,
+                                       self.counter.next())
+                frame = req.encode(self.key)
+                sent: auth.AuthRequest | None = req
+            else:
+                frame = Request(msg_id, seq).encode()
+                sent = None
             wait = self.timeout if timeout is None else timeout
             try:
                 sock = self._connect(wait)
                 sock.sendall(frame)
-                return self._await_reply(sock, seq, wait)
+                return self._await_reply(sock, seq, wait, frame, sent)
             except StopChannelError:
                 self._close()
                 raise
@@ -171,7 +202,8 @@ class StopChannel:
                 raise StopChannelError(f"connection to {self.host}:{self.port} failed: "
                                        f"{exc.strerror or exc}") from None
 
-    def _await_reply(self, sock: socket.socket, seq: int, timeout: float) -> Reply:
+    def _await_reply(self, sock: socket.socket, seq: int, timeout: float, frame: bytes,
+                     sent: auth.AuthRequest | None) -> Reply:
         deadline = time.monotonic() + timeout
         while True:
             left = deadline - time.monotonic()
@@ -182,16 +214,36 @@ class StopChannel:
             if not chunk:
                 raise StopChannelError(f"{self.host}:{self.port} closed the connection "
                                        f"before replying")
-            for frame in self._asm.feed(chunk):
-                try:
-                    reply = Reply.decode(frame)
-                except tcp.FrameError as exc:
-                    raise StopChannelError(f"bad reply from {self.host}:{self.port}: "
-                                           f"{exc}") from None
+            for raw in self._asm.feed(chunk):
+                if sent is None:
+                    reply = self._decode_plain(raw)
+                else:
+                    reply = self._decode_framed(raw, frame, sent)
                 if reply.seq != seq:
                     raise StopChannelError(f"reply seq {reply.seq} does not match request "
                                            f"seq {seq}")
                 return reply
+
+    def _decode_plain(self, raw: bytes) -> Reply:
+        try:
+            return Reply.decode(raw)
+        except tcp.FrameError as exc:
+            raise StopChannelError(f"bad reply from {self.host}:{self.port}: {exc}") from None
+
+    def _decode_framed(self, raw: bytes, frame: bytes, sent: auth.AuthRequest) -> Reply:
+        try:
+            got = auth.AuthReply.decode(raw, self.key, auth.request_tag(frame))
+        except auth.TagMismatch:
+            raise ReplyNotAuthentic(
+                f"reply from {self.host}:{self.port} does NOT verify under the key (forged, "
+                f"replayed, or a unit with another key or none): ignored") from None
+        except tcp.FrameError as exc:
+            raise StopChannelError(f"bad reply from {self.host}:{self.port}: {exc}") from None
+        if got.counter != sent.counter:
+            raise StopChannelError(f"reply counter {got.counter} does not match request "
+                                   f"counter {sent.counter}")
+        self.session = got.session
+        return got.reply
 
 
 # ----------------------------------------------------------------------- the stop button
@@ -312,10 +364,12 @@ def press_stop(channel: StopChannel, *, deadline: float = DEFAULT_STOP_DEADLINE,
     end = t0 + deadline
     attempts = 0
     errors: list[str] = []
+    sent_before = datagram.sent if datagram is not None else 0
 
     def outcome(reply: Reply | None) -> StopOutcome:
-        return StopOutcome(reply, attempts, datagram.sent if datagram else 0,
-                           time.monotonic() - t0, deadline, tuple(errors))
+        sent = datagram.sent - sent_before if datagram is not None else 0
+        return StopOutcome(reply, attempts, sent, time.monotonic() - t0, deadline,
+                           tuple(errors))
 
     while True:
         this_seq = channel.take_seq() if seq is None else seq

@@ -1,0 +1,320 @@
+"""The tools with a key (``--key-file``, spec section 5) against a small keyed unit on loopback.
+
+The unit here checks and makes tags with hashlib and struct directly (not with
+estop.protocol.auth), so the tools' use of the codecs is checked independently: their packets
+and requests must verify, and replies that do not verify must be refused loudly.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import socket
+import struct
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pytest
+
+from estop import cli
+from estop.protocol import tcp, udp
+from estop.protocol.udp import Gear
+from estop.remote import Remote
+from estop.stopchannel import ReplyNotAuthentic
+from net_util import LOCAL
+
+pytestmark = pytest.mark.timeout(60)
+
+K = bytes(range(100, 132))
+N = 0x1122334455667788  # the unit's session
+
+
+def blake(data: bytes, key: bytes = K) -> bytes:
+    return hashlib.blake2s(data, key=key, digest_size=16).digest()
+
+
+@dataclass
+class KeyedUnit:
+    """UDP and TCP ports of a unit with key K and session N. ``mode``: ``normal``, ``forge``
+    (reply tags are wrong), ``keyless`` (reply tags are zero, as from a unit without a key).
+    It keeps what it authenticated: ``packets`` (60-byte control packets, decoded fields),
+    ``stop_datagrams``, ``requests`` (msg_id, authenticated, session, frame length)."""
+
+    mode: str = "normal"
+    packets: list[tuple[int, int, int, bytes]] = field(default_factory=list)
+    rejected: int = 0
+    stop_datagrams: list[tuple[bool, int, int]] = field(default_factory=list)
+    requests: list[tuple[int, bool, int, int]] = field(default_factory=list)
+    state: int = 0
+    reason: int = 1
+
+    def __post_init__(self) -> None:
+        self.high: dict[tuple[int, str], int] = {}
+        self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.udp.bind((LOCAL, 0))
+        self.udp.settimeout(0.02)
+        self.tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.tcp.bind((LOCAL, 0))
+        self.tcp.listen(8)
+        self.tcp.settimeout(0.02)
+        self.udp_port = self.udp.getsockname()[1]
+        self.tcp_port = self.tcp.getsockname()[1]
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._udp_loop, daemon=True),
+                         threading.Thread(target=self._tcp_loop, daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=5)
+        self.udp.close()
+        self.tcp.close()
+
+    def _authentic(self, signed: bytes, tag: bytes, rid: int, session: int, counter: int,
+                   channel: str) -> bool:
+        if not hmac.compare_digest(blake(signed), tag) or session != N:
+            return False
+        if counter <= self.high.get((rid, channel), 0):
+            return False
+        self.high[(rid, channel)] = counter
+        return True
+
+    def _udp_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                data = self.udp.recv(2048)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            if len(data) == 60 and data[:4] == b"ESU2":
+                rid, session, counter = struct.unpack("<IQQ", data[4:24])
+                if self._authentic(data[:44], data[44:], rid, session, counter, "udp") and \
+                        udp.is_valid(data[24:44]):
+                    self.packets.append((rid, session, counter, data[24:44]))
+                else:
+                    self.rejected += 1
+            elif len(data) == 48 and data[:4] == b"ESQ2":
+                msg_id, _seq, rid, session, counter = struct.unpack("<IIIQQ", data[4:32])
+                if msg_id == tcp.DEFAULT_STOP_ID:  # anyone may stop
+                    ok = hmac.compare_digest(blake(data[:32]), data[32:]) and session == N
+                    self.stop_datagrams.append((ok, session, counter))
+                    self.state, self.reason = 0, 2 if self.state == 1 else self.reason
+            else:
+                self.rejected += 1
+
+    def _tcp_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                conn, _ = self.tcp.accept()
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            th = threading.Thread(target=self._serve, args=(conn,), daemon=True)
+            self._threads.append(th)
+            th.start()
+
+    def _serve(self, conn: socket.socket) -> None:
+        asm = tcp.RequestAssembler()
+        conn.settimeout(0.02)
+        with conn:
+            while not self._stop.is_set():
+                try:
+                    chunk = conn.recv(4096)
+                except TimeoutError:
+                    continue
+                except OSError:
+                    return
+                if not chunk:
+                    return
+                for frame in asm.feed(chunk):
+                    conn.sendall(self._answer(frame))
+
+    def _answer(self, frame: bytes) -> bytes:
+        if len(frame) == 16:
+            req = tcp.Request.decode(frame)
+            self.requests.append((req.msg_id, False, 0, 16))
+            ack, nak = self._decide(req.msg_id, authenticated=False)
+            return tcp.Reply(ack, req.seq, self.state, self.reason, 0, nak).encode()
+        msg_id, seq, rid, session, counter = struct.unpack("<IIIQQ", frame[4:32])
+        ok = self._authentic(frame[:32], frame[32:], rid, session, counter, "tcp")
+        self.requests.append((msg_id, ok, session, 48))
+        ack, nak = self._decide(msg_id, authenticated=ok)
+        body = b"ESR2" + struct.pack("<IIBBBBQQ", 0x80 if ack else 0x81, seq, self.state,
+                                     self.reason, 0, nak, N, counter)
+        if self.mode == "keyless":
+            return body + bytes(16)
+        tag = blake(frame[32:] + body)
+        if self.mode == "forge":
+            tag = bytes(b ^ 0x55 for b in tag)
+        return body + tag
+
+    def _decide(self, msg_id: int, authenticated: bool) -> tuple[bool, int]:
+        if msg_id == tcp.DEFAULT_STOP_ID:
+            if self.state == 1:
+                self.state, self.reason = 0, 2
+            return True, 0
+        if msg_id == tcp.STATUS:
+            return True, 0
+        if msg_id == tcp.RELEASE:
+            if not authenticated:
+                return False, 4
+            self.state, self.reason = 1, 0
+            return True, 0
+        return False, 1
+
+
+@pytest.fixture
+def unit() -> Iterator[KeyedUnit]:
+    u = KeyedUnit()
+    yield u
+    u.close()
+
+
+@pytest.fixture
+def key_path(tmp_path: Path) -> str:
+    p = tmp_path / "estop.key"
+    p.write_text(K.hex() + "\n")
+    p.chmod(0o600)
+    return str(p)
+
+
+def wait_until(cond: Callable[[], bool], timeout: float = 5.0) -> None:
+    """The unit's threads may lag on a busy machine: wait (bounded) for what must come."""
+    deadline = time.monotonic() + timeout
+    while not cond() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.05)
+
+
+def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:
+    code = cli.main(list(argv))
+    cap = capsys.readouterr()
+    return code, cap.out, cap.err
+
+
+# ------------------------------------------------------------------------ one-shot tools
+
+def test_status_with_a_key(unit: KeyedUnit, key_path: str, capsys) -> None:
+    code, out, err = run_cli(capsys, "status", "--host", LOCAL, "--port", str(unit.tcp_port),
+                             "--key-file", key_path)
+    assert (code, err) == (0, "")
+    assert out.strip() == "ACK seq=1 state=STOPPED reason=boot flags=0x00"
+    # a 48-byte request with session 0: a right tag, not authenticated (session unknown yet)
+    assert unit.requests == [(tcp.STATUS, False, 0, 48)]
+
+
+def test_release_with_a_key_learns_the_session_first(unit: KeyedUnit, key_path: str,
+                                                     capsys) -> None:
+    code, out, _ = run_cli(capsys, "release", "--host", LOCAL, "--port", str(unit.tcp_port),
+                           "--key-file", key_path, "--seq", "5")
+    assert code == 0
+    assert out.strip() == "ACK seq=5 state=ARMED reason=none flags=0x00"
+    assert unit.requests == [(tcp.STATUS, False, 0, 48), (tcp.RELEASE, True, N, 48)]
+
+
+def test_release_without_a_key_is_nak_4(unit: KeyedUnit, capsys) -> None:
+    code, out, _ = run_cli(capsys, "release", "--host", LOCAL, "--port", str(unit.tcp_port))
+    assert code == 1
+    assert out.strip().endswith("nak=not_authenticated")
+
+
+@pytest.mark.parametrize("mode", ["forge", "keyless"])
+def test_replies_that_do_not_verify_are_refused_loudly(mode: str, key_path: str,
+                                                       capsys) -> None:
+    u = KeyedUnit(mode=mode)
+    try:
+        code, out, err = run_cli(capsys, "status", "--host", LOCAL, "--port", str(u.tcp_port),
+                                 "--key-file", key_path)
+    finally:
+        u.close()
+    assert code == 3 and out == ""
+    lines = err.splitlines()
+    assert len(lines) == 1 and "does NOT verify under the key" in lines[0]
+
+
+def test_stop_with_a_key(unit: KeyedUnit, key_path: str, capsys) -> None:
+    code, out, _ = run_cli(capsys, "stop", "--host", LOCAL, "--port", str(unit.tcp_port),
+                           "--udp-port", str(unit.udp_port), "--key-file", key_path,
+                           "--remote-id", "9")
+    assert code == 0 and out.strip().endswith("(after 1 attempt)")
+    assert unit.requests == [(tcp.DEFAULT_STOP_ID, False, 0, 48)]
+    wait_until(lambda: bool(unit.stop_datagrams))
+    assert len(unit.stop_datagrams) == 1
+    ok, session, _ = unit.stop_datagrams[0]
+    assert session == 0 and not ok  # the session is not known yet: a stop all the same
+
+
+def test_forged_ack_to_a_stop_is_not_believed(key_path: str, capsys) -> None:
+    u = KeyedUnit(mode="forge")
+    try:
+        code, _, err = run_cli(capsys, "stop", "--host", LOCAL, "--port", str(u.tcp_port),
+                               "--udp-port", str(u.udp_port), "--key-file", key_path,
+                               "--stop-deadline", "0.3")
+    finally:
+        u.close()
+    assert code == 3
+    assert "no ACK within 0.3 s" in err and "does NOT verify" in err and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("argv", [
+    ["status", "--host", LOCAL],
+    ["remote", "--host", LOCAL, "--script", "hold 0.1"],
+])
+def test_bad_key_file_is_a_usage_error(argv: list[str], tmp_path: Path, capsys) -> None:
+    p = tmp_path / "k"
+    p.write_text(K.hex() + "\n")
+    p.chmod(0o644)
+    code, out, err = run_cli(capsys, *argv, "--key-file", str(p))
+    assert code == 2 and out == ""
+    assert err.count("\n") == 1 and "--key-file: key file" in err and "mode 0644" in err
+
+
+def test_legacy_and_key_do_not_mix(key_path: str, capsys) -> None:
+    code, _, err = run_cli(capsys, "remote", "--host", LOCAL, "--legacy", "--key-file",
+                           key_path, "--script", "hold 0.1")
+    assert code == 2 and "--legacy" in err and err.count("\n") == 1
+
+
+# ------------------------------------------------------------------------------ the remote
+
+def test_remote_with_a_key_end_to_end(unit: KeyedUnit, key_path: str, capsys) -> None:
+    code, out, _ = run_cli(capsys, "remote", "--host", LOCAL, "--udp-port", str(unit.udp_port),
+                           "--tcp-port", str(unit.tcp_port), "--key-file", key_path,
+                           "--remote-id", "7", "--rate", "100", "--script",
+                           "hold 0.2; release; expect ack armed; drive 0.3 0.1; stop; "
+                           "expect ack stopped tcp_stop; lift")
+    assert code == 0, out
+    # hold learned the session with a STATUS; the RELEASE was authenticated
+    assert unit.requests[:2] == [(tcp.STATUS, False, 0, 48), (tcp.RELEASE, True, N, 48)]
+    assert unit.requests[2] == (tcp.DEFAULT_STOP_ID, True, N, 48)
+    wait_until(lambda: len(unit.packets) >= 5 and bool(unit.stop_datagrams))
+    assert len(unit.packets) >= 5 and unit.rejected == 0  # every packet verified
+    assert {(rid, session) for rid, session, _, _ in unit.packets} == {(7, N)}
+    counters = [c for _, _, c, _ in unit.packets]
+    assert counters == sorted(counters) and len(set(counters)) == len(counters)
+    bodies = {udp.decode(b) for _, _, _, b in unit.packets}
+    assert udp.ControlPacket() in bodies
+    assert any(b.gear == Gear.DRIVE and b.gas_brake > 0.29 for b in bodies)
+    assert unit.stop_datagrams == [(True, N, unit.stop_datagrams[0][2])]  # authenticated
+
+
+def test_remote_api_refuses_a_forged_reply(key_path: str) -> None:
+    u = KeyedUnit(mode="forge")
+    try:
+        with Remote(LOCAL, u.udp_port, u.tcp_port, key=K) as r:
+            with pytest.raises(ReplyNotAuthentic):
+                r.status()
+            with pytest.raises(ReplyNotAuthentic):
+                r.hold()  # it cannot learn the session: it does not start sending
+            assert not r.held and r.channel.session == 0
+        time.sleep(0.1)
+        assert u.packets == [] and u.rejected == 0
+    finally:
+        u.close()

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from daemon_util import ROOT, Daemon, find_estopd
+from daemon_util import ROOT, Daemon, find_estopd, run_estopd
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -231,3 +231,33 @@ def test_unit_asks_for_what_the_issue_names(installed: Path) -> None:
                  "NoNewPrivileges=yes", "ProtectSystem=strict", "CapabilityBoundingSet=\n"):
         assert line in unit, line
     assert find_estopd()
+
+
+# -- --rt-prio and --mlock, for hosts without systemd ----------------------------------------------
+def _policy(pid: int, tid: int) -> tuple[int, int]:
+    """(scheduling policy, rt priority) of one thread, from /proc (fields 41 and 40)."""
+    fields = Path(f"/proc/{pid}/task/{tid}/stat").read_text().rsplit(")", 1)[1].split()
+    return int(fields[38]), int(fields[37])
+
+
+def test_rt_prio_is_for_the_loop_only_and_mlock_locks(tmp_path: Path) -> None:
+    if os.geteuid() != 0:
+        pytest.skip("SCHED_FIFO and mlockall need root here")
+    with Daemon(tmp_path, "--rt-prio", "7", "--mlock") as d:
+        assert d.proc is not None
+        pid = d.proc.pid
+        tids = sorted(int(t) for t in os.listdir(f"/proc/{pid}/task"))
+        policies = {tid: _policy(pid, tid) for tid in tids}
+        assert policies[pid] == (1, 7)  # SCHED_FIFO, priority 7: the loop
+        others = [p for tid, p in policies.items() if tid != pid]
+        assert others and all(p == (0, 0) for p in others)  # the output threads: normal
+        locked = [line for line in Path(f"/proc/{pid}/status").read_text().splitlines()
+                  if line.startswith("VmLck:")]
+        assert locked and int(locked[0].split()[1]) > 0
+        assert "rt_prio=7" in d.start_line and "mlock=1" in d.start_line
+
+
+@pytest.mark.parametrize("value", ["0", "100", "-1", "x"])
+def test_rt_prio_out_of_range_is_a_usage_error(value: str) -> None:
+    res = run_estopd(["--rt-prio", value])
+    assert res.returncode == 2 and len(res.stderr.splitlines()) == 1, res

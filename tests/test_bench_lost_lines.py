@@ -22,6 +22,7 @@ from __future__ import annotations
 import importlib.util
 import io
 import os
+import re
 import sys
 import time
 from collections.abc import Iterable, Iterator
@@ -237,3 +238,27 @@ def test_a_report_long_after_the_trial_leaves_it_alone(bench: ModuleType) -> Non
     d._read_log(io.StringIO(f"estopd {t_rep:.6f} output_dropped stream=can_log dropped=4 "
                             f"total=4 err=full\n"))
     assert r.settle(d.lines_lost) == 0 and len(r.samples["overshoot"]) == 1
+
+
+def test_the_demo_gives_no_figure_for_a_stop_with_lost_lines() -> None:
+    """estop demo times both stops from the can-log too: with the first stop frames of each
+    stop lost, it says so instead of printing a late figure."""
+    from estop import demo
+
+    d = LossyPipe([_estopd()], 3, timeout_ms=TIMEOUT_MS)
+    view = demo.View(out=io.StringIO(), live=False, t0=time.time())
+    res = demo.Result()
+    d.start()
+    try:
+        demo.run_script(d, view, TIMEOUT_MS, res)
+    finally:
+        d.stop()
+    res.check_lost_lines(d)
+    assert len([ln for ln in d.lost if " 050#" in ln]) == 6, d.lost  # 3 at each stop
+    assert res.overshoot_ms is not None and res.tcp_latency_ms is not None, res.problems
+    assert res.overshoot_lost >= 3 and res.tcp_lost >= 3
+    out = io.StringIO()
+    demo._report(out, view, res, TIMEOUT_MS, d.dropped_total)
+    text = out.getvalue()
+    assert re.search(r"timeout overshoot +not measured: 3 can-log lines lost", text), text
+    assert re.search(r"TCP stop latency +not measured: 3 can-log lines lost", text), text

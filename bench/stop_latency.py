@@ -969,6 +969,20 @@ def markdown(results: list[RunResult], meta: dict[str, Any],
     return "\n".join(lines)
 
 
+def document(results: list[RunResult], meta: dict[str, Any],
+             goals: list[tuple[str, bool]]) -> dict[str, Any]:
+    """The JSON report: meta, goals, and per run its raw data and summaries (what
+    bench/latency_tables.py reads)."""
+    runs: list[dict[str, Any]] = []
+    for r in results:
+        d = asdict(r)
+        d["summary_ms"] = {m: summarize(r.samples[m]) for m in METRICS}
+        if r.flood is not None:
+            d["flood"]["rate"] = r.flood.rate
+        runs.append(d)
+    return {"meta": meta, "runs": runs, "goals": [{"goal": g, "pass": ok} for g, ok in goals]}
+
+
 def plot(results: list[RunResult], path: Path, timeout_ms: int,
          floor_samples: Sequence[float] = ()) -> None:
     import matplotlib
@@ -1202,17 +1216,9 @@ def _run(args: argparse.Namespace, n: int, loads: list[str], daemons: list[Daemo
     md = markdown(results, meta, goals)
     args.out.mkdir(parents=True, exist_ok=True)
     (args.out / "stop_latency.md").write_text(md)
-    runs: list[dict[str, Any]] = []
-    doc: dict[str, Any] = {"meta": meta, "runs": runs,
-                           "goals": [{"goal": g, "pass": ok} for g, ok in goals]}
-    for r in results:
-        d = asdict(r)
-        d["summary_ms"] = {m: summarize(r.samples[m]) for m in METRICS}
-        if r.flood is not None:
-            d["flood"]["rate"] = r.flood.rate
-        runs.append(d)
-    (args.out / "stop_latency.json").write_text(json.dumps(doc, indent=1, allow_nan=True))
+    doc = document(results, meta, goals)
     doc["timer_floor_samples_ms"] = floor_samples
+    (args.out / "stop_latency.json").write_text(json.dumps(doc, indent=1, allow_nan=True))
     plot(results, args.out / "stop_latency.png", args.timeout_ms, floor_samples)
     say()
     say(md)

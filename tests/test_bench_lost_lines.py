@@ -260,5 +260,8 @@ def test_the_demo_gives_no_figure_for_a_stop_with_lost_lines() -> None:
     out = io.StringIO()
     demo._report(out, view, res, TIMEOUT_MS, d.dropped_total)
     text = out.getvalue()
-    assert re.search(r"timeout overshoot +not measured: 3 can-log lines lost", text), text
-    assert re.search(r"TCP stop latency +not measured: 3 can-log lines lost", text), text
+    # 3 brake lines each, and a STATUS line when one fell among them
+    for what in ("timeout overshoot", "TCP stop latency"):
+        m = re.search(what + r" +not measured: (\d+) can-log lines lost", text)
+        assert m is not None and int(m.group(1)) >= 3, text
+    assert res.problems == []

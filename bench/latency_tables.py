@@ -149,8 +149,8 @@ def _meta_line(doc: dict[str, Any]) -> str:
 def table_hog(docs: dict[str, dict[str, Any]], a: argparse.Namespace) -> list[str]:
     lines = [f"### estopd under CPU contention ({a.hog} busy loops at normal priority), "
              f"without and with --rt-prio {a.rt_prio}", "",
-             "| estopd | bench | load | n | p50 | p99 | p99.9 | max | discarded | lines lost "
-             "| flood/s | other CPU |",
+             "| estopd priority | bench priority | load | n | p50 | p99 | p99.9 | max | "
+             "discarded | lines lost | flood/s | other CPU |",
              "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for name in ("hog-normal", "hog-rt"):
         doc = docs.get(name)

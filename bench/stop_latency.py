@@ -456,8 +456,10 @@ class RunResult:
             for _ in range(len(spans) - len(keep)):
                 self.discard(m, LOST_LINES)
                 moved += 1
+            times = self.sample_times[m]
             self.samples[m] = [self.samples[m][i] for i in keep]
-            self.sample_times[m] = [self.sample_times[m][i] for i in keep]
+            if len(times) == len(spans):
+                self.sample_times[m] = [times[i] for i in keep]
             self.spans[m] = [spans[i] for i in keep]
         return moved
 

@@ -5,7 +5,8 @@ own scheduling), reads back its JSON, and prints:
 
 1. plain: estopd against the asyncio baseline, idle and under the invalid-packet flood;
 2. auth (issue 8): estopd with a key against estopd without one, idle and under a flood of
-   forged authenticated packets; kernel drops and whether every trial still armed;
+   forged authenticated packets; kernel drops and whether every trial still armed; auth-rt:
+   the same with ``--rt-prio`` (SCHED_FIFO, as deploy/estopd.service runs it);
 3. hog: estopd under CPU contention (``--hog``: busy loops at normal priority, one per core
    here), without and with ``--rt-prio``, idle and flooded: p50, p99, p99.9, max overshoot;
 4. issue11: the three rows of issue 11 under the same contention: estopd at normal priority;
@@ -15,8 +16,9 @@ own scheduling), reads back its JSON, and prints:
 Every command run is printed first, so any one can be re-run by hand. Each run's own report
 (stop_latency.md/.json/.png) stays in --out/<name>/.
 
-    bench/latency_tables.py [--sets plain,auth,hog,issue11] [--trials 1000] [--timeout-ms 20]
-                            [--rt-prio 50] [--hog 2] [--out bench/out/tables] [--dry-run]
+    bench/latency_tables.py [--sets plain,auth,auth-rt,hog,issue11] [--trials 1000]
+                            [--timeout-ms 20] [--rt-prio 50] [--hog 2]
+                            [--out bench/out/tables] [--dry-run]
 """
 
 from __future__ import annotations
@@ -34,7 +36,7 @@ from typing import Any
 
 HERE = Path(__file__).resolve().parent
 STOP_LATENCY = HERE / "stop_latency.py"
-SETS = ("plain", "auth", "hog", "issue11")
+SETS = ("plain", "auth", "auth-rt", "hog", "issue11")
 
 
 @dataclass
@@ -55,6 +57,9 @@ def configs(sets: list[str], a: argparse.Namespace) -> list[Config]:
         out.append(Config("plain", [], "estopd vs baseline"))
     if "auth" in sets:
         out.append(Config("auth", ["--auth"], "estopd with a key vs without"))
+    if "auth-rt" in sets:
+        out.append(Config("auth-rt", ["--auth", *rt],
+                          f"estopd with a key vs without, --rt-prio {a.rt_prio} as deployed"))
     if "hog" in sets or "issue11" in sets:
         out.append(Config("hog-normal", [*hog, *loads], "estopd normal priority"))
     if "issue11" in sets:
@@ -250,6 +255,10 @@ def main(argv: list[str] | None = None) -> int:
     if "auth" in sets and "auth" in docs:
         md += table_daemons(docs["auth"], "Auth (issue 8): estopd with a key vs without, "
                                           "flood of forged authenticated packets")
+    if "auth-rt" in sets and "auth-rt" in docs:
+        md += table_daemons(docs["auth-rt"], f"Auth (issue 8) as deployed: both daemons "
+                                             f"--rt-prio {a.rt_prio}, the bench SCHED_FIFO "
+                                             f"{max(1, a.rt_prio - 10)}")
     if "hog" in sets:
         md += table_hog(docs, a)
     if "issue11" in sets:

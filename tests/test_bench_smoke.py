@@ -112,3 +112,64 @@ def test_start_line_ports_are_parsed() -> None:
                              '"tcp_port": 40001}') == (40000, 40001)
     assert parse_start_ports("estopd 1.0 start udp_port=1 tcp_port=2") == (1, 2)
     assert parse_start_ports("estopd 1.0 state ARMED->STOPPED reason=udp_timeout") is None
+
+
+def test_lost_lines_are_a_column_and_settle_moves_samples(bench: ModuleType) -> None:
+    r = _run(bench, "estopd", "idle", [0.1, 0.2, 30.0])
+    r.spans["overshoot"] = [((1.0, 1.1), (5.0, 5.1)), ((2.0, 2.1), (6.0, 6.1)),
+                            ((3.0, 3.1), (7.0, 7.1))]
+    moved = r.settle(lambda real, mono: 1 if real[0] == 3.0 else 0)
+    assert moved == 1 and r.samples["overshoot"] == [0.1, 0.2]
+    assert r.lost_discards("overshoot") == 1 and r.discarded["overshoot"] == 1
+    assert r.settle(lambda real, mono: 0) == 0  # settled once is settled
+    meta = {"date": "today", "host": "h", "cpus": 2, "python": "3.11", "timeout_ms": 20,
+            "trials": 3, "flood_rate": 80_000.0}
+    md = bench.markdown([r], meta, [])
+    header = next(ln for ln in md.splitlines() if ln.startswith("| daemon"))
+    row = next(ln for ln in md.splitlines() if "| timeout overshoot |" in ln)
+    cells = dict(zip(header.split("|"), row.split("|"), strict=True))
+    assert cells[" lines lost "].strip() == "1" and cells[" discarded "].strip() == "1"
+    assert "timeout overshoot: log lines lost 1" in md
+
+
+def _tables() -> ModuleType:
+    path = BENCH.parent / "latency_tables.py"
+    spec = importlib.util.spec_from_file_location("latency_tables", path)
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["latency_tables"] = mod
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def test_latency_tables_from_synthetic_runs(bench: ModuleType) -> None:
+    tables = _tables()
+    args = tables.argparse.Namespace(hog=2, rt_prio=50, timeout_ms=20, trials=10,
+                                     out=Path("/nonexistent"), estopd=None)
+    names = [c.name for c in tables.configs(["hog", "issue11"], args)]
+    assert names == ["hog-normal", "hog-rt-bench-normal", "hog-rt"]
+    cmd = tables.command(tables.configs(["issue11"], args)[1], args)
+    assert cmd[cmd.index("--bench-rt-prio") + 1] == "0" and "--loads" in cmd
+
+    def doc(rt: int, bench_rt: int, lost: int) -> dict[str, object]:
+        r = _run(bench, "estopd", "idle", [0.03] * 9 + [0.9])
+        for _ in range(lost):
+            r.discard("overshoot", bench.LOST_LINES)
+        r.log_gaps, r.log_gap_lines, r.daemon_dropped = lost, 3 * lost, 7 * lost
+        meta = {"date": "d", "cpus": 2, "timeout_ms": 20, "trials": 10, "flood_rate": 8e4,
+                "priorities": "p", "hog": 2, "hog_cpu_cores": 0.5, "rt_prio": rt,
+                "bench_rt_prio": bench_rt}
+        return tables.json.loads(tables.json.dumps(bench.document([r], meta, [])))
+
+    docs = {"hog-normal": doc(0, 0, 0), "hog-rt-bench-normal": doc(50, 0, 4),
+            "hog-rt": doc(50, 40, 0)}
+    md = "\n".join(tables.table_issue11(docs, args) + tables.table_hog(docs, args))
+    issue_rows = [ln for ln in md.splitlines() if ln.startswith(("| estopd,", "| estopd `"))]
+    assert len(issue_rows) == 3
+    bench_normal = next(ln for ln in issue_rows if "bench at normal priority" in ln)
+    assert "| 4 | 0 | 4 (12) | 28 |" in bench_normal  # lost-line discards, gaps, reported
+    hog_rows = [ln for ln in md.splitlines() if "| idle |" in ln]
+    assert hog_rows == [
+        "| normal | normal | idle | 10 | 0.030 | 0.822 | 0.892 | 0.900 | 0 | 0 | - | n/a |",
+        "| SCHED_FIFO 50 | SCHED_FIFO 40 | idle | 10 | 0.030 | 0.822 | 0.892 | 0.900 | 0 | 0 "
+        "| - | n/a |"]

@@ -10,6 +10,11 @@ CLOCK_REALTIME):
 - timeout overshoot = first stop frame - (last valid packet sent + timeout)
 - TCP stop latency  = first stop frame - STOP sent
 
+A figure is only given when no can-log line went missing between the send and the stop frame
+(alive counters, and the daemon's own ``output_dropped`` count, checked once it has exited):
+a lost first stop frame would make the next one look like a late stop. Otherwise the report
+says how many lines were lost instead of a figure.
+
 The daemon runner lives in :mod:`estop.loopback`, shared with the benchmarks.
 """
 
@@ -214,13 +219,35 @@ def _drive(t: float) -> Packet:
     return round(min(0.4, 0.2 * t), 3), round(0.3 * math.sin(2.0 * t), 3), udp.Gear.DRIVE
 
 
+Span = tuple[tuple[float, float], tuple[float, float]]  # (realtime, monotonic) from, to
+
+
+def _span(t_from: float, t_to: float) -> Span:
+    """A stretch between two realtime stamps, and the same stretch in monotonic time (the
+    clock of the daemon's event log), as Daemon.lines_lost wants it."""
+    offset = time.time() - time.monotonic()
+    return (t_from, t_to), (t_from - offset, time.time() - offset)
+
+
 @dataclass
 class Result:
     overshoot_ms: float | None = None
     tcp_latency_ms: float | None = None
     timeout_reason: int | None = None
     tcp_reason: int | None = None
+    overshoot_span: Span | None = None
+    tcp_span: Span | None = None
+    overshoot_lost: int = 0  # can-log lines lost around the measurement: no figure
+    tcp_lost: int = 0
     problems: list[str] = field(default_factory=list)
+
+    def check_lost_lines(self, daemon: Daemon) -> None:
+        """Once the daemon has exited (every line and drop report in): lines lost around
+        each measurement."""
+        if self.overshoot_span is not None:
+            self.overshoot_lost = daemon.lines_lost(*self.overshoot_span)
+        if self.tcp_span is not None:
+            self.tcp_lost = daemon.lines_lost(*self.tcp_span)
 
 
 def _still_armed(view: View, res: Result) -> bool:
@@ -260,6 +287,7 @@ def run_script(daemon: Daemon, view: View, timeout_ms: int, res: Result) -> None
             return
         res.timeout_reason = stop.frame.reason
         res.overshoot_ms = (stop.t - (t_last + timeout_ms / 1000.0)) * 1000.0
+        res.overshoot_span = _span(t_last, stop.t)
         s.wait(0.4)
 
         if not s.release():
@@ -278,6 +306,7 @@ def run_script(daemon: Daemon, view: View, timeout_ms: int, res: Result) -> None
             return
         res.tcp_reason = stop.frame.reason
         res.tcp_latency_ms = (stop.t - t_stop) * 1000.0
+        res.tcp_span = _span(t_stop, stop.t)
         view.phase = "latched"
         s.wait(0.4, _drive)
         s.request("RELEASE (gas still pressed)", tcp.RELEASE)
@@ -286,11 +315,14 @@ def run_script(daemon: Daemon, view: View, timeout_ms: int, res: Result) -> None
         link.close()
 
 
-def _fmt_ms(v: float | None) -> str:
+def _fmt_ms(v: float | None, lost: int = 0) -> str:
+    if lost:
+        return f"not measured: {lost} can-log line{'s' if lost != 1 else ''} lost"
     return "-" if v is None else f"{v:.3f} ms"
 
 
-def _report(out: TextIO, view: View, res: Result, timeout_ms: int) -> None:
+def _report(out: TextIO, view: View, res: Result, timeout_ms: int,
+            daemon_dropped: int = 0) -> None:
     out.write("\nTimeline\n")
     for t, text in sorted(view.events, key=lambda e: e[0]):
         out.write(f"  {t - view.t0:7.3f}s  {text}\n")
@@ -299,12 +331,16 @@ def _report(out: TextIO, view: View, res: Result, timeout_ms: int) -> None:
     reasons = (can.reason_name(res.timeout_reason) if res.timeout_reason is not None else "-",
                can.reason_name(res.tcp_reason) if res.tcp_reason is not None else "-")
     out.write(f"  finger lifted: stop reason {reasons[0]:11}  timeout overshoot "
-              f"{_fmt_ms(res.overshoot_ms):>10}  (stop frame - (last valid packet + "
-              f"{timeout_ms} ms))\n")
+              f"{_fmt_ms(res.overshoot_ms, res.overshoot_lost):>10}  (stop frame - (last "
+              f"valid packet + {timeout_ms} ms))\n")
     out.write(f"  stop button:   stop reason {reasons[1]:11}  TCP stop latency  "
-              f"{_fmt_ms(res.tcp_latency_ms):>10}  (stop frame - STOP sent)\n")
+              f"{_fmt_ms(res.tcp_latency_ms, res.tcp_lost):>10}  (stop frame - STOP sent)\n")
     out.write(f"  frames checked: {view.frames} (bad CRC or content: {view.bad_frames}, alive "
-              f"counter jumps: {view.counter_jumps})\n")
+              f"counter jumps: {view.counter_jumps}, lines the daemon reported dropped: "
+              f"{daemon_dropped})\n")
+    if res.overshoot_lost or res.tcp_lost:
+        out.write("  (a figure is only given when no can-log line was lost around it: a lost "
+                  "first stop frame would make the next one look late)\n")
 
 
 TIMEOUT_MS_MIN = 1
@@ -369,10 +405,11 @@ def main(argv: list[str] | None = None) -> int:
             except queue.Empty:
                 break
         view.finish()
+        res.check_lost_lines(daemon)
     final = view.brake.brake_request if view.brake is not None else None
     view.event(time.time(), f"estopd ended (pid {daemon.pid}, exit code {rc}); its last brake "
                             f"frame: brake_request={final}")
-    _report(out, view, res, args.timeout_ms)
+    _report(out, view, res, args.timeout_ms, daemon.dropped_total)
 
     if res.timeout_reason not in (None, can.Reason.UDP_TIMEOUT):
         res.problems.append(f"the finger-lifted stop had reason "

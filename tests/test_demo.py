@@ -1,4 +1,5 @@
-"""``estop demo`` end to end: a real estopd on loopback, the scripted drive, both stops.
+"""``estop demo`` end to end: a real keyed estopd on loopback, the scripted drive with an
+attacker, every stop.
 
 Checks what a person reads: exit code 0, the finger-lifted stop reported with reason
 udp_timeout and the stop button with reason tcp_stop, both latencies measured, and the daemon
@@ -55,6 +56,11 @@ def test_demo_runs_both_stops_and_cleans_up() -> None:
     assert "bus: STOPPED reason=udp_timeout" in out
     assert "bus: STOPPED reason=tcp_stop" in out
     assert "NAK 2" in out and "NAK 3" in out  # refused releases: no link, gas pressed
+    # The keyed story: the attacker's heartbeats do not keep the unit alive, its forged
+    # RELEASE is refused, its stop datagram stops the car.
+    assert re.search(r"attacker: sent [1-9]\d* plain, [1-9]\d* wrong key, [1-9]\d* replayed", out)
+    assert "attacker: RELEASE under a wrong key -> NAK 4 (not_authenticated)" in out
+    assert re.search(r"stop datagram: stop reason tcp_stop +stop latency +\d+\.\d+ ms", out), out
     assert "\x1b[" not in out  # no TTY: plain lines
     m = re.search(r"estopd ended \(pid (\d+), exit code (-?\d+)\)", out)
     assert m is not None, out

@@ -1,14 +1,18 @@
 """``estop demo``: a scripted drive against a real ``estopd`` on loopback (no root, no CAN).
 
-The demo starts ``estopd`` with free loopback ports and its CAN frames logged to a pipe, then
-plays the remote's part: release, drive, lift the finger (the unit stops on the UDP timeout),
-release again, drive, press the stop button (the unit stops on the TCP STOP). A live line shows
-what the brake frames on the (logged) bus say; the end prints a timeline and the measured stop
-latencies, both taken from the daemon's own can-log timestamps against the send times (both
-CLOCK_REALTIME):
+The demo makes a fresh key, starts ``estopd`` with it (free loopback ports, CAN frames logged to
+a pipe), and plays two parts: the operator's remote, which holds the key, and an attacker on
+the same network, which does not but has recorded the operator's traffic. The story: release,
+drive; the finger lifts while the attacker sends plain heartbeats, heartbeats under a wrong key
+and replays of the recording, and the unit stops at the deadline all the same; the attacker's
+forged RELEASE gets NAK 4; the operator releases and drives; the attacker's stop datagram (a
+garbage tag) stops the car, because anyone may stop; the operator releases, drives and presses
+the stop button. A live line shows what the brake frames on the (logged) bus say; the end
+prints a timeline and the measured stop latencies, taken from the daemon's own can-log
+timestamps against the send times (both CLOCK_REALTIME):
 
 - timeout overshoot = first stop frame - (last valid packet sent + timeout)
-- TCP stop latency  = first stop frame - STOP sent
+- stop latency      = first stop frame - STOP (or stop datagram) sent
 
 A figure is only given when no can-log line went missing between the send and the stop frame
 (alive counters, and the daemon's own ``output_dropped`` count, checked once it has exited):
@@ -24,9 +28,12 @@ import argparse
 import math
 import os
 import queue
+import secrets
 import shutil
 import signal
+import socket
 import sys
+import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -34,7 +41,7 @@ from typing import TextIO
 
 from estop.cliutil import EXIT_USAGE, ErrorOnlyParser
 from estop.loopback import Daemon, DaemonError, Link, find_estopd, stamp
-from estop.protocol import can, canlog, tcp, udp
+from estop.protocol import auth, can, canlog, tcp, udp
 
 __all__ = ["find_estopd", "main"]
 
@@ -64,6 +71,7 @@ class View:
     remote: str = "silent"
     brake: can.BrakeFrame | None = None
     link_age_ms: int | None = None
+    auth_failures: int = 0  # ESTOP_STATUS byte 2, the latest window
     frames: int = 0
     bad_frames: int = 0
     counter_jumps: int = 0
@@ -91,6 +99,7 @@ class View:
             status = can.StatusFrame.parse(rec.data)
             self.counter_jumps += not self._status_ctr.check(status.counter).ok
             self.link_age_ms = status.link_age
+            self.auth_failures = status.auth_failures
             return
         if rec.can_id != can.BRAKE_ID:
             return
@@ -123,8 +132,8 @@ class View:
             bus = (f"{can.state_name(b.state):7} {can.reason_name(b.reason):11} "
                    f"brake={b.brake_request} flags={flags:8} | ctr {b.counter:2}")
         age = "-" if self.link_age_ms is None else f"{self.link_age_ms} ms"
-        return (f"[{now:5.2f}s] {self.phase:13} | {bus} | link age {age:>6} | frames "
-                f"{self.frames:4} | remote {self.remote}")
+        return (f"[{now:5.2f}s] {self.phase:13} | {bus} | link age {age:>6} | auth failures "
+                f"{self.auth_failures:3}/100 ms | frames {self.frames:4} | remote {self.remote}")
 
     def draw(self) -> None:
         now = time.monotonic()
@@ -158,12 +167,18 @@ class Script:
         self.last_valid_sent = 0.0
 
     def pump(self, until: Callable[[], bool], max_s: float,
-             packet: Callable[[float], Packet] | None = None, period_s: float = 0.02) -> bool:
-        """Drain frames (and send a packet every period) until ``until()`` or max_s passes."""
+             packet: Callable[[float], Packet] | None = None, period_s: float = 0.02,
+             side: Callable[[], None] | None = None) -> bool:
+        """Drain frames (and send a packet every period, and call ``side`` every 10 ms: the
+        attacker) until ``until()`` or max_s passes."""
         start = time.monotonic()
         next_send = start
+        next_side = start
         while True:
             now = time.monotonic()
+            if side is not None and now >= next_side:
+                side()
+                next_side += 0.01
             if packet is not None and now >= next_send:
                 gas, steer, gear = packet(now - start)
                 self.last_valid_sent = self.link.send_control(gas, steer, gear)
@@ -190,17 +205,15 @@ class Script:
 
     def request(self, name: str, msg_id: int) -> tuple[tcp.Reply, float]:
         reply, t = self.link.request(msg_id)
-        what = ("ACK" if reply.ack else
-                f"NAK {reply.nak_code} ({tcp.NAK_NAMES.get(tcp.NakCode(reply.nak_code))})")
-        self.view.event(t, f"remote: {name} -> {what}, unit {can.state_name(reply.state)} "
-                           f"reason={can.reason_name(reply.reason)}")
+        self.view.event(t, f"remote: {name} -> {_reply_text(reply)}")
         return reply, t
 
-    def first_stop_after(self, t: float, max_s: float) -> Stop | None:
+    def first_stop_after(self, t: float, max_s: float,
+                         side: Callable[[], None] | None = None) -> Stop | None:
         def found() -> bool:
             return any(s.t >= t for s in self.view.stops)
 
-        if not self.pump(found, max_s):
+        if not self.pump(found, max_s, side=side):
             return None
         return next(s for s in self.view.stops if s.t >= t)
 
@@ -209,6 +222,64 @@ class Script:
         self.wait(0.3, _neutral)
         reply, _ = self.request("RELEASE", tcp.RELEASE)
         return reply.ack and reply.state == can.State.ARMED
+
+
+def _reply_text(reply: tcp.Reply) -> str:
+    what = ("ACK" if reply.ack else
+            f"NAK {reply.nak_code} ({tcp.NAK_NAMES.get(tcp.NakCode(reply.nak_code))})")
+    return f"{what}, unit {can.state_name(reply.state)} reason={can.reason_name(reply.reason)}"
+
+
+class Attacker:
+    """Someone on the car's network without the key, who has recorded the operator's packets:
+    plain heartbeats, heartbeats under a wrong key, replays, a forged RELEASE, a stop datagram
+    with a garbage tag. Counts what it sent."""
+
+    def __init__(self, daemon: Daemon, session: int, recording: list[bytes]) -> None:
+        self.addr = ("127.0.0.1", daemon.udp_port)
+        self.tcp_port = daemon.tcp_port
+        self.session = session  # no secret: every reply carries it
+        self.recording = recording
+        self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.wrong_key = secrets.token_bytes(auth.KEY_SIZE)
+        self.counter = 1 << 40  # far above the operator's: only the tag can refuse it
+        self.sent = {"plain": 0, "wrong key": 0, "replayed": 0}
+
+    def keep_alive(self) -> None:
+        """One round of heartbeats the unit must not count (called every 10 ms)."""
+        self.counter += 1
+        body = udp.ControlPacket(0.2, 0.0, udp.Gear.DRIVE)
+        forged = auth.AuthControlPacket(1, self.session, self.counter, body).encode(self.wrong_key)
+        replay = self.recording[self.sent["replayed"] % len(self.recording)]
+        for kind, data in (("plain", body.encode()), ("wrong key", forged), ("replayed", replay)):
+            self.udp.sendto(data, self.addr)
+            self.sent[kind] += 1
+
+    def forged_release(self) -> auth.AuthReply:
+        """A RELEASE request frame under the wrong key; the unit answers it all the same."""
+        self.counter += 1
+        frame = auth.AuthRequest(tcp.RELEASE, 1, 1, self.session, self.counter).encode(
+            self.wrong_key)
+        with socket.create_connection(("127.0.0.1", self.tcp_port), timeout=2.0) as s:
+            s.sendall(frame)
+            raw = b""
+            while len(raw) < auth.REPLY_SIZE:
+                chunk = s.recv(auth.REPLY_SIZE - len(raw))
+                if not chunk:
+                    raise DaemonError("the daemon closed the attacker's connection")
+                raw += chunk
+        # The attacker cannot verify the tag (no key); it reads the fields.
+        return auth.AuthReply.decode(raw, None, strict=False)
+
+    def stop_datagram(self) -> float:
+        """A stop datagram with a garbage tag; returns the time just before sending it."""
+        data = auth.stop_datagram(1, 0)[:32] + secrets.token_bytes(auth.TAG_SIZE)
+        t = time.time()
+        self.udp.sendto(data, self.addr)
+        return t
+
+    def close(self) -> None:
+        self.udp.close()
 
 
 def _neutral(_t: float) -> Packet:
@@ -239,6 +310,12 @@ class Result:
     tcp_span: Span | None = None
     overshoot_lost: int = 0  # can-log lines lost around the measurement: no figure
     tcp_lost: int = 0
+    attacker_sent: dict[str, int] = field(default_factory=dict)
+    forged_release_nak: int | None = None
+    datagram_latency_ms: float | None = None
+    datagram_reason: int | None = None
+    datagram_span: Span | None = None
+    datagram_lost: int = 0
     problems: list[str] = field(default_factory=list)
 
     def check_lost_lines(self, daemon: Daemon) -> None:
@@ -248,6 +325,8 @@ class Result:
             self.overshoot_lost = daemon.lines_lost(*self.overshoot_span)
         if self.tcp_span is not None:
             self.tcp_lost = daemon.lines_lost(*self.tcp_span)
+        if self.datagram_span is not None:
+            self.datagram_lost = daemon.lines_lost(*self.datagram_span)
 
 
 def _still_armed(view: View, res: Result) -> bool:
@@ -260,12 +339,16 @@ def _still_armed(view: View, res: Result) -> bool:
     return False
 
 
-def run_script(daemon: Daemon, view: View, timeout_ms: int, res: Result) -> None:
-    """The scripted drive; fills ``res`` as it goes."""
-    link = Link(daemon.udp_port, daemon.tcp_port)
+def run_script(daemon: Daemon, view: View, timeout_ms: int, res: Result, key: bytes) -> None:
+    """The scripted drive with an attacker; fills ``res`` as it goes."""
+    link = Link(daemon.udp_port, daemon.tcp_port, key=key)
+    link.recording = []
     s = Script(daemon, link, view)
+    attacker: Attacker | None = None
     try:
         view.phase = "boot"
+        view.event(time.time(), f"remote: holds the key; the unit's session {link.session:#018x}"
+                                f" learnt from a STATUS")
         s.wait(0.3)
         s.request("RELEASE (no packets yet)", tcp.RELEASE)
 
@@ -277,24 +360,61 @@ def run_script(daemon: Daemon, view: View, timeout_ms: int, res: Result) -> None
         if not _still_armed(view, res):
             return
 
+        # The finger lifts; the attacker tries to keep the car alive.
+        attacker = Attacker(daemon, link.session, list(link.recording))
         view.phase = "finger lifted"
         t_last = s.last_valid_sent
         view.event(time.time(), f"remote: finger lifted (last valid packet sent at "
                                 f"{t_last - view.t0:.3f}s), timeout {timeout_ms} ms")
-        stop = s.first_stop_after(t_last, timeout_ms / 1000.0 + 2.0)
+        view.event(time.time(), "attacker: sends plain heartbeats, heartbeats under a wrong key "
+                                "and replays of the operator's recording, 100 Hz each")
+        stop = s.first_stop_after(t_last, timeout_ms / 1000.0 + 2.0, side=attacker.keep_alive)
+        s.pump(lambda: False, 0.1, side=attacker.keep_alive)
+        res.attacker_sent = dict(attacker.sent)
+        view.event(time.time(), "attacker: sent " + ", ".join(
+            f"{n} {kind}" for kind, n in attacker.sent.items()) + " heartbeats")
         if stop is None:
-            res.problems.append("no stop frame after the finger was lifted")
+            res.problems.append("no stop frame after the finger was lifted (the attacker kept "
+                                "the unit alive)")
             return
         res.timeout_reason = stop.frame.reason
         res.overshoot_ms = (stop.t - (t_last + timeout_ms / 1000.0)) * 1000.0
         res.overshoot_span = _span(t_last, stop.t)
-        s.wait(0.4)
+        s.wait(0.2)
 
+        # The attacker tries to release the car while the operator holds neutral.
+        view.phase = "forged RELEASE"
+        s.wait(0.3, _neutral)
+        forged = attacker.forged_release()
+        res.forged_release_nak = forged.nak_code if not forged.ack else 0
+        view.event(time.time(),
+                   f"attacker: RELEASE under a wrong key -> {_reply_text(forged.reply)}")
         if not s.release():
-            res.problems.append("the second RELEASE was refused")
+            res.problems.append("the operator's RELEASE was refused")
             return
         view.phase = "drive"
-        s.wait(1.5, _drive)
+        s.wait(1.0, _drive)
+        if not _still_armed(view, res):
+            return
+
+        # Anyone may stop: the attacker's stop datagram, whatever its tag.
+        view.phase = "stop datagram"
+        t_dgram = attacker.stop_datagram()
+        view.event(t_dgram, "attacker: stop datagram with a garbage tag (anyone may stop)")
+        stop = s.first_stop_after(t_dgram, 2.0)
+        if stop is None:
+            res.problems.append("no stop frame after the stop datagram")
+            return
+        res.datagram_reason = stop.frame.reason
+        res.datagram_latency_ms = (stop.t - t_dgram) * 1000.0
+        res.datagram_span = _span(t_dgram, stop.t)
+        s.wait(0.2)
+
+        if not s.release():
+            res.problems.append("the third RELEASE was refused")
+            return
+        view.phase = "drive"
+        s.wait(1.0, _drive)
         if not _still_armed(view, res):
             return
 
@@ -313,6 +433,8 @@ def run_script(daemon: Daemon, view: View, timeout_ms: int, res: Result) -> None
         s.wait(0.2, _drive)
     finally:
         link.close()
+        if attacker is not None:
+            attacker.close()
 
 
 def _fmt_ms(v: float | None, lost: int = 0) -> str:
@@ -333,8 +455,19 @@ def _report(out: TextIO, view: View, res: Result, timeout_ms: int,
     out.write(f"  finger lifted: stop reason {reasons[0]:11}  timeout overshoot "
               f"{_fmt_ms(res.overshoot_ms, res.overshoot_lost):>10}  (stop frame - (last "
               f"valid packet + {timeout_ms} ms))\n")
+    dgram = can.reason_name(res.datagram_reason) if res.datagram_reason is not None else "-"
+    out.write(f"  stop datagram: stop reason {dgram:11}  stop latency      "
+              f"{_fmt_ms(res.datagram_latency_ms, res.datagram_lost):>10}  (stop frame - "
+              f"datagram sent; sent by the attacker, garbage tag)\n")
     out.write(f"  stop button:   stop reason {reasons[1]:11}  TCP stop latency  "
               f"{_fmt_ms(res.tcp_latency_ms, res.tcp_lost):>10}  (stop frame - STOP sent)\n")
+    sent = ", ".join(f"{n} {kind}" for kind, n in res.attacker_sent.items()) or "-"
+    nak = ("-" if res.forged_release_nak is None else
+           f"NAK {res.forged_release_nak} "
+           f"({tcp.NAK_NAMES.get(res.forged_release_nak, res.forged_release_nak)})")
+    out.write(f"\nThe attacker (no key) was refused: its heartbeats ({sent}) did not keep "
+              f"the unit alive past the deadline; its forged RELEASE got {nak}; its stop "
+              f"datagram stopped the car, because anyone may stop.\n")
     out.write(f"  frames checked: {view.frames} (bad CRC or content: {view.bad_frames}, alive "
               f"counter jumps: {view.counter_jumps}, lines the daemon reported dropped: "
               f"{daemon_dropped})\n")
@@ -363,8 +496,11 @@ def main(argv: list[str] | None = None) -> int:
     """Run the demo; return its exit code (0 ok, 1 a problem, 2 usage error or no estopd).
     Usage errors are one line, as for every other ``estop`` tool."""
     ap = ErrorOnlyParser(prog="estop demo", description=(
-        "Run estopd on loopback and play a scripted drive: release, drive, finger lifted "
-        "(timeout stop), release, drive, stop button (TCP stop). No root, no CAN needed."))
+        "Run estopd with a fresh key on loopback and play a scripted drive with an attacker "
+        "on the network: release, drive, finger lifted while the attacker sends forged and "
+        "replayed heartbeats (timeout stop all the same), a forged RELEASE (NAK 4), the "
+        "attacker's stop datagram (it stops: anyone may), release, drive, stop button. No "
+        "root, no CAN needed."))
     ap.add_argument("--estopd", metavar="PATH", help="the estopd binary (default: beside "
                     "this Python, on PATH, or firmware/build/estopd)")
     ap.add_argument("--timeout-ms", type=timeout_ms, default=200,
@@ -386,15 +522,21 @@ def main(argv: list[str] | None = None) -> int:
 
     live = out.isatty() and not args.plain and os.environ.get("TERM", "") != "dumb"
     view = View(out=out, live=live, t0=time.time())
-    out.write(f"estop demo: {exe} on 127.0.0.1, UDP timeout {args.timeout_ms} ms, CAN frames "
-              f"logged to a pipe (no CAN hardware, no root)\n")
-    daemon = Daemon([exe], timeout_ms=args.timeout_ms)
+    out.write(f"estop demo: {exe} on 127.0.0.1 with a fresh key, UDP timeout {args.timeout_ms} "
+              f"ms, CAN frames logged to a pipe (no CAN hardware, no root)\n")
+    keydir = tempfile.TemporaryDirectory(prefix="estop-demo-")
+    key = secrets.token_bytes(auth.KEY_SIZE)
+    key_path = os.path.join(keydir.name, "key")
+    fd = os.open(key_path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "wb") as fh:
+        fh.write(auth.format_key(key))
+    daemon = Daemon([exe], timeout_ms=args.timeout_ms, key_file=key_path)
     res = Result()
     try:
         daemon.start()
         view.event(time.time(), f"estopd started (pid {daemon.pid}), UDP port "
                                 f"{daemon.udp_port}, TCP port {daemon.tcp_port}")
-        run_script(daemon, view, args.timeout_ms, res)
+        run_script(daemon, view, args.timeout_ms, res, key)
     except (DaemonError, OSError, tcp.FrameError) as exc:
         res.problems.append(f"demo aborted: {exc}")
     finally:
@@ -406,6 +548,7 @@ def main(argv: list[str] | None = None) -> int:
                 break
         view.finish()
         res.check_lost_lines(daemon)
+        keydir.cleanup()
     final = view.brake.brake_request if view.brake is not None else None
     view.event(time.time(), f"estopd ended (pid {daemon.pid}, exit code {rc}); its last brake "
                             f"frame: brake_request={final}")
@@ -416,7 +559,14 @@ def main(argv: list[str] | None = None) -> int:
                             f"{can.reason_name(res.timeout_reason)}")
     if res.tcp_reason not in (None, can.Reason.TCP_STOP):
         res.problems.append(f"the stop button's stop had reason {can.reason_name(res.tcp_reason)}")
-    if (res.overshoot_ms is None or res.tcp_latency_ms is None) and not res.problems:
+    if res.datagram_reason not in (None, can.Reason.TCP_STOP):
+        res.problems.append(f"the stop datagram's stop had reason "
+                            f"{can.reason_name(res.datagram_reason)}")
+    if res.forged_release_nak not in (None, tcp.NakCode.NOT_AUTHENTICATED):
+        res.problems.append(f"the attacker's forged RELEASE was not refused with NAK 4 "
+                            f"(got {res.forged_release_nak})")
+    if (res.overshoot_ms is None or res.tcp_latency_ms is None
+            or res.datagram_latency_ms is None) and not res.problems:
         res.problems.append("a stop was not observed")
     if final != 1:
         res.problems.append("the daemon's last frame did not request the brake")

@@ -444,6 +444,7 @@ class Link:
         self._seq = 0
         self._packets: dict[tuple[float, float, int], bytes] = {}
         self._tags: dict[int, bytes] = {}
+        self.recording: list[bytes] | None = None  # a list here collects every datagram sent
         if self.key is not None:
             try:
                 self.request(tcp.STATUS)  # the reply carries the session
@@ -471,6 +472,8 @@ class Link:
             data = cached
         t = time.time()
         self.udp.sendto(data, self.addr)
+        if self.recording is not None:
+            self.recording.append(data)
         return t
 
     def send_request(self, msg_id: int) -> tuple[int, float]:

@@ -240,28 +240,35 @@ def test_a_report_long_after_the_trial_leaves_it_alone(bench: ModuleType) -> Non
     assert r.settle(d.lines_lost) == 0 and len(r.samples["overshoot"]) == 1
 
 
-def test_the_demo_gives_no_figure_for_a_stop_with_lost_lines() -> None:
-    """estop demo times both stops from the can-log too: with the first stop frames of each
+def test_the_demo_gives_no_figure_for_a_stop_with_lost_lines(tmp_path: Path) -> None:
+    """estop demo times its stops from the can-log too: with the first stop frames of each
     stop lost, it says so instead of printing a late figure."""
     from estop import demo
+    from estop.protocol import auth
 
-    d = LossyPipe([_estopd()], 3, timeout_ms=TIMEOUT_MS)
+    key = bytes(range(32))
+    key_file = tmp_path / "key"
+    key_file.write_bytes(auth.format_key(key))
+    key_file.chmod(0o600)
+    d = LossyPipe([_estopd()], 3, timeout_ms=TIMEOUT_MS, key_file=str(key_file))
     view = demo.View(out=io.StringIO(), live=False, t0=time.time())
     res = demo.Result()
     d.start()
     try:
-        demo.run_script(d, view, TIMEOUT_MS, res)
+        demo.run_script(d, view, TIMEOUT_MS, res, key)
     finally:
         d.stop()
     res.check_lost_lines(d)
-    assert len([ln for ln in d.lost if " 050#" in ln]) == 6, d.lost  # 3 at each stop
-    assert res.overshoot_ms is not None and res.tcp_latency_ms is not None, res.problems
-    assert res.overshoot_lost >= 3 and res.tcp_lost >= 3
+    assert len([ln for ln in d.lost if " 050#" in ln]) == 9, d.lost  # 3 at each of 3 stops
+    assert None not in (res.overshoot_ms, res.tcp_latency_ms, res.datagram_latency_ms), \
+        res.problems
+    assert res.overshoot_lost >= 3 and res.tcp_lost >= 3 and res.datagram_lost >= 3
     out = io.StringIO()
     demo._report(out, view, res, TIMEOUT_MS, d.dropped_total)
     text = out.getvalue()
     # 3 brake lines each, and a STATUS line when one fell among them
-    for what in ("timeout overshoot", "TCP stop latency"):
+    for what in ("timeout overshoot", "TCP stop latency", "datagram: stop reason tcp_stop +"
+                 "stop latency"):
         m = re.search(what + r" +not measured: (\d+) can-log lines lost", text)
         assert m is not None and int(m.group(1)) >= 3, text
     assert res.problems == []

@@ -1,14 +1,25 @@
 """A small pure-Python reference model of the stop unit, written from PROTOCOL.md alone.
 
 It shares no code with the C core: validity is checked on decoded floats (not on bit patterns),
-time is an unbounded integer (no wrapping tick, no "fresh" latch), and the CRCs come from the
-Python codecs. The stateful test steps it beside the C core and demands identical output.
+time is an unbounded integer (no wrapping tick, no "fresh" latch), the CRCs come from the
+Python codecs, and authentication (section 5) is its own: tags from hashlib, its own table of
+remote ids and counters, its own framing by magic. The stateful test steps it beside the C core
+and demands identical output.
 
 Like the core's host, it feeds time gaps longer than MAX_STEP_US in steps of that size.
+
+Where the spec leaves a choice open, the model follows the choices the core's header states:
+- only control packets and RELEASE request frames are authenticated; STATUS and STOP request
+  frames (and stop datagrams) never touch the counters;
+- a control packet's body is checked before its tag, so a packet with a bad body keeps no
+  counter and takes no place;
+- authentication checks tag, then session, then the remote id's place, then the counter.
 """
 
 from __future__ import annotations
 
+import hashlib
+import hmac
 import math
 import struct
 from dataclasses import dataclass, field
@@ -19,9 +30,18 @@ STOPPED, ARMED = 0, 1
 NONE, BOOT, TCP_STOP, UDP_TIMEOUT, FAULT = range(5)
 ACK, NAK = 0x80, 0x81
 STATUS_ID, RELEASE_ID = 1, 2
-NAK_UNKNOWN, NAK_NO_LINK, NAK_NOT_NEUTRAL = 1, 2, 3
+NAK_UNKNOWN, NAK_NO_LINK, NAK_NOT_NEUTRAL, NAK_NOT_AUTH = 1, 2, 3, 4
 MAX_STEP_US = 0x7FFFFFFF
 REQUEST_MAGIC = b"ESQ2"
+CONTROL_MAGIC = b"ESU2"
+REPLY_MAGIC = b"ESR2"
+MAX_REMOTES = 8
+UDP, TCP = "udp", "tcp"  # the two channels a counter is kept for
+
+
+def tag_of(key: bytes, message: bytes) -> bytes:
+    """MAC(K, m) of section 5: keyed BLAKE2s, 16-byte digest."""
+    return hashlib.blake2s(message, key=key, digest_size=16).digest()
 
 
 @dataclass(frozen=True)
@@ -36,6 +56,8 @@ class ModelConfig:
     release_packets: int = 5
     brake_period_us: int = 10_000
     status_period_us: int = 100_000
+    session: int = 0x0123456789ABCDEF
+    key: bytes | None = None  # None: a unit without a key
 
 
 @dataclass
@@ -85,6 +107,10 @@ class Model:
         self.invalid = 0
         self.udp_stops = 0
         self.slots: dict[int, bytearray] = {}
+        # remote id -> channel -> highest counter authenticated this session (at most 8 ids)
+        self.remotes: dict[int, dict[str, int]] = {}
+        # Why messages that needed authentication failed it (for the test's statistics).
+        self.auth_failures: dict[str, int] = {}
 
     # -- derived ------------------------------------------------------------------------
     def link_age(self) -> int | None:
@@ -175,7 +201,7 @@ class Model:
             self.udp_stops += 1  # a stop datagram: anyone may stop, the tag is not read
             self._stop(TCP_STOP, step)
             return step
-        ok, gas = parse_control(data)
+        ok, gas = self._control(data)
         if ok:
             if self.last_valid is None or now - self.last_valid >= self.cfg.timeout_us:
                 self.valid_run = 0  # the link was silent for the timeout: count afresh
@@ -188,6 +214,41 @@ class Model:
             self.invalid += 1
             self.window_invalid += 1
         return step
+
+    def _control(self, data: bytes) -> tuple[bool, float]:
+        """(valid, gas_brake) of a control datagram in the form this unit expects."""
+        if self.cfg.key is None:
+            return parse_control(data)
+        if len(data) != 60 or data[:4] != CONTROL_MAGIC:
+            return False, 0.0
+        ok, gas = parse_control(data[24:44])  # the body first: a bad one keeps no counter
+        if not ok:
+            return False, 0.0
+        remote_id, session, counter = struct.unpack_from("<IQQ", data, 4)
+        return self._authenticate(data[:44], data[44:], remote_id, session, counter, UDP), gas
+
+    def _fail(self, why: str) -> bool:
+        self.auth_failures[why] = self.auth_failures.get(why, 0) + 1
+        return False
+
+    def _authenticate(self, signed: bytes, tag: bytes, remote_id: int, session: int,
+                      counter: int, channel: str) -> bool:
+        """Section 5: right tag, this session, a place for the remote id, a counter above the
+        one kept for (remote id, channel). Keeps the counter when all hold."""
+        assert self.cfg.key is not None
+        if not hmac.compare_digest(tag_of(self.cfg.key, signed), tag):
+            return self._fail("bad tag")
+        if session != self.cfg.session:
+            return self._fail("bad session")
+        kept = self.remotes.get(remote_id)
+        if kept is None:
+            if len(self.remotes) >= MAX_REMOTES:
+                return self._fail("table full")
+            kept = self.remotes[remote_id] = {}
+        if channel in kept and counter <= kept[channel]:
+            return self._fail("old counter")
+        kept[channel] = counter
+        return True
 
     def fault(self, now: int) -> ModelStep:
         step = self.begin(now)
@@ -208,25 +269,30 @@ class Model:
         step = self.begin(now)
         buf = self.slots[slot]
         buf.extend(data)
-        while len(buf) >= 16:
-            frame = bytes(buf[:16])
-            del buf[:16]
-            if not self._request(frame, step):
+        while True:
+            # Section 2: the first 4 bytes decide the form.
+            size = 48 if buf[:4] == REQUEST_MAGIC else 16
+            if len(buf) < size:
+                break
+            frame = bytes(buf[:size])
+            del buf[:size]
+            if size == 48:
+                self._request_frame(frame, step)
+            elif not self._plain_frame(frame, step):
                 step.closed = True
                 del self.slots[slot]
                 break
         return step
 
-    def _request(self, frame: bytes, step: ModelStep) -> bool:
-        msg_id, seq, _arg, crc = struct.unpack("<IIII", frame)
-        if crc32(frame[:12]) != crc:
-            self.bad_crc += 1
-            return False
+    def _message(self, msg_id: int, release_authenticated: bool, step: ModelStep) -> int:
+        """What a frame of either form asks for; returns the NAK code."""
         nak = 0
         if msg_id == self.cfg.stop_id:
             self._stop(TCP_STOP, step)
         elif msg_id == RELEASE_ID:
-            if self.state == STOPPED:
+            if not release_authenticated:
+                nak = NAK_NOT_AUTH
+            elif self.state == STOPPED:
                 if not self.link_live():
                     nak = NAK_NO_LINK
                 elif self.last_gas > 0.0:
@@ -236,7 +302,30 @@ class Model:
                     self._change(step)
         elif msg_id != STATUS_ID:
             nak = NAK_UNKNOWN
+        return nak
+
+    def _plain_frame(self, frame: bytes, step: ModelStep) -> bool:
+        msg_id, seq, _arg, crc = struct.unpack("<IIII", frame)
+        if crc32(frame[:12]) != crc:
+            self.bad_crc += 1
+            return False
+        # A plain RELEASE is the keyless unit's; a unit with a key wants it authenticated.
+        nak = self._message(msg_id, self.cfg.key is None, step)
         body = struct.pack("<IIBBBB", NAK if nak else ACK, seq, self.state, self.reason,
                            self.flags(), nak)
         step.replies.append(body + struct.pack("<I", crc32(body)))
         return True
+
+    def _request_frame(self, frame: bytes, step: ModelStep) -> None:
+        """Section 5.2: only a RELEASE is authenticated (never on a keyless unit)."""
+        msg_id, seq, remote_id, session, counter = struct.unpack_from("<IIIQQ", frame, 4)
+        authenticated = False
+        if msg_id == RELEASE_ID and self.cfg.key is not None:
+            authenticated = self._authenticate(frame[:32], frame[32:], remote_id, session,
+                                               counter, TCP)
+        nak = self._message(msg_id, authenticated, step)
+        head = REPLY_MAGIC + struct.pack("<IIBBBBQQ", NAK if nak else ACK, seq, self.state,
+                                         self.reason, self.flags(), nak, self.cfg.session,
+                                         counter)
+        tag = bytes(16) if self.cfg.key is None else tag_of(self.cfg.key, frame[32:] + head)
+        step.replies.append(head + tag)

@@ -3,9 +3,13 @@ through the independent Python codecs."""
 
 from __future__ import annotations
 
+import hashlib
+
 import pytest
 
-from core_util import ARMED, BOOT, STOPPED, TCP_STOP, UDP_TIMEOUT, Unit, reply_fields
+from core_util import ARMED, BOOT, MS, STOPPED, TCP_STOP, UDP_TIMEOUT, Unit, reply_fields
+from estop.core import Config
+from estop.protocol import auth
 from estop.protocol.can import BrakeFrame
 from estop.protocol.tcp import Reply, Request, release_request, stop_request
 from estop.protocol.udp import ControlPacket
@@ -16,6 +20,27 @@ RELEASE_EXAMPLE = bytes.fromhex("02 00 00 00 02 00 00 00 00 00 00 00 8D 5F CB D5
 BRAKE_BOOT_0 = bytes.fromhex("01 64 00 01 00 00 00 9C")
 BRAKE_ARMED_7 = bytes.fromhex("00 00 01 00 00 00 07 18")
 BRAKE_TIMEOUT_14 = bytes.fromhex("01 64 00 03 00 00 0E 1D")
+
+# Section 5.4: key 00..1F, session 0x0123456789ABCDEF, remote id 7.
+K = bytes(range(32))
+N = 0x0123456789ABCDEF
+RID = 7
+AUTH_CONTROL_EXAMPLE = bytes.fromhex(
+    "45 53 55 32 07 00 00 00 EF CD AB 89 67 45 23 01 01 00 00 00 00 00 00 00"
+    "9A 99 99 3E 00 00 80 BE 08 00 00 00 01 00 00 00 00 00 00 00"
+    "0C EF FB 40 CD 71 1A F5 A3 87 85 67 B9 28 7C 72")
+AUTH_STATUS_EXAMPLE = bytes.fromhex(
+    "45 53 51 32 01 00 00 00 01 00 00 00 07 00 00 00 00 00 00 00 00 00 00 00"
+    "88 77 66 55 44 33 22 11 E0 5B 65 D7 00 A8 04 C4 65 2A 16 32 A0 EA DD 1E")
+AUTH_STATUS_REPLY_EXAMPLE = bytes.fromhex(
+    "45 53 52 32 80 00 00 00 01 00 00 00 00 01 00 00 EF CD AB 89 67 45 23 01"
+    "88 77 66 55 44 33 22 11 E0 3C 40 08 C7 26 9C 38 B7 4F 4C 23 9E 56 E7 0D")
+AUTH_RELEASE_EXAMPLE = bytes.fromhex(
+    "45 53 51 32 02 00 00 00 02 00 00 00 07 00 00 00 EF CD AB 89 67 45 23 01"
+    "02 00 00 00 00 00 00 00 15 42 BA 83 A0 CE 93 39 AA 34 55 A8 66 EF 4D E5")
+AUTH_STOP_EXAMPLE = bytes.fromhex(
+    "45 53 51 32 70 E5 70 E5 03 00 00 00 07 00 00 00 EF CD AB 89 67 45 23 01"
+    "03 00 00 00 00 00 00 00 2D 87 7B 42 F3 EA AC D8 BB 0A 03 26 F1 8E D5 2A")
 
 
 # -- section 1 --------------------------------------------------------------------------------
@@ -93,3 +118,99 @@ def test_brake_examples_through_core() -> None:
     while BRAKE_TIMEOUT_14 not in brake_frames_of(u):
         u.wait(10_000)
         assert len(u.frames) < 10_000
+
+
+# -- section 5.4 ------------------------------------------------------------------------------
+def spec_mac(message: bytes) -> bytes:
+    """MAC(K, m) as section 5 defines it, straight from hashlib."""
+    return hashlib.blake2s(message, key=K, digest_size=16).digest()
+
+
+@pytest.mark.parametrize(("raw", "signed"), [
+    (AUTH_CONTROL_EXAMPLE, 44), (AUTH_STATUS_EXAMPLE, 32), (AUTH_RELEASE_EXAMPLE, 32),
+    (AUTH_STOP_EXAMPLE, 32)])
+def test_auth_example_tags_are_the_spec_mac(raw: bytes, signed: int) -> None:
+    assert len(raw) == signed + 16
+    assert raw[signed:] == spec_mac(raw[:signed])
+
+
+def test_auth_reply_example_tag_covers_the_request_tag() -> None:
+    assert AUTH_STATUS_REPLY_EXAMPLE[32:] == spec_mac(AUTH_STATUS_EXAMPLE[32:]
+                                                      + AUTH_STATUS_REPLY_EXAMPLE[:32])
+
+
+def test_auth_control_example_through_python_codec() -> None:
+    body = ControlPacket(0.3, -0.25, 8, 1, 0)
+    assert auth.AuthControlPacket(RID, N, 1, body).encode(K) == AUTH_CONTROL_EXAMPLE
+    pkt = auth.AuthControlPacket.decode(AUTH_CONTROL_EXAMPLE, K)
+    assert (pkt.remote_id, pkt.session, pkt.counter) == (RID, N, 1)
+    assert pkt.body.encode() == UDP_EXAMPLE  # the body of section 1's example
+    with pytest.raises(auth.TagMismatch):
+        auth.AuthControlPacket.decode(AUTH_CONTROL_EXAMPLE, bytes(32))
+
+
+@pytest.mark.parametrize(("raw", "fields"), [
+    (AUTH_STATUS_EXAMPLE, (1, 1, 0, 0x1122334455667788)),
+    (AUTH_RELEASE_EXAMPLE, (2, 2, N, 2)),
+    (AUTH_STOP_EXAMPLE, (0xE570E570, 3, N, 3)),
+])
+def test_auth_request_examples_through_python_codec(raw: bytes,
+                                                     fields: tuple[int, int, int, int]) -> None:
+    msg_id, seq, session, counter = fields
+    assert auth.AuthRequest(msg_id, seq, RID, session, counter).encode(K) == raw
+    assert auth.AuthRequest.decode(raw, K) == auth.AuthRequest(msg_id, seq, RID, session, counter)
+
+
+def test_auth_status_reply_example_through_python_codec() -> None:
+    reply = auth.AuthReply(True, 1, STOPPED, BOOT, session=N, counter=0x1122334455667788)
+    request_tag = auth.request_tag(AUTH_STATUS_EXAMPLE)
+    assert reply.encode(K, request_tag) == AUTH_STATUS_REPLY_EXAMPLE
+    assert auth.AuthReply.decode(AUTH_STATUS_REPLY_EXAMPLE, K, request_tag) == reply
+    with pytest.raises(auth.TagMismatch):  # bound to its request: not a reply to the RELEASE
+        auth.AuthReply.decode(AUTH_STATUS_REPLY_EXAMPLE, K,
+                              auth.request_tag(AUTH_RELEASE_EXAMPLE))
+
+
+def keyed_unit() -> Unit:
+    """A freshly booted unit with the key and session of section 5.4."""
+    return Unit(Config(key=K, session=N))
+
+
+def only_reply(u: Unit, frame: bytes) -> bytes:
+    (rep,) = [s.reply for s in u.send(frame) if s.reply is not None]
+    return rep
+
+
+def test_auth_status_and_its_reply_examples_through_core() -> None:
+    assert only_reply(keyed_unit(), AUTH_STATUS_EXAMPLE) == AUTH_STATUS_REPLY_EXAMPLE
+
+
+def test_auth_control_release_and_stop_examples_through_core() -> None:
+    u = keyed_unit()
+    u.wait(20 * MS)
+    u.udp(AUTH_CONTROL_EXAMPLE)  # counter 1: valid (gas 0.3, so not neutral)
+    assert u.wd.status().counters.udp_valid == 1
+    for counter in range(2, 7):  # counters 2..6, neutral
+        u.wait(20 * MS)
+        u.udp(auth.AuthControlPacket(RID, N, counter, ControlPacket()).encode(K))
+    assert u.wd.status().counters.udp_valid == 6
+    rep = auth.AuthReply.decode(only_reply(u, AUTH_RELEASE_EXAMPLE), K,
+                                auth.request_tag(AUTH_RELEASE_EXAMPLE))
+    assert (rep.ack, rep.seq, rep.state, rep.session, rep.counter) == (True, 2, ARMED, N, 2)
+    rep = auth.AuthReply.decode(only_reply(u, AUTH_STOP_EXAMPLE), K,
+                                auth.request_tag(AUTH_STOP_EXAMPLE))
+    assert (rep.ack, rep.seq, rep.state, rep.reason, rep.counter) == (True, 3, STOPPED, TCP_STOP, 3)
+    # Replayed, the same RELEASE is refused: its counter is no longer above the one kept.
+    assert only_reply(u, AUTH_RELEASE_EXAMPLE)[15] == 4
+
+
+def test_auth_stop_example_as_a_stop_datagram_through_core() -> None:
+    """Section 1: the same frame over UDP stops the unit (whatever its tag)."""
+    u = keyed_unit()
+    for counter in range(1, 6):
+        u.wait(20 * MS)
+        u.udp(auth.AuthControlPacket(RID, N, counter, ControlPacket()).encode(K))
+    assert only_reply(u, auth.AuthRequest(2, 9, RID, N, 1).encode(K))[12] == ARMED
+    u.udp(AUTH_STOP_EXAMPLE)
+    assert (u.state, u.reason) == (STOPPED, TCP_STOP)
+    assert u.wd.status().counters.udp_stops == 1

@@ -101,6 +101,7 @@ class Model:
         self.status_counter = 0
         self.window_valid = 0
         self.window_invalid = 0
+        self.window_auth_failed = 0
         self.bad_crc = 0
         self.stops = 0
         self.valid = 0
@@ -142,12 +143,12 @@ class Model:
         age = self.link_age()
         age_ms = 0xFFFF if age is None else age // 1000
         body = bytes([min(self.window_valid, 255), min(self.window_invalid, 255),
-                      0,  # authentication failures: a unit without a key has none
+                      min(self.window_auth_failed, 255),  # authentication failures
                       min(self.stops, 255)]) + struct.pack("<H", age_ms)
         self._frame(step, self.cfg.status_can_id, self.cfg.status_data_id, body,
                     self.status_counter)
         self.status_counter = (self.status_counter + 1) % 15
-        self.window_valid = self.window_invalid = 0
+        self.window_valid = self.window_invalid = self.window_auth_failed = 0
 
     def _change(self, step: ModelStep) -> None:
         step.changed = True
@@ -229,6 +230,7 @@ class Model:
 
     def _fail(self, why: str) -> bool:
         self.auth_failures[why] = self.auth_failures.get(why, 0) + 1
+        self.window_auth_failed += 1  # ESTOP_STATUS byte 2 (docs/DESIGN.md)
         return False
 
     def _authenticate(self, signed: bytes, tag: bytes, remote_id: int, session: int,

@@ -232,7 +232,9 @@ class Run:
         d = Daemon(self.argv(), self.out / f"estopd-{len(self.daemons) + 1}.log")
         d.keyed = self.want_key
         self.daemons.append(d)
-        fr = self.mon.wait_for(lambda f: f.can_id == BRAKE_ID, start, 5.0)
+        # By time, not only by index: a monitor that lags (a loaded host) may still hold the
+        # previous daemon's last frames.
+        fr = self.mon.wait_for(lambda f: f.can_id == BRAKE_ID and f.ts >= d.t_start, start, 5.0)
         if fr is None:
             code = d.wait(0.1)
             raise RigError(f"daemon sent no ESTOP_BRAKE frame within 5 s (exit code {code}; "

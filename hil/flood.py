@@ -10,9 +10,10 @@ send and are cut apart before they reach the daemon's socket, where each is a da
 own, queued, counted and, when the queue is full, dropped one by one. Under TCG the kernel's
 path per datagram is what limits a flood: GSO walks it once per send (a plain sendmmsg flood
 reached 14000/s in an otherwise idle VM, and 2000-4000/s beside the harness on a busy host).
-Commands, one per line on standard input; every answer is one JSON line on standard output:
+Once up (socket open), it writes ``{"ready": true, "t": ...}``. Then commands, one per line on
+standard input; every answer is one JSON line on standard output:
 
-- ``ready?``: ``{"ready": true}`` (the process is up and its socket open);
+- ``ready?``: ``{"ready": true, ...}`` again;
 - ``burst N``: exactly N packets as fast as possible;
   answer ``{"sent": N, "t0": ..., "t1": ..., "errors": ...}``;
 - ``flood``: packets until the next command line (``stop``), at ``--rate`` packets/s
@@ -271,13 +272,14 @@ def main(argv: list[str] | None = None) -> int:
         sys.stdout.write(json.dumps(obj) + "\n")
         sys.stdout.flush()
 
+    answer({"ready": True, "pid": os.getpid(), "t": time.time()})
     lines = Lines(sys.stdin.fileno())
     while (line := lines.readline()) is not None:
         cmd = line.split()
         if not cmd:
             continue
         if cmd[0] == "ready?":
-            answer({"ready": True, "pid": os.getpid()})
+            answer({"ready": True, "pid": os.getpid(), "t": time.time()})
         elif cmd[0] == "burst" and len(cmd) == 2:
             answer(burst(s, int(cmd[1])))
         elif cmd[0] == "flood":

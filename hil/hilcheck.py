@@ -94,11 +94,16 @@ class BrakeController:
     last_status: float | None = None
     _brake_ctr: CounterChecker = field(default_factory=CounterChecker)
     _status_ctr: CounterChecker = field(default_factory=CounterChecker)
+    _new_sender_at: float | None = None
 
-    def expect_new_sender(self) -> None:
-        """A new daemon starts: its counters start over, so no continuity is expected."""
-        self._brake_ctr.reset()
-        self._status_ctr.reset()
+    def expect_new_sender(self, since: float | None = None) -> None:
+        """A new daemon starts: its counters start over, so no continuity is expected. With
+        ``since``, from its first frame stamped at or after that time (a receiver that lags
+        behind the bus may still be reading the previous daemon's last frames)."""
+        if since is None:
+            self._brake_ctr.reset()
+            self._status_ctr.reset()
+        self._new_sender_at = since
 
     def _set(self, ts: float, braking: bool, cause: str) -> None:
         if braking != self.braking:
@@ -108,6 +113,11 @@ class BrakeController:
     def on_frame(self, frame: Frame) -> None:
         """Any frame (of any ID) proves that time has reached ``frame.ts`` on the bus."""
         self.on_tick(frame.ts)
+        if self._new_sender_at is not None and frame.can_id in (BRAKE_ID, STATUS_ID) \
+                and frame.ts >= self._new_sender_at:
+            self._new_sender_at = None
+            self._brake_ctr.reset()
+            self._status_ctr.reset()
         if frame.can_id == BRAKE_ID:
             self._on_brake(frame)
         elif frame.can_id == STATUS_ID:

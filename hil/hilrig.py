@@ -7,6 +7,7 @@ throughout because SocketCAN stamps frames with CLOCK_REALTIME.
 
 from __future__ import annotations
 
+import bisect
 import fcntl
 import json
 import os
@@ -183,6 +184,8 @@ class BusMonitor:
         self.frames: list[Frame] = []
         self.errors: list[BusError] = []
         self.ctl = BrakeController()
+        self.max_lag = 0.0  # seconds this thread read a frame after its kernel timestamp
+        self.max_lag_at = 0.0
         self.cond = threading.Condition()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="bus-monitor", daemon=True)
@@ -205,6 +208,9 @@ class BusMonitor:
                 msg = self._recv(0.0)
             with self.cond:
                 if msg is not None:
+                    lag = time.time() - msg.timestamp  # how far behind the bus this thread is
+                    if lag > self.max_lag:
+                        self.max_lag, self.max_lag_at = lag, msg.timestamp
                     fr = Frame(msg.timestamp, msg.arbitration_id, bytes(msg.data))
                     self.frames.append(fr)
                     self.ctl.on_frame(fr)
@@ -381,8 +387,9 @@ class UdpRemote:
         return body
 
     def sent_since(self, t: float) -> int:
-        """Keepalive packets sent at or after wall time ``t``."""
-        return sum(1 for x in self.keepalive_times if x >= t)
+        """Keepalive packets sent at or after wall time ``t`` (the list is in time order and
+        long: a binary search, as this is polled)."""
+        return len(self.keepalive_times) - bisect.bisect_left(self.keepalive_times, t)
 
     def send(self, data: bytes) -> float:
         t = time.time()
@@ -420,7 +427,8 @@ class UdpRemote:
 
     def max_gap(self, t0: float, t1: float) -> float:
         """Longest pause between keepalive packets sent in ``[t0, t1]`` (seconds)."""
-        ts = [t for t in self.keepalive_times if t0 <= t <= t1]
+        ts = self.keepalive_times[bisect.bisect_left(self.keepalive_times, t0):
+                                  bisect.bisect_right(self.keepalive_times, t1)]
         return max((b - a for a, b in zip(ts, ts[1:], strict=False)), default=0.0)
 
     def close(self) -> None:
@@ -633,6 +641,8 @@ class Flooder:
         self.proc = subprocess.Popen([python, "-B", script, str(port), "--rate", str(rate)],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
                                      bufsize=1)
+        self.t_start = time.time()
+        self.t_ready: float | None = None
         self._answers: queue.Queue[str] = queue.Queue()
         self._reader = threading.Thread(target=self._read, name="flood-out", daemon=True)
         self._reader.start()
@@ -660,9 +670,11 @@ class Flooder:
             raise RigError(f"flooder: {rec}")
         return rec
 
-    def ready(self, timeout: float = 20.0) -> None:
-        self._say("ready?")
-        self._answer(timeout)
+    def ready(self, timeout: float = 20.0) -> float:
+        """Wait for the line the flooder writes once it is up; returns its time."""
+        if self.t_ready is None:
+            self.t_ready = float(self._answer(timeout)["t"])
+        return self.t_ready
 
     def burst(self, n: int, timeout: float = 10.0) -> dict:
         self._say(f"burst {n}")

@@ -225,10 +225,11 @@ class Run:
 
     def start_daemon(self) -> tuple[Daemon, Frame]:
         """Start the daemon; returns it and its first ESTOP_BRAKE frame."""
-        self.mon.ctl.expect_new_sender()
         start = self.mon.index()
         if self.want_key:
             self.ensure_key()
+        with self.mon.cond:
+            self.mon.ctl.expect_new_sender(time.time())
         d = Daemon(self.argv(), self.out / f"estopd-{len(self.daemons) + 1}.log")
         d.keyed = self.want_key
         self.daemons.append(d)
@@ -466,14 +467,16 @@ def show_ex(ex: Exchange) -> str:
 # =========================================================================== scenarios
 
 def sc_boot(run: Run, res: Result) -> None:
+    t_again = None
     if run.daemons and run.daemon.alive:  # a second try: a fresh boot again
-        t = time.time()
+        t_again = time.time()
         run.daemon.signal(signal.SIGTERM)
         if run.daemon.wait(3.0) is None:
             run.daemon.kill_hard()
-        run.windows.append((t - 0.01, time.time() + 0.3, "boot once more"))
     t0 = time.time()
     d, first = run.start_daemon()
+    if t_again is not None:
+        run.windows.append((t_again - 0.01, first.ts + 0.1, "boot once more"))
     b = BrakeFrame.parse(first.data)
     res.figures["first_frame"] = first.data.hex(" ")
     res.figures["exec_to_first_frame_ms"] = ms(first.ts - t0)
@@ -689,7 +692,8 @@ def sc_invalid_flood(run: Run, res: Result) -> None:
         run.flooder = Flooder(run.udp_port, FLOOD_RATE)
     fl = run.flooder
     try:
-        fl.ready(60.0)
+        t_up = fl.ready(60.0)
+        res.figures["flooder_up_s"] = round(t_up - fl.t_start, 2)
         run.arm(res)
         time.sleep(0.1)
         # 1. The burst, while the keepalive still holds the link: counted exactly (no window
@@ -1365,6 +1369,7 @@ def check_bus(run: Run, res: Result) -> None:
     res.figures["cpu_stalls_10ms_or_more"] = (
         f"{len(long_stalls)}, max {ms(max(long_stalls))} ms" if long_stalls else 0)
     res.figures["stall_monitor_realtime"] = run.stallmon.realtime() if run.stallmon else None
+    res.figures["bus_monitor_max_lag_ms"] = ms(run.mon.max_lag)
     if excuses:
         res.figures["gaps_excused_by_cpu_stalls"] = excuses[:5]
     res.check(bool(gaps) and max(gaps) < BRAKE_SILENCE_S * 1000,

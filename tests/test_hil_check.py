@@ -118,6 +118,19 @@ def test_new_sender_resets_counters() -> None:
     assert not ctl.issues and ctl.good == 2
 
 
+def test_new_sender_from_a_time() -> None:
+    # a lagging receiver still reads the old daemon's frames after the new one was started
+    ctl = BrakeController()
+    ctl.on_frame(Frame(0.00, 0x050, armed(9)))
+    ctl.expect_new_sender(0.05)
+    ctl.on_frame(Frame(0.01, 0x050, armed(10)))  # the old one, read late: still followed
+    ctl.on_frame(Frame(0.02, 0x050, armed(12)))
+    assert [i.kind for i in ctl.issues] == ["jump"]
+    ctl.on_frame(Frame(0.06, 0x050, BOOT))  # the new one: counter 0, no continuity expected
+    ctl.on_frame(Frame(0.07, 0x050, stopped(1, reason=1)))
+    assert len(ctl.issues) == 1 and ctl.good == 5
+
+
 def test_status_frames_checked() -> None:
     ctl = BrakeController()
     good = StatusFrame(5, 0, 0, 0, 12, 0).encode()
@@ -296,7 +309,8 @@ def test_periods_without_stalls_judge_every_gap() -> None:
 def test_periods_leave_out_what_a_stall_stretched() -> None:
     # The boot row's failure: stalls of 15-30 ms push frames late; after a delay of a whole
     # period the daemon starts its grid over, so slots are lost and the mean of all gaps grows
-    # (here by 0.23 ms; the boot row's 1 s had 70 such stalls). Judged on the stall-free stretches, the period is the grid's.
+    # (here by 0.23 ms; the boot row's 1 s had 70 such stalls). Judged on the stall-free
+    # stretches, the period is the grid's.
     ts = _grid(100.0, 30)  # 100.00 .. 100.29
     stall1 = (100.295, 100.320)  # 25 ms: the frame due at 100.30 goes out at 100.321
     ts += [100.321 + i * 0.010 for i in range(30)]  # grid restarted: 100.321 .. 100.611
@@ -423,6 +437,7 @@ def test_flooder_counts_what_it_sends() -> None:
             proc.stdin.flush()
             return json.loads(proc.stdout.readline())
 
+        assert json.loads(proc.stdout.readline())["ready"] is True  # unasked, once up
         assert ask("ready?")["ready"] is True
         burst = ask("burst 30")
         assert burst["sent"] == 30 and burst["errors"] == 0

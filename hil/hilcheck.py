@@ -381,6 +381,51 @@ def enough_frames(ts: Sequence[float], t0: float, t1: float, want: int, period_s
     return n, None if overlap(stalls, t0, t1) >= (want - n) * period_s else False
 
 
+def upper_median(values: Sequence[float]) -> float:
+    return sorted(values)[len(values) // 2]
+
+
+@dataclass(frozen=True, slots=True)
+class Verdict:
+    """What latency samples say about "at once": failures, and why the samples could not
+    decide (then the test is inconclusive: it runs once more; the failures say so too)."""
+
+    fails: list[str]
+    inconclusive: str | None = None
+
+
+def judge_latencies(vals: Sequence[float], stalled: Sequence[bool], p50: float | None,
+                    max_ms: float, label: str) -> Verdict:
+    """Latency samples (ms) against a median limit (None: none) and a max limit.
+
+    A CPU stall can only delay, so a sample taken during one is an upper bound of what the
+    daemon did: a limit that all samples meet is met. Where they do not, only the samples
+    without a stall count (at least 3 for a median, at least half of them in all); when too
+    few are left to decide, the verdict is inconclusive, never a pass.
+    """
+    fails: list[str] = []
+    why: str | None = None
+    clean = [v for v, st in zip(vals, stalled, strict=True) if not st]
+    if not vals:
+        return Verdict(fails)
+    if p50 is not None and upper_median(vals) > p50:
+        if len(clean) >= 3:
+            if upper_median(clean) > p50:
+                fails.append(f"{label}: median > {p50} ms (waits for the 10 ms tick?)")
+        else:
+            why = (f"{label}: median {upper_median(vals)} ms with stalls, only {len(clean)} "
+                   "samples without one")
+            fails.append(f"{label}: median not judged ({why})")
+    over = [v for v, st in zip(vals, stalled, strict=True) if v > max_ms and not st]
+    if over:
+        fails.append(f"{label}: {max(over)} ms > {max_ms} ms")
+    elif max(vals) > max_ms and len(clean) < (len(vals) + 1) // 2:
+        why = (f"{label}: {max(vals)} ms > {max_ms} ms during a CPU stall, and only "
+               f"{len(clean)} of {len(vals)} samples without one")
+        fails.append(f"{label}: max not judged ({why})")
+    return Verdict(fails, why)
+
+
 # A gap in the periodic frames is the environment's when, without the CPU stalls inside it,
 # the daemon had at most this much time to run: two and a half 10 ms periods.
 RUNNABLE_GAP_S = 0.025

@@ -30,6 +30,7 @@ from hilcheck import BrakeController, Frame, merge_more, read_stalls, udp_socket
 
 MARKER_ID = 0x7FF  # harness marker frames (lowest priority ID, ignored by the checks)
 SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # root may exceed rmem_max
+LAG_MAX_S = 10.0  # how far the bus monitor may fall behind the bus before a wait gives up
 
 
 class RigError(RuntimeError):
@@ -184,6 +185,7 @@ class BusMonitor:
         self.frames: list[Frame] = []
         self.errors: list[BusError] = []
         self.ctl = BrakeController()
+        self._tx: can.BusABC | None = None  # sends the marker frames
         self.max_lag = 0.0  # seconds this thread read a frame after its kernel timestamp
         self.max_lag_at = 0.0
         self.cond = threading.Condition()
@@ -243,9 +245,12 @@ class BusMonitor:
 
     def wait_for(self, pred: Callable[[Frame], bool], start: int,
                  timeout: float) -> Frame | None:
-        """First frame from index ``start`` on that satisfies ``pred``, waiting at most
-        ``timeout`` seconds for it."""
-        end = time.monotonic() + timeout
+        """First frame from index ``start`` on that satisfies ``pred``, if one is on the bus
+        within ``timeout`` seconds from now. "Within" is bus time (kernel timestamps): when
+        this thread lags behind the bus (a loaded host), it is waited for, up to LAG_MAX_S
+        more, so that a frame that came in time is never missed for being read late."""
+        t_bus_end = time.time() + timeout
+        end = time.monotonic() + timeout + LAG_MAX_S
         i = start
         with self.cond:
             while True:
@@ -253,6 +258,8 @@ class BusMonitor:
                     if pred(self.frames[i]):
                         return self.frames[i]
                     i += 1
+                if self.frames and self.frames[-1].ts > t_bus_end:
+                    return None  # read past the deadline: none came in time
                 left = end - time.monotonic()
                 if left <= 0:
                     return None
@@ -261,17 +268,25 @@ class BusMonitor:
     def marker(self, text: bytes) -> Frame:
         """Send a marker frame from a separate socket and wait until it is seen."""
         start = self.index()
-        with can.Bus(interface="socketcan", channel=self.iface) as tx:
-            tx.send(can.Message(arbitration_id=MARKER_ID, data=text[:8], is_extended_id=False))
+        if self._tx is None:
+            self._tx = can.Bus(interface="socketcan", channel=self.iface)
+        self._tx.send(can.Message(arbitration_id=MARKER_ID, data=text[:8], is_extended_id=False))
         fr = self.wait_for(lambda f: f.can_id == MARKER_ID and f.data == text[:8], start, 2.0)
         if fr is None:
             raise RigError(f"marker frame {text!r} was not received back on {self.iface}")
         return fr
 
+    def sync(self) -> None:
+        """Return once this thread has read every frame sent before now (a marker frame
+        behind them: a socket's queue keeps the order)."""
+        self.marker(b"HILSYNC")
+
     def close(self) -> None:
         self._stop.set()
         self._thread.join(timeout=2)
         self.bus.shutdown()
+        if self._tx is not None:
+            self._tx.shutdown()
 
 
 # --------------------------------------------------------------------------- the daemon

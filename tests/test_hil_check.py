@@ -467,3 +467,27 @@ def test_flooder_counts_what_it_sends() -> None:
         proc.stdin.close()
         proc.wait(timeout=10)
         rx.close()
+
+
+def test_judge_latencies_counts_stalled_samples_as_upper_bounds() -> None:
+    jl = hilcheck.judge_latencies
+    # all within the limits, stalls or not: met (a stall can only delay)
+    v = jl([1.0, 2.0, 4.0, 11.0], [True, True, True, True], 5.0, 25.0, "x")
+    assert v.fails == [] and v.inconclusive is None
+    # a slow daemon fails on its clean samples
+    v = jl([7.0, 8.0, 9.0, 30.0], [False, False, False, True], 5.0, 25.0, "x")
+    assert v.fails == ["x: median > 5.0 ms (waits for the 10 ms tick?)"]
+    assert v.inconclusive is None
+    # the median over the limit only with stalled samples in it, too few clean ones: undecided
+    v = jl([1.0, 8.0, 8.0, 9.0], [False, True, True, True], 5.0, 25.0, "x")
+    assert v.inconclusive is not None and v.fails[0].startswith("x: median not judged")
+    # enough clean samples decide, the stalled ones aside
+    v = jl([1.0, 1.5, 2.0, 8.0, 9.0, 9.5], [False] * 3 + [True] * 3, 5.0, 25.0, "x")
+    assert v.fails == [] and v.inconclusive is None
+    # over the max without a stall: a failure; with one: not judged if most samples stalled
+    assert jl([1.0, 26.0], [False, False], None, 25.0, "x").fails == ["x: 26.0 ms > 25.0 ms"]
+    v = jl([1.0, 26.0, 2.0], [True, True, False], None, 25.0, "x")
+    assert v.inconclusive is not None and v.fails[0].startswith("x: max not judged")
+    v = jl([1.0, 26.0, 2.0], [False, True, False], None, 25.0, "x")
+    assert v.fails == [] and v.inconclusive is None
+    assert jl([], [], 5.0, 25.0, "x") == hilcheck.Verdict([])

@@ -268,9 +268,20 @@ class BusMonitor:
     def marker(self, text: bytes) -> Frame:
         """Send a marker frame from a separate socket and wait until it is seen."""
         start = self.index()
-        if self._tx is None:
-            self._tx = can.Bus(interface="socketcan", channel=self.iface)
-        self._tx.send(can.Message(arbitration_id=MARKER_ID, data=text[:8], is_extended_id=False))
+        msg = can.Message(arbitration_id=MARKER_ID, data=text[:8], is_extended_id=False)
+        for attempt in range(2):
+            if self._tx is None:
+                self._tx = can.Bus(interface="socketcan", channel=self.iface)
+            try:
+                self._tx.send(msg)
+                break
+            except can.CanError:
+                # A socket keeps an error of its interface going down (ENETDOWN) for its next
+                # send: a fresh socket then.
+                self._tx.shutdown()
+                self._tx = None
+                if attempt:
+                    raise
         fr = self.wait_for(lambda f: f.can_id == MARKER_ID and f.data == text[:8], start, 2.0)
         if fr is None:
             raise RigError(f"marker frame {text!r} was not received back on {self.iface}")

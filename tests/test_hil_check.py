@@ -491,3 +491,38 @@ def test_judge_latencies_counts_stalled_samples_as_upper_bounds() -> None:
     v = jl([1.0, 26.0, 2.0], [False, True, False], None, 25.0, "x")
     assert v.fails == [] and v.inconclusive is None
     assert jl([], [], 5.0, 25.0, "x") == hilcheck.Verdict([])
+
+
+def test_keyed_rows_run_last() -> None:
+    import scenarios
+
+    ids = [sid for sid, *_ in scenarios.SCENARIOS]
+    keyed = [i for i, sid in enumerate(ids) if sid in scenarios.KEYED]
+    assert len(keyed) == len(scenarios.KEYED) == 4
+    assert keyed == list(range(len(ids) - 4, len(ids)))
+    assert scenarios.KEYED <= scenarios.RETRYABLE
+
+
+def test_attack_packets_are_made_without_the_key() -> None:
+    from types import SimpleNamespace
+
+    import scenarios
+    from estop.protocol import auth, udp
+
+    key = bytes(range(32))
+    remote = SimpleNamespace(remote_id=7, session=0x0123456789ABCDEF, udp_counter=41)
+    genuine = [auth.AuthControlPacket(7, remote.session, c, udp.decode(scenarios.NEUTRAL))
+               .encode(key) for c in (40, 41)]
+    pkts = scenarios.attack_packets(remote, key, genuine)  # type: ignore[arg-type]
+    assert [k for k, _ in pkts] == ["plain", "wrong_key", "replay"] * 2
+    for kind, data in pkts:
+        if kind == "plain":
+            assert data == scenarios.NEUTRAL and udp.is_valid(data)
+        elif kind == "replay":
+            assert data in genuine
+        else:
+            # the right session and remote id, a counter above the remote's, a wrong tag
+            with pytest.raises(auth.TagMismatch):
+                auth.AuthControlPacket.decode(data, key)
+            p = auth.AuthControlPacket.decode(data, None)
+            assert p.session == remote.session and p.remote_id == 7 and p.counter > 41

@@ -14,6 +14,7 @@ frames, so frame times and the harness's own send times can be subtracted direct
 
 from __future__ import annotations
 
+import bisect
 import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
@@ -93,11 +94,16 @@ class BrakeController:
     last_status: float | None = None
     _brake_ctr: CounterChecker = field(default_factory=CounterChecker)
     _status_ctr: CounterChecker = field(default_factory=CounterChecker)
+    _new_sender_at: float | None = None
 
-    def expect_new_sender(self) -> None:
-        """A new daemon starts: its counters start over, so no continuity is expected."""
-        self._brake_ctr.reset()
-        self._status_ctr.reset()
+    def expect_new_sender(self, since: float | None = None) -> None:
+        """A new daemon starts: its counters start over, so no continuity is expected. With
+        ``since``, from its first frame stamped at or after that time (a receiver that lags
+        behind the bus may still be reading the previous daemon's last frames)."""
+        if since is None:
+            self._brake_ctr.reset()
+            self._status_ctr.reset()
+        self._new_sender_at = since
 
     def _set(self, ts: float, braking: bool, cause: str) -> None:
         if braking != self.braking:
@@ -107,6 +113,11 @@ class BrakeController:
     def on_frame(self, frame: Frame) -> None:
         """Any frame (of any ID) proves that time has reached ``frame.ts`` on the bus."""
         self.on_tick(frame.ts)
+        if self._new_sender_at is not None and frame.can_id in (BRAKE_ID, STATUS_ID) \
+                and frame.ts >= self._new_sender_at:
+            self._new_sender_at = None
+            self._brake_ctr.reset()
+            self._status_ctr.reset()
         if frame.can_id == BRAKE_ID:
             self._on_brake(frame)
         elif frame.can_id == STATUS_ID:
@@ -248,8 +259,171 @@ def merge(intervals: Iterable[tuple[float, float]]) -> list[tuple[float, float]]
 
 
 def overlap(intervals: Sequence[tuple[float, float]], t0: float, t1: float) -> float:
-    """Seconds of ``intervals`` (merged) that fall in ``[t0, t1]``."""
-    return sum(max(0.0, min(b, t1) - max(a, t0)) for a, b in intervals)
+    """Seconds of ``intervals`` (merged: sorted and disjoint, as :func:`merge` makes them)
+    that fall in ``[t0, t1]``. A binary search finds the first one: a loaded run records tens
+    of thousands of stalls, and this is asked for every frame."""
+    i = max(0, bisect.bisect_left(intervals, (t0,)) - 1)
+    total = 0.0
+    while i < len(intervals) and intervals[i][0] < t1:
+        a, b = intervals[i]
+        total += max(0.0, min(b, t1) - max(a, t0))
+        i += 1
+    return total
+
+
+def merge_more(merged: list[tuple[float, float]],
+               new: Iterable[tuple[float, float]]) -> list[tuple[float, float]]:
+    """:func:`merge` of ``merged`` (already merged) and ``new``, re-merging only the tail that
+    ``new`` can touch."""
+    more = sorted(new)
+    if not more:
+        return merged
+    cut = max(0, bisect.bisect_left(merged, (more[0][0],)) - 1)
+    return merged[:cut] + merge(merged[cut:] + more)
+
+
+# A sample (a latency, a frame gap) during which a CPU stood still this long is not judged
+# against a timing limit: the environment, not the daemon, may have made it late.
+STALL_EXCUSE_S = 0.002
+
+
+# A frame sent within this time after a CPU stall may still be late (the daemon catches up on
+# its grid with the next frame or two): it does not start or end a judged stretch.
+CATCH_UP_S = 0.020
+
+
+@dataclass(frozen=True, slots=True)
+class Periods:
+    """Frame periods judged on stall-free stretches only.
+
+    The daemon sends on a fixed grid: a frame made late by a stall is followed by a short gap
+    that catches up, so within a stretch the gaps average out, and a stretch's mean period is
+    its span over its gap count. A stretch ends at a CPU stall of half a period or more (long
+    enough to push a frame past its slot, so the daemon may start its grid over, which would
+    stretch the mean), and its first and last frames are ones that no stall of
+    ``STALL_EXCUSE_S`` or more may have delayed (none within ``CATCH_UP_S`` before them).
+    Every gap outside the judged stretches is left out, and shown as such.
+    """
+
+    gaps: list[float]  # all gaps, seconds, in order
+    judged: list[float]  # the gaps inside judged stretches
+    stretches: int
+    splits: int  # gaps that held a stall of half a period or more
+
+    @property
+    def mean_judged(self) -> float | None:
+        return sum(self.judged) / len(self.judged) if self.judged else None
+
+    @property
+    def mean_all(self) -> float | None:
+        return sum(self.gaps) / len(self.gaps) if self.gaps else None
+
+    def left_out_text(self) -> str:
+        """One line for the protocol: what was left out and what it would have said."""
+        n_out = len(self.gaps) - len(self.judged)
+        if not n_out:
+            return "none"
+        return (f"{n_out} of {len(self.gaps)} gaps ({self.splits} held a CPU stall of half a "
+                f"period or more; stretch ends trimmed to frames no stall may have delayed); all: "
+                f"mean {round((self.mean_all or 0.0) * 1000, 3)}, max "
+                f"{round(max(self.gaps) * 1000, 3)} ms")
+
+
+def periods(ts: Sequence[float], stalls: Sequence[tuple[float, float]], period_s: float,
+            margin_s: float = CATCH_UP_S, excuse_s: float = STALL_EXCUSE_S) -> Periods:
+    """The gaps between the frame times ``ts`` (sorted), judged on stall-free stretches."""
+    gaps = [b - a for a, b in zip(ts, ts[1:], strict=False)]
+    split = [(a, b) for a, b in stalls if b - a >= period_s / 2]
+    runs: list[list[float]] = []
+    for i, t in enumerate(ts):
+        if i == 0 or overlap(split, ts[i - 1], t) > 0:
+            runs.append([t])
+        else:
+            runs[-1].append(t)
+    judged: list[float] = []
+    stretches = 0
+    for run in runs:
+        clean = [k for k, t in enumerate(run) if overlap(stalls, t - margin_s, t) < excuse_s]
+        if len(clean) >= 2:
+            judged += [run[k + 1] - run[k] for k in range(clean[0], clean[-1])]
+            stretches += 1
+    return Periods(gaps, judged, stretches, max(0, len(runs) - 1))
+
+
+@dataclass(frozen=True, slots=True)
+class Late:
+    """A single time ``t0 -> t1`` judged against ``limit_s``: ``ok`` when within it; over it,
+    ``stall`` says how long a CPU stood still meanwhile when that is ``STALL_EXCUSE_S`` or more
+    (then the sample cannot be judged: the environment may have made it late)."""
+
+    value_s: float
+    ok: bool
+    stall: float | None
+
+
+def late(t0: float, t1: float, limit_s: float, stalls: Sequence[tuple[float, float]],
+         excuse_s: float = STALL_EXCUSE_S) -> Late:
+    value = t1 - t0
+    if value <= limit_s:
+        return Late(value, True, None)
+    s = overlap(stalls, t0, t1)
+    return Late(value, False, s if s >= excuse_s else None)
+
+
+def enough_frames(ts: Sequence[float], t0: float, t1: float, want: int, period_s: float,
+                  stalls: Sequence[tuple[float, float]]) -> tuple[int, bool | None]:
+    """Did at least ``want`` frames come in ``[t0, t1]``? Returns (count, verdict): True yes;
+    False no, and the CPU stalls do not explain it; None no, but they may: the stall time in
+    the window is at least the ``want - count`` missing periods."""
+    n = sum(1 for t in ts if t0 <= t <= t1)
+    if n >= want:
+        return n, True
+    return n, None if overlap(stalls, t0, t1) >= (want - n) * period_s else False
+
+
+def upper_median(values: Sequence[float]) -> float:
+    return sorted(values)[len(values) // 2]
+
+
+@dataclass(frozen=True, slots=True)
+class Verdict:
+    """What latency samples say about "at once": failures, and why the samples could not
+    decide (then the test is inconclusive: it runs once more; the failures say so too)."""
+
+    fails: list[str]
+    inconclusive: str | None = None
+
+
+def judge_latencies(vals: Sequence[float], stalled: Sequence[bool], p50: float | None,
+                    max_ms: float, label: str) -> Verdict:
+    """Latency samples (ms) against a median limit (None: none) and a max limit.
+
+    A CPU stall can only delay, so a sample taken during one is an upper bound of what the
+    daemon did: a limit that all samples meet is met. Where they do not, only the samples
+    without a stall count (at least 3 for a median, at least half of them in all); when too
+    few are left to decide, the verdict is inconclusive, never a pass.
+    """
+    fails: list[str] = []
+    why: str | None = None
+    clean = [v for v, st in zip(vals, stalled, strict=True) if not st]
+    if not vals:
+        return Verdict(fails)
+    if p50 is not None and upper_median(vals) > p50:
+        if len(clean) >= 3:
+            if upper_median(clean) > p50:
+                fails.append(f"{label}: median > {p50} ms (waits for the 10 ms tick?)")
+        else:
+            why = (f"{label}: median {upper_median(vals)} ms with stalls, only {len(clean)} "
+                   "samples without one")
+            fails.append(f"{label}: median not judged ({why})")
+    over = [v for v, st in zip(vals, stalled, strict=True) if v > max_ms and not st]
+    if over:
+        fails.append(f"{label}: {max(over)} ms > {max_ms} ms")
+    elif max(vals) > max_ms and len(clean) < (len(vals) + 1) // 2:
+        why = (f"{label}: {max(vals)} ms > {max_ms} ms during a CPU stall, and only "
+               f"{len(clean)} of {len(vals)} samples without one")
+        fails.append(f"{label}: max not judged ({why})")
+    return Verdict(fails, why)
 
 
 # A gap in the periodic frames is the environment's when, without the CPU stalls inside it,
@@ -257,10 +431,84 @@ def overlap(intervals: Sequence[tuple[float, float]], t0: float, t1: float) -> f
 RUNNABLE_GAP_S = 0.025
 
 
-def excused(t0: float, t1: float, stalls: Sequence[tuple[float, float]]) -> float | None:
-    """The stall time that explains a frame gap ``[t0, t1]``, or None if it does not."""
+def excused(t0: float, t1: float, stalls: Sequence[tuple[float, float]],
+            runnable_s: float = RUNNABLE_GAP_S) -> float | None:
+    """The stall time that explains a frame gap ``[t0, t1]``, or None if it does not (the
+    daemon had more than ``runnable_s`` to send in it)."""
     s = overlap(stalls, t0, t1)
-    return s if s > 0 and (t1 - t0) - s <= RUNNABLE_GAP_S else None
+    return s if s > 0 and (t1 - t0) - s <= runnable_s else None
+
+
+# --------------------------------------------------------------------------- UDP flood figures
+
+def udp_socket_drops(proc_net_udp: str, port: int) -> tuple[int, int] | None:
+    """(rx_queue bytes, drops) of the unconnected UDP socket bound to ``port``, from the text
+    of ``/proc/net/udp``; None when there is no such socket."""
+    for line in proc_net_udp.splitlines()[1:]:
+        f = line.split()
+        if len(f) < 13 or ":" not in f[1] or ":" not in f[4]:
+            continue
+        try:
+            lport = int(f[1].rsplit(":", 1)[1], 16)
+            rport = int(f[2].rsplit(":", 1)[1], 16)
+            rxq = int(f[4].split(":")[1], 16)
+            drops = int(f[-1])
+        except ValueError:
+            continue
+        if lport == port and rport == 0:
+            return rxq, drops
+    return None
+
+
+@dataclass(frozen=True, slots=True)
+class StatusWindow:
+    """What one ESTOP_STATUS frame counted: the packets of ``(start, end]``, where ``start``
+    is the previous ESTOP_STATUS frame's time and ``end`` its own."""
+
+    start: float
+    end: float
+    valid: int
+    invalid: int
+    auth_failures: int
+
+
+def status_windows(frames: Sequence[Frame]) -> list[StatusWindow]:
+    """The counting windows of consecutive good ESTOP_STATUS frames (time order); a frame that
+    fails its checks ends no window (its counts are lost, and so is the window before it)."""
+    out: list[StatusWindow] = []
+    prev: float | None = None
+    for f in frames:
+        if f.can_id != STATUS_ID:
+            continue
+        if StatusFrame.check(f.data):
+            prev = None
+            continue
+        s = StatusFrame.parse(f.data)
+        if prev is not None:
+            out.append(StatusWindow(prev, f.ts, s.valid_packets, s.invalid_packets,
+                                    s.auth_failures))
+        prev = f.ts
+    return out
+
+
+def sent_between(series: Sequence[Sequence[float]], t0: float, t1: float) -> tuple[int, int]:
+    """Bounds on how many packets a sender's cumulative ``series`` (``[time, sent so far]``,
+    time order) put out in ``[t0, t1]``: (at least, at most)."""
+    def before(t: float) -> tuple[int, int]:  # sent by time t: (at least, at most)
+        lo, hi = 0, None
+        for ts, n in series:
+            if ts <= t:
+                lo = int(n)
+            if ts >= t:
+                hi = int(n)
+                break
+        if hi is None:  # after the last entry: the sender had stopped
+            hi = int(series[-1][1]) if series else 0
+        return lo, max(lo, hi)
+
+    a_lo, a_hi = before(t0)
+    b_lo, b_hi = before(t1)
+    return max(0, b_lo - a_hi), max(0, b_hi - a_lo)
 
 
 # --------------------------------------------------------------------------- candump check

@@ -7,13 +7,16 @@ throughout because SocketCAN stamps frames with CLOCK_REALTIME.
 
 from __future__ import annotations
 
+import bisect
 import fcntl
 import json
 import os
+import queue
 import signal
 import socket
 import struct
 import subprocess
+import sys
 import threading
 import time
 from collections.abc import Callable
@@ -22,10 +25,12 @@ from pathlib import Path
 
 import can
 
-from estop.protocol import tcp, udp
-from hilcheck import BrakeController, Frame, merge, read_stalls
+from estop.protocol import auth, tcp, udp
+from hilcheck import BrakeController, Frame, merge_more, read_stalls, udp_socket_drops
 
 MARKER_ID = 0x7FF  # harness marker frames (lowest priority ID, ignored by the checks)
+SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # root may exceed rmem_max
+LAG_MAX_S = 10.0  # how far the bus monitor may fall behind the bus before a wait gives up
 
 
 class RigError(RuntimeError):
@@ -114,16 +119,27 @@ class StallMonitor:
         self.procs = [subprocess.Popen([python, "-B", script, str(c), str(p)],
                                        stdin=subprocess.DEVNULL)
                       for c, p in zip(cpus, self.paths, strict=True)]
+        self._offsets = [0] * len(self.paths)
+        self._merged: list[tuple[float, float]] = []
+        self._lock = threading.Lock()
 
     def intervals(self) -> list[tuple[float, float]]:
-        """Union over the CPUs of the intervals in which one could not run."""
-        found: list[tuple[float, float]] = []
-        for p in self.paths:
-            try:
-                found += read_stalls(p.read_text().splitlines())
-            except OSError:
-                pass
-        return merge(found)
+        """Union over the CPUs of the intervals in which one could not run (read on from where
+        the previous call stopped: a loaded run writes thousands of lines)."""
+        with self._lock:
+            new: list[tuple[float, float]] = []
+            for i, p in enumerate(self.paths):
+                try:
+                    with open(p, "rb") as f:
+                        f.seek(self._offsets[i])
+                        data = f.read()
+                except OSError:
+                    continue
+                end = data.rfind(b"\n") + 1  # complete lines only
+                self._offsets[i] += end
+                new += read_stalls(data[:end].decode(errors="replace").splitlines())
+            self._merged = merge_more(self._merged, new)
+            return self._merged
 
     def realtime(self) -> bool:
         try:
@@ -158,9 +174,21 @@ class BusMonitor:
     def __init__(self, iface: str) -> None:
         self.iface = iface
         self.bus = can.Bus(interface="socketcan", channel=iface, receive_own_messages=False)
+        # A large receive queue: under load this thread may fall seconds behind, and a frame
+        # lost here would look like a frame the daemon never sent (candump would disagree).
+        sock = getattr(self.bus, "socket", None)
+        if sock is not None:
+            try:
+                sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, 8 << 20)
+            except OSError:
+                sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 8 << 20)
         self.frames: list[Frame] = []
         self.errors: list[BusError] = []
         self.ctl = BrakeController()
+        self._tx: can.BusABC | None = None  # sends the marker frames
+        self.max_lag = 0.0  # seconds this thread read a frame after its kernel timestamp
+        self.max_lag_at = 0.0
+        self.lag_giveups = 0  # waits given up because this thread was LAG_MAX_S behind
         self.cond = threading.Condition()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="bus-monitor", daemon=True)
@@ -181,12 +209,23 @@ class BusMonitor:
                 # by its kernel timestamp, so look once more before declaring silence.
                 now = time.time()
                 msg = self._recv(0.0)
+            batch = [] if msg is None else [msg]
+            # Behind the bus (a loaded host): take what is queued in one go, one lock and one
+            # wake-up of the waiting scenario for many frames, to catch up sooner.
+            while batch and len(batch) < 64 and time.time() - batch[-1].timestamp > 0.05:
+                more = self._recv(0.0)
+                if more is None:
+                    break
+                batch.append(more)
             with self.cond:
-                if msg is not None:
-                    fr = Frame(msg.timestamp, msg.arbitration_id, bytes(msg.data))
+                for m in batch:
+                    lag = time.time() - m.timestamp  # how far behind the bus this thread is
+                    if lag > self.max_lag:
+                        self.max_lag, self.max_lag_at = lag, m.timestamp
+                    fr = Frame(m.timestamp, m.arbitration_id, bytes(m.data))
                     self.frames.append(fr)
                     self.ctl.on_frame(fr)
-                elif now is not None:
+                if not batch and now is not None:
                     self.ctl.on_tick(now)
                 self.cond.notify_all()
 
@@ -215,9 +254,12 @@ class BusMonitor:
 
     def wait_for(self, pred: Callable[[Frame], bool], start: int,
                  timeout: float) -> Frame | None:
-        """First frame from index ``start`` on that satisfies ``pred``, waiting at most
-        ``timeout`` seconds for it."""
-        end = time.monotonic() + timeout
+        """First frame from index ``start`` on that satisfies ``pred``, if one is on the bus
+        within ``timeout`` seconds from now. "Within" is bus time (kernel timestamps): when
+        this thread lags behind the bus (a loaded host), it is waited for, up to LAG_MAX_S
+        more, so that a frame that came in time is never missed for being read late."""
+        t_bus_end = time.time() + timeout
+        end = time.monotonic() + timeout + LAG_MAX_S
         i = start
         with self.cond:
             while True:
@@ -225,25 +267,47 @@ class BusMonitor:
                     if pred(self.frames[i]):
                         return self.frames[i]
                     i += 1
+                if self.frames and self.frames[-1].ts > t_bus_end:
+                    return None  # read past the deadline: none came in time
                 left = end - time.monotonic()
                 if left <= 0:
+                    self.lag_giveups += 1  # not a finding: this thread fell too far behind
                     return None
                 self.cond.wait(min(left, 0.05))
 
     def marker(self, text: bytes) -> Frame:
         """Send a marker frame from a separate socket and wait until it is seen."""
         start = self.index()
-        with can.Bus(interface="socketcan", channel=self.iface) as tx:
-            tx.send(can.Message(arbitration_id=MARKER_ID, data=text[:8], is_extended_id=False))
+        msg = can.Message(arbitration_id=MARKER_ID, data=text[:8], is_extended_id=False)
+        for attempt in range(2):
+            if self._tx is None:
+                self._tx = can.Bus(interface="socketcan", channel=self.iface)
+            try:
+                self._tx.send(msg)
+                break
+            except can.CanError:
+                # A socket keeps an error of its interface going down (ENETDOWN) for its next
+                # send: a fresh socket then.
+                self._tx.shutdown()
+                self._tx = None
+                if attempt:
+                    raise
         fr = self.wait_for(lambda f: f.can_id == MARKER_ID and f.data == text[:8], start, 2.0)
         if fr is None:
             raise RigError(f"marker frame {text!r} was not received back on {self.iface}")
         return fr
 
+    def sync(self) -> None:
+        """Return once this thread has read every frame sent before now (a marker frame
+        behind them: a socket's queue keeps the order)."""
+        self.marker(b"HILSYNC")
+
     def close(self) -> None:
         self._stop.set()
         self._thread.join(timeout=2)
         self.bus.shutdown()
+        if self._tx is not None:
+            self._tx.shutdown()
 
 
 # --------------------------------------------------------------------------- the daemon
@@ -272,6 +336,7 @@ class Daemon:
         self._reader = threading.Thread(target=self._read, name="daemon-log", daemon=True)
         self._reader.start()
         self.signal_time: float | None = None
+        self.keyed = "--key-file" in argv  # the unit has a key (spec section 5)
 
     def _read(self) -> None:
         assert self.proc.stderr is not None
@@ -347,10 +412,20 @@ class UdpRemote:
         self.sock.connect(("127.0.0.1", port))
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
+        self.lock = threading.Lock()
         self.last_send: float | None = None  # wall time taken just before the last sendto
         self.keepalive_times: list[float] = []
         self.sent = 0
         self.errors = 0
+
+    def packet(self, body: bytes) -> bytes:
+        """The datagram that carries the control body ``body`` (here: the body itself)."""
+        return body
+
+    def sent_since(self, t: float) -> int:
+        """Keepalive packets sent at or after wall time ``t`` (the list is in time order and
+        long: a binary search, as this is polled)."""
+        return len(self.keepalive_times) - bisect.bisect_left(self.keepalive_times, t)
 
     def send(self, data: bytes) -> float:
         t = time.time()
@@ -368,7 +443,7 @@ class UdpRemote:
         def run() -> None:
             nxt = time.monotonic()
             while not self._stop.is_set():
-                self.last_send = self.send(data)
+                self.last_send = self.send(self.packet(data))
                 self.keepalive_times.append(self.last_send)
                 nxt += period
                 self._stop.wait(max(0.0, nxt - time.monotonic()))
@@ -388,7 +463,8 @@ class UdpRemote:
 
     def max_gap(self, t0: float, t1: float) -> float:
         """Longest pause between keepalive packets sent in ``[t0, t1]`` (seconds)."""
-        ts = [t for t in self.keepalive_times if t0 <= t <= t1]
+        ts = self.keepalive_times[bisect.bisect_left(self.keepalive_times, t0):
+                                  bisect.bisect_right(self.keepalive_times, t1)]
         return max((b - a for a, b in zip(ts, ts[1:], strict=False)), default=0.0)
 
     def close(self) -> None:
@@ -401,6 +477,9 @@ class Exchange:
     reply: tcp.Reply
     t_send: float  # just before sendall
     t_reply: float  # when the complete reply was read
+    auth: auth.AuthReply | None = None  # a 48-byte reply (to a 48-byte request)
+    tag_ok: bool | None = None  # its tag verified under the unit's key, for this request
+    frame: bytes = b""  # the request as sent
 
 
 class StopClient:
@@ -448,6 +527,220 @@ class StopClient:
 
     def close(self) -> None:
         self.sock.close()
+
+
+class AuthClient:
+    """One TCP connection that speaks 48-byte request and reply frames (spec section 5).
+
+    Requests carry ``remote_id``, the session this client believes in and a counter it raises
+    with every request; they are tagged with ``key`` (None: 16 zero bytes). Every reply is
+    checked against ``unit_key`` (the key the unit holds, known to the harness) and the
+    request's own tag: ``tag_ok`` says whether it verified. A genuine reply teaches the
+    client the unit's session. ``sent`` records every request frame as sent (for replays).
+    """
+
+    def __init__(self, port: int, key: bytes | None, unit_key: bytes, remote_id: int,
+                 timeout: float = 2.0) -> None:
+        self.port = port
+        self.key = key
+        self.unit_key = unit_key
+        self.remote_id = remote_id
+        self.session = 0
+        self.counter = 0
+        self.seq = 0
+        self.timeout = timeout
+        self.sent: list[bytes] = []
+        self.sock: socket.socket | None = None
+        self.connect()
+
+    def connect(self) -> None:
+        self.close()
+        self.sock = socket.create_connection(("127.0.0.1", self.port), timeout=self.timeout)
+        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+    def frame(self, msg_id: int, counter: int | None = None) -> bytes:
+        """A new request frame (raising the counter unless ``counter`` is given)."""
+        self.seq += 1
+        if counter is None:
+            self.counter += 1
+            counter = self.counter
+        return auth.AuthRequest(msg_id, self.seq, self.remote_id, self.session,
+                                counter).encode(self.key)
+
+    def exchange(self, frame: bytes) -> Exchange:
+        """Send one 48-byte request frame as it is and read its 48-byte reply."""
+        assert self.sock is not None
+        seq = struct.unpack_from("<I", frame, 8)[0]
+        t0 = time.time()
+        self.sock.sendall(frame)
+        self.sent.append(frame)
+        asm = tcp.FrameAssembler(auth.REPLY_SIZE)
+        end = time.monotonic() + self.timeout
+        while True:
+            left = end - time.monotonic()
+            if left <= 0:
+                raise RigError(f"no reply to a request frame within {self.timeout} s")
+            self.sock.settimeout(left)
+            data = self.sock.recv(128)
+            if not data:
+                raise RigError("connection closed instead of a reply to a request frame")
+            frames = asm.feed(data)
+            if frames:
+                t1 = time.time()
+                if len(frames) > 1 or asm.pending:
+                    raise RigError("more than one reply frame to one request")
+                tag = auth.request_tag(frame)
+                try:
+                    rep = auth.AuthReply.decode(frames[0], self.unit_key, tag)
+                    ok = True
+                except auth.TagMismatch:
+                    rep = auth.AuthReply.decode(frames[0], None)
+                    ok = False
+                except tcp.FrameError as exc:
+                    raise RigError(f"bad reply frame {frames[0].hex(' ')}: {exc}") from exc
+                if rep.seq != seq:
+                    raise RigError(f"reply seq {rep.seq}, request seq {seq}")
+                if ok:
+                    self.session = rep.session
+                return Exchange(rep.reply, t0, t1, rep, ok, frame)
+
+    def request(self, msg_id: int, counter: int | None = None) -> Exchange:
+        return self.exchange(self.frame(msg_id, counter))
+
+    def status(self) -> Exchange:
+        return self.request(tcp.STATUS)
+
+    def release(self) -> Exchange:
+        return self.request(tcp.RELEASE)
+
+    def close(self) -> None:
+        if self.sock is not None:
+            self.sock.close()
+            self.sock = None
+
+
+class AuthRemote(UdpRemote):
+    """The key holder's remote: authenticated 60-byte control packets with a rising counter
+    (its keepalive thread wraps every body), and an :class:`AuthClient` on the stop channel.
+    It learns the unit's session with a STATUS request frame (session 0) and records every
+    control packet it sent, with its time, so that an attacker's replay can be staged."""
+
+    def __init__(self, udp_port: int, tcp_port: int, key: bytes, remote_id: int) -> None:
+        super().__init__(udp_port)
+        self.key = key
+        self.remote_id = remote_id
+        self.udp_counter = 0
+        self.recorded: list[tuple[float, bytes]] = []
+        self.tcp = AuthClient(tcp_port, key, key, remote_id)
+
+    @property
+    def session(self) -> int:
+        return self.tcp.session
+
+    def learn_session(self) -> Exchange:
+        """(Re)connect and ask STATUS with session 0, as a remote does after a restart."""
+        self.tcp.connect()
+        self.tcp.session = 0
+        ex = self.tcp.status()
+        if not ex.tag_ok:
+            raise RigError("the reply to STATUS does not verify under the key")
+        return ex
+
+    def packet(self, body: bytes) -> bytes:
+        with self.lock:
+            self.udp_counter += 1
+            pkt = auth.AuthControlPacket(self.remote_id, self.session, self.udp_counter,
+                                         udp.decode(body)).encode(self.key)
+            self.recorded.append((time.time(), pkt))
+        return pkt
+
+    def release(self) -> Exchange:
+        return self.tcp.release()
+
+    def close(self) -> None:
+        super().close()
+        self.tcp.close()
+
+
+def wrong_key(key: bytes) -> bytes:
+    """A key that is not ``key`` (every byte changed)."""
+    return bytes(b ^ 0x5A for b in key)
+
+
+# --------------------------------------------------------------------------- the flooder
+
+class Flooder:
+    """``flood.py`` in a process of its own (see there): bursts and floods of invalid UDP."""
+
+    def __init__(self, port: int, rate: float, python: str = sys.executable) -> None:
+        script = str(Path(__file__).resolve().parent / "flood.py")
+        self.proc = subprocess.Popen([python, "-B", script, str(port), "--rate", str(rate)],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+                                     bufsize=1)
+        self.t_start = time.time()
+        self.t_ready: float | None = None
+        self._answers: queue.Queue[str] = queue.Queue()
+        self._reader = threading.Thread(target=self._read, name="flood-out", daemon=True)
+        self._reader.start()
+
+    def _read(self) -> None:
+        assert self.proc.stdout is not None
+        for line in self.proc.stdout:
+            self._answers.put(line)
+
+    def _say(self, line: str) -> None:
+        assert self.proc.stdin is not None
+        try:
+            self.proc.stdin.write(line + "\n")
+            self.proc.stdin.flush()
+        except OSError as exc:
+            raise RigError(f"flooder gone ({exc})") from exc
+
+    def _answer(self, timeout: float) -> dict:
+        try:
+            rec = json.loads(self._answers.get(timeout=timeout))
+        except queue.Empty:
+            raise RigError(f"flooder did not answer within {timeout} s "
+                           f"(exit code {self.proc.poll()})") from None
+        if not isinstance(rec, dict) or "error" in rec:
+            raise RigError(f"flooder: {rec}")
+        return rec
+
+    def ready(self, timeout: float = 20.0) -> float:
+        """Wait for the line the flooder writes once it is up; returns its time."""
+        if self.t_ready is None:
+            self.t_ready = float(self._answer(timeout)["t"])
+        return self.t_ready
+
+    def burst(self, n: int, timeout: float = 10.0) -> dict:
+        self._say(f"burst {n}")
+        return self._answer(timeout)
+
+    def start(self) -> None:
+        self._say("flood")
+
+    def stop(self, timeout: float = 10.0) -> dict:
+        self._say("stop")
+        return self._answer(timeout)
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            try:
+                self._say("quit")
+                self.proc.wait(timeout=3)
+            except (RigError, subprocess.TimeoutExpired):
+                self.proc.kill()
+                self.proc.wait(timeout=3)
+        self._reader.join(timeout=2)
+
+
+def udp_drops(port: int) -> tuple[int, int] | None:
+    """(rx_queue bytes, kernel drops) of the daemon's UDP socket, from /proc/net/udp (this
+    network namespace)."""
+    try:
+        return udp_socket_drops(Path("/proc/net/udp").read_text(), port)
+    except OSError:
+        return None
 
 
 def connect_retry(port: int, timeout: float) -> StopClient:

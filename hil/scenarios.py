@@ -20,7 +20,6 @@ import platform
 import shutil
 import signal
 import socket
-import struct
 import sys
 import threading
 import time
@@ -35,26 +34,40 @@ sys.path.insert(1, str(HERE.parent / "src"))  # estop.protocol when not installe
 
 import can  # noqa: E402
 
+from estop.keyfile import KeyFileError, load_key_file, write_key_file  # noqa: E402
+from estop.protocol import auth, udp  # noqa: E402
 from estop.protocol.can import BRAKE_ID, STATUS_ID, BrakeFrame, StatusFrame  # noqa: E402
 from hilcheck import (  # noqa: E402
     BRAKE_SILENCE_S,
+    STALL_EXCUSE_S,
     Frame,
+    StatusWindow,
     crosscheck,
+    enough_frames,
     excused,
-    frame_gaps,
     in_windows,
+    judge_latencies,
+    late,
     overlap,
+    periods,
     read_candump,
     replay,
+    sent_between,
+    status_windows,
     summary,
 )
 from hilrig import (  # noqa: E402
     DRIVE_GAS,
+    LAG_MAX_S,
     MARKER_ID,
     NEUTRAL,
+    AuthClient,
+    AuthRemote,
     BusMonitor,
     Candump,
     Daemon,
+    Exchange,
+    Flooder,
     RigError,
     StallMonitor,
     StopClient,
@@ -65,6 +78,8 @@ from hilrig import (  # noqa: E402
     set_link,
     setup_vcan,
     sh,
+    udp_drops,
+    wrong_key,
 )
 
 TIMEOUT_MS = 200
@@ -73,12 +88,28 @@ EARLY_TOL_MS = 0.1  # a stop before the deadline is a failure (clock granularity
 # After a provoked outage, lost-frame counter jumps may still show on the next ESTOP_STATUS
 # frame (every 100 ms): the disturbance window ends this long after the first frame back.
 RECOVERY_S = 0.15
-# A latency sample during which a CPU stood still this long is not judged (see stallmon.py);
-# it is still shown, and a run with too few judged samples is repeated once.
-STALL_EXCUSE_S = 0.002
+# A latency sample during which a CPU stood still STALL_EXCUSE_S (hilcheck) is not judged (see
+# stallmon.py); it is still shown, and a run with too few judged samples is repeated once.
 # The harness's own keepalive (20 ms) must not pause this long where a live link is the test's
 # premise; if it did, the test is repeated once.
 KEEPALIVE_GAP_S = 0.15
+# Valid packets a RELEASE needs (spec section 3: 5), with two to spare.
+ARM_PACKETS = 7
+# Boot: the mean periods are judged on stall-free stretches (hilcheck.periods); the daemon is
+# watched for at least 1 s, longer (up to BOOT_WATCH_MAX_S) until the stretches hold this many
+# gaps.
+BOOT_MIN_BRAKE_GAPS = 20
+BOOT_MIN_STATUS_GAPS = 3
+BOOT_WATCH_MAX_S = 4.0
+# The invalid-UDP flood: the flooder's target rate (datagrams/s; 0: as fast as it can), the
+# least rate that counts as a flood, how long it lasts, and the exactly counted burst before it.
+FLOOD_RATE = float(os.environ.get("HIL_FLOOD_RATE", "20000"))
+FLOOD_MIN_RATE = 10_000
+FLOOD_S = 0.7
+FLOOD_BURST = 120
+# Keyed rows: the remote id of the key holder's remote, and the attacker's send period.
+AUTH_REMOTE_ID = 7
+ATTACK_PERIOD_S = 0.005
 
 
 @dataclass(frozen=True)
@@ -157,6 +188,12 @@ class Run:
         self.markers: list[Frame] = []
         self.t_closed = math.inf
         self.stallmon: StallMonitor | None = None
+        self.want_key = False  # the next daemon gets --key-file (keyed rows) or --no-auth
+        self.key: bytes | None = None
+        self.key_path = self.out / "estopd.key"
+        self.aremote: AuthRemote | None = None
+        self.aremote_daemon: Daemon | None = None
+        self.flooder: Flooder | None = None
 
     # ---- plumbing
     @property
@@ -174,17 +211,33 @@ class Run:
         return self.remote
 
     def argv(self) -> list[str]:
+        keying = ["--key-file", str(self.key_path)] if self.want_key else ["--no-auth"]
         return [*self.dut, "--can", self.iface, "--udp-port", str(self.udp_port),
                 "--tcp-port", str(self.tcp_port), "--bind", "127.0.0.1",
-                "--timeout-ms", str(TIMEOUT_MS), "--log-json", "--no-auth"]
+                "--timeout-ms", str(TIMEOUT_MS), "--log-json", *keying]
+
+    def ensure_key(self) -> bytes:
+        """The unit's key: a fresh one in the run's output directory (mode 0600)."""
+        if self.key is None:
+            try:
+                self.key = write_key_file(self.key_path)
+            except KeyFileError:
+                self.key = load_key_file(self.key_path)  # a second runner in the same dir
+        return self.key
 
     def start_daemon(self) -> tuple[Daemon, Frame]:
         """Start the daemon; returns it and its first ESTOP_BRAKE frame."""
-        self.mon.ctl.expect_new_sender()
         start = self.mon.index()
+        if self.want_key:
+            self.ensure_key()
+        with self.mon.cond:
+            self.mon.ctl.expect_new_sender(time.time())
         d = Daemon(self.argv(), self.out / f"estopd-{len(self.daemons) + 1}.log")
+        d.keyed = self.want_key
         self.daemons.append(d)
-        fr = self.mon.wait_for(lambda f: f.can_id == BRAKE_ID, start, 5.0)
+        # By time, not only by index: a monitor that lags (a loaded host) may still hold the
+        # previous daemon's last frames.
+        fr = self.mon.wait_for(lambda f: f.can_id == BRAKE_ID and f.ts >= d.t_start, start, 5.0)
         if fr is None:
             code = d.wait(0.1)
             raise RigError(f"daemon sent no ESTOP_BRAKE frame within 5 s (exit code {code}; "
@@ -195,10 +248,34 @@ class Run:
         return d, fr
 
     def ensure_daemon(self) -> None:
+        if self.daemons and self.daemon.alive and self.daemon.keyed != self.want_key:
+            self.restart_daemon("keyed" if self.want_key else "keyless")
         if not self.daemons or not self.daemon.alive:
             t = time.time()
             self.start_daemon()
             self.windows.append((t - 0.2, time.time() + 0.1, "daemon (re)start"))
+
+    def restart_daemon(self, why: str) -> tuple[Daemon, Frame]:
+        """SIGTERM for the running daemon, then a new one (keyed as ``want_key`` says)."""
+        t = time.time()
+        if self.daemons and self.daemon.alive:
+            self.daemon.signal(signal.SIGTERM)
+            if self.daemon.wait(3.0) is None:
+                self.daemon.kill_hard()
+        got = self.start_daemon()
+        self.windows.append((t - 0.01, time.time() + 0.1, f"restart ({why})"))
+        return got
+
+    def auth_remote(self) -> AuthRemote:
+        """The key holder's remote, knowing the running daemon's session. One object for the
+        whole run, so that its counters only ever rise."""
+        key = self.ensure_key()
+        if self.aremote is None:
+            self.aremote = AuthRemote(self.udp_port, self.tcp_port, key, AUTH_REMOTE_ID)
+        if self.aremote_daemon is not self.daemon:
+            self.aremote.learn_session()
+            self.aremote_daemon = self.daemon
+        return self.aremote
 
     def stalls(self) -> list[tuple[float, float]]:
         return self.stallmon.intervals() if self.stallmon is not None else []
@@ -218,11 +295,18 @@ class Run:
         time.sleep(0.3)  # candump has opened its socket by now; the marker proves it later
         self.markers.append(self.mon.marker(b"HILSTART"))
         self.remote = UdpRemote(self.udp_port)
+        # The flooder's interpreter starts now, long before its row: under TCG on a busy host
+        # a Python start can take tens of seconds.
+        self.flooder = Flooder(self.udp_port, FLOOD_RATE)
 
     def teardown(self) -> None:
         self.windows.append((time.time() - 0.01, math.inf, "teardown"))
         if self.remote is not None:
             self.remote.close()
+        if self.aremote is not None:
+            self.aremote.close()
+        if self.flooder is not None:
+            self.flooder.close()
         for c in self.clients:
             c.close()
         for d in self.daemons:
@@ -251,14 +335,38 @@ class Run:
         fr = self.mon.wait_for(match, start, timeout)
         return None if fr is None else (fr, BrakeFrame.parse(fr.data))
 
-    def arm(self, res: Result, client: int = 0) -> tuple[float, Frame]:
-        """Neutral keepalive, enough valid packets, RELEASE -> ARMED. Returns (t_send, frame)."""
-        self.udp.start(NEUTRAL)
-        time.sleep(0.15)  # >= 5 valid packets at 20 ms
-        start = self.mon.index()
-        ex = self.clients[client].release()
-        if not (ex.reply.ack and ex.reply.state == 1):
-            raise RigError(f"RELEASE with a live neutral link not accepted: {ex.reply}")
+    def wait_packets(self, remote: UdpRemote, t0: float, n: int = ARM_PACKETS) -> None:
+        """Until the keepalive started at ``t0`` has sent ``n`` packets (bounded: 3 s)."""
+        end = time.monotonic() + 3.0
+        while remote.sent_since(t0) < n:
+            if time.monotonic() > end:
+                raise RigError(f"the harness's keepalive sent {remote.sent_since(t0)} packets "
+                               f"in 3 s")
+            time.sleep(0.005)
+
+    def arm(self, res: Result, client: int = 0,
+            remote: UdpRemote | None = None) -> tuple[float, Frame]:
+        """Neutral keepalive, enough valid packets, RELEASE -> ARMED. Returns (t_send, frame).
+        With an :class:`AuthRemote`, its authenticated packets and RELEASE."""
+        rem = remote or self.udp
+        for attempt in range(2):
+            t0 = time.time()
+            rem.start(NEUTRAL)
+            self.wait_packets(rem, t0)
+            start = self.mon.index()
+            if isinstance(rem, AuthRemote):
+                ex = rem.release()
+                if not ex.tag_ok:
+                    raise RigError("the reply to an authenticated RELEASE does not verify")
+            else:
+                ex = self.clients[client].release()
+            if ex.reply.ack and ex.reply.state == 1:
+                break
+            # Only a pause of the harness's own keepalive excuses a NAK 2: then once more.
+            if attempt or ex.reply.nak_code != 2 or rem.max_gap(t0, ex.t_send) < KEEPALIVE_GAP_S:
+                raise RigError(f"RELEASE with a live neutral link not accepted: {ex.reply}")
+            res.notes.append(f"RELEASE NAK 2 after a {ms(rem.max_gap(t0, ex.t_send))} ms pause "
+                             "of the harness's keepalive: armed once more")
         got = self.brake_after(start, lambda b: b.state == 1, 1.0)
         if got is None:
             raise RigError("ACK for RELEASE, but no ARMED frame on the bus within 1 s")
@@ -269,35 +377,129 @@ def judge(run: Run, res: Result, key: str, label: str, pairs: list[tuple[float, 
           use_median: bool = True, slack_ms: float = 0.0) -> list[float]:
     """Latency samples (reference time, frame time) against the profile's limits.
 
-    Value = frame - reference. A value before its time is never excused; the other limits
-    (max: the profile's plus ``slack_ms``) skip samples during which a CPU stood still.
+    Value = frame - reference. A value before its time is never excused; for the other limits
+    (median, max: the profile's plus ``slack_ms``) see :func:`hilcheck.judge_latencies`: a
+    sample during which a CPU stood still counts only as an upper bound.
     """
     stalls = run.stalls()
     vals = [ms(b - a) for a, b in pairs]
-    judged = [v for (a, b), v in zip(pairs, vals, strict=True)
-              if overlap(stalls, a, b) < STALL_EXCUSE_S]
+    stalled = [overlap(stalls, a, b) >= STALL_EXCUSE_S for a, b in pairs]
     res.samples_ms[label] = vals
     res.figures[key] = summary(vals) if len(vals) > 1 else (vals[0] if vals else None)
-    if len(judged) < len(vals):
-        res.figures[f"{key}_not_judged_cpu_stall"] = len(vals) - len(judged)
+    if any(stalled):
+        res.figures[f"{key}_during_cpu_stall"] = sum(stalled)
     if vals:
         res.check(min(vals) >= -EARLY_TOL_MS, f"{label}: {min(vals)} ms, before its time")
-    if use_median and len(judged) >= 3:
-        res.check(sorted(judged)[len(judged) // 2] <= LIM.p50,
-                  f"{label}: median > {LIM.p50} ms (waits for the 10 ms tick?)")
-    if judged:
-        res.check(max(judged) <= LIM.max + slack_ms,
-                  f"{label}: {max(judged)} ms > {LIM.max + slack_ms} ms")
-    if vals and len(judged) < (len(vals) + 1) // 2:
-        res.inconclusive = f"{len(vals) - len(judged)} of {len(vals)} samples hit a CPU stall"
+    v = judge_latencies(vals, stalled, LIM.p50 if use_median else None, LIM.max + slack_ms,
+                        label)
+    for f in v.fails:
+        res.check(False, f)
+    if v.inconclusive:
+        res.inconclusive = v.inconclusive
     return vals
+
+
+def judge_late(run: Run, res: Result, key: str, what: str, t0: float, t1: float,
+               limit_s: float) -> None:
+    """One time ``t0 -> t1`` against ``limit_s``. Over the limit while a CPU stood still
+    (STALL_EXCUSE_S or more of it) it cannot be judged: a failure that makes the row
+    inconclusive (it runs once more), never a pass."""
+    lt = late(t0, t1, limit_s, run.stalls())
+    res.figures[key] = ms(lt.value_s)
+    if lt.ok:
+        return
+    if lt.stall is not None:
+        why = f"a CPU stood still {ms(lt.stall)} ms of it"
+        res.figures[f"{key}_cpu_stall_ms"] = ms(lt.stall)
+        res.inconclusive = f"{what}: {ms(lt.value_s)} ms, {why}"
+        res.check(False, f"{what} {ms(lt.value_s)} ms > {ms(limit_s)} ms (not judged: {why})")
+    else:
+        res.check(False, f"{what} {ms(lt.value_s)} ms > {ms(limit_s)} ms")
+
+
+def judge_frames(run: Run, res: Result, key: str, what: str, t0: float, t1: float,
+                 want: int) -> None:
+    """At least ``want`` ESTOP_BRAKE frames in ``[t0, t1]``; fewer, with CPU stalls that could
+    explain the missing periods, is inconclusive (see :func:`hilcheck.enough_frames`)."""
+    run.mon.sync()
+    ts = [f.ts for f in run.mon.window(t0, t1) if f.can_id == BRAKE_ID]
+    n, verdict = enough_frames(ts, t0, t1, want, 0.010, run.stalls())
+    res.figures[key] = n
+    if verdict is None:
+        stall = overlap(run.stalls(), t0, t1)
+        res.inconclusive = f"{what}: {n} frames, a CPU stood still {ms(stall)} ms meanwhile"
+        res.check(False, f"{what}: {n} < {want} frames (not judged: a CPU stood still "
+                         f"{ms(stall)} ms of the {ms(t1 - t0)} ms)")
+    elif not verdict:
+        res.check(False, f"{what}: {n} < {want} frames")
+
+
+def frame_gap_check(run: Run, res: Result, key: str, t0: float, t1: float) -> None:
+    """No ESTOP_BRAKE gap of 50 ms in ``[t0, t1]``. A gap the CPU stalls explain
+    (hilcheck.excused) is not a pass either: the row is inconclusive and runs once more."""
+    run.mon.sync()
+    ts = [f.ts for f in run.mon.window(t0, t1) if f.can_id == BRAKE_ID]
+    gaps = [(a, b) for a, b in zip(ts, ts[1:], strict=False)]
+    res.figures[key] = ms(max((b - a for a, b in gaps), default=0.0))
+    for a, b in gaps:
+        if b - a < BRAKE_SILENCE_S:
+            continue
+        stall = excused(a, b, run.stalls())
+        if stall is None:
+            res.check(False, f"ESTOP_BRAKE gap of {ms(b - a)} ms at {a:.3f}")
+        else:
+            res.inconclusive = f"ESTOP_BRAKE gap of {ms(b - a)} ms, a CPU stood still " \
+                               f"{ms(stall)} ms of it"
+            res.check(False, f"ESTOP_BRAKE gap of {ms(b - a)} ms at {a:.3f} (not judged: a CPU "
+                             f"stood still {ms(stall)} ms of it)")
+
+
+def windows_in(run: Run, t0: float, t1: float) -> list[StatusWindow]:
+    """ESTOP_STATUS counting windows that end after ``t0`` and begin before ``t1``."""
+    run.mon.sync()
+    frames = run.mon.window(t0 - 0.5, t1 + 0.5)
+    return [w for w in status_windows(frames) if w.end > t0 and w.start < t1]
+
+
+def last_packet(run: Run, res: Result, remote: UdpRemote, i: int) -> float | None:
+    """Stop ``remote``'s keepalive and send one last valid packet just after a periodic
+    ARMED frame, so that the deadline falls just after a 10 ms tick: a daemon that waits for
+    its next tick overshoots by nearly 10 ms. Returns the last packet's time, or None when
+    the harness itself was too slow: the link was silent for most of the timeout before the
+    last packet (the unit may rightly have stopped before it), so this is no sample."""
+    t_prev = remote.stop()
+    assert t_prev is not None
+    tick = run.brake_after(run.mon.index(), lambda b: b.state == 1, 0.1)
+    if tick is None:
+        res.check(False, f"run {i}: no periodic ARMED frame")
+        return None
+    t_last = remote.send(remote.packet(NEUTRAL))
+    if t_last - t_prev >= TIMEOUT_MS / 2000:
+        res.notes.append(f"run {i}: not a sample, the harness's last packet came "
+                         f"{ms(t_last - t_prev)} ms after the one before")
+        return None
+    return t_last
+
+
+def show_ex(ex: Exchange) -> str:
+    r = ex.reply
+    text = f"{'ACK' if r.ack else 'NAK'} state={r.state} reason={r.reason} nak={r.nak_code}"
+    return text if ex.tag_ok is None else f"{text} tag_ok={ex.tag_ok}"
 
 
 # =========================================================================== scenarios
 
 def sc_boot(run: Run, res: Result) -> None:
+    t_again = None
+    if run.daemons and run.daemon.alive:  # a second try: a fresh boot again
+        t_again = time.time()
+        run.daemon.signal(signal.SIGTERM)
+        if run.daemon.wait(3.0) is None:
+            run.daemon.kill_hard()
     t0 = time.time()
     d, first = run.start_daemon()
+    if t_again is not None:
+        run.windows.append((t_again - 0.01, first.ts + 0.1, "boot once more"))
     b = BrakeFrame.parse(first.data)
     res.figures["first_frame"] = first.data.hex(" ")
     res.figures["exec_to_first_frame_ms"] = ms(first.ts - t0)
@@ -310,19 +512,47 @@ def sc_boot(run: Run, res: Result) -> None:
                                   f"reason={ex.reply.reason}"
     res.check(ex.reply.ack and ex.reply.state == 0 and ex.reply.reason == 1,
               "STATUS does not answer ACK STOPPED boot")
-    time.sleep(1.0)
-    frames = run.mon.window(first.ts, first.ts + 1.0)
-    gaps = [g * 1000 for g in frame_gaps(frames)]
-    sgaps = [g * 1000 for g in frame_gaps(frames, STATUS_ID)]
+    # The mean periods are judged on stall-free stretches only (hilcheck.periods): watch for
+    # 1 s, and on (at most BOOT_WATCH_MAX_S) until the stretches hold enough gaps.
+    end = first.ts + 1.0
+    while True:
+        time.sleep(max(0.0, end + 0.02 - time.time()))
+        run.mon.sync()
+        frames = run.mon.window(first.ts, end)
+        stalls = run.stalls()
+        bp = periods([f.ts for f in frames if f.can_id == BRAKE_ID], stalls, 0.010)
+        sp = periods([f.ts for f in frames if f.can_id == STATUS_ID], stalls, 0.100)
+        if (len(bp.judged) >= BOOT_MIN_BRAKE_GAPS and len(sp.judged) >= BOOT_MIN_STATUS_GAPS) \
+                or end - first.ts >= BOOT_WATCH_MAX_S - 1e-6:
+            break
+        end += 1.0
+    gaps = [g * 1000 for g in bp.gaps]
+    res.figures["watched_s"] = round(end - first.ts, 1)
     res.figures["brake_period_ms"] = summary(gaps)
-    res.figures["status_period_ms"] = summary(sgaps)
+    res.figures["status_period_ms"] = summary([g * 1000 for g in sp.gaps])
     res.samples_ms["brake period"] = gaps
-    res.check(bool(gaps) and abs(sum(gaps) / len(gaps) - 10.0) <= 0.5,
-              "mean ESTOP_BRAKE period not 10 +- 0.5 ms")
+    for name, pr, nominal, tol, least in (("ESTOP_BRAKE", bp, 10.0, 0.5, BOOT_MIN_BRAKE_GAPS),
+                                          ("ESTOP_STATUS", sp, 100.0, 5.0,
+                                           BOOT_MIN_STATUS_GAPS)):
+        key = "brake" if name == "ESTOP_BRAKE" else "status"
+        mean = pr.mean_judged
+        res.figures[f"{key}_period_stall_free"] = {
+            "n": len(pr.judged), "stretches": pr.stretches,
+            "mean": None if mean is None else round(mean * 1000, 3)}
+        res.figures[f"{key}_gaps_left_out"] = pr.left_out_text()
+        if len(pr.judged) < least:
+            res.inconclusive = (f"{name}: only {len(pr.judged)} gaps in stall-free stretches "
+                                f"in {res.figures['watched_s']} s")
+            res.check(False, f"mean {name} period not judged: {len(pr.judged)} < {least} gaps "
+                             "in stall-free stretches")
+        else:
+            assert mean is not None
+            res.check(abs(mean * 1000 - nominal) <= tol,
+                      f"mean {name} period {round(mean * 1000, 3)} ms (stall-free stretches) "
+                      f"not {nominal:g} +- {tol:g} ms")
+    # Spec section 4, never relaxed: no gap of 50 ms at all, stalls or not.
     res.check(bool(gaps) and max(gaps) < BRAKE_SILENCE_S * 1000,
               "an ESTOP_BRAKE gap reached the brake controller's 50 ms")
-    res.check(bool(sgaps) and abs(sum(sgaps) / len(sgaps) - 100.0) <= 5.0,
-              "mean ESTOP_STATUS period not 100 +- 5 ms")
     status = [f for f in frames if f.can_id == STATUS_ID]
     res.check(bool(status) and status[0].data[6] & 0x0F == 0,
               "first ESTOP_STATUS counter is not 0")
@@ -346,6 +576,7 @@ def sc_nak2(run: Run, res: Result) -> None:
     res.check(not ex2.reply.ack and ex2.reply.nak_code == 2,
               "RELEASE after only 3 valid packets (5 needed): not NAK 2")
     time.sleep(0.1)
+    run.mon.sync()
     armed = [f for f in run.mon.since(start) if f.can_id == BRAKE_ID and f.data[2] == 1]
     res.check(not armed, "an ARMED frame appeared on the bus")
     res.check(ex.reply.state == 0 and ex2.reply.state == 0, "reply state not STOPPED")
@@ -353,14 +584,16 @@ def sc_nak2(run: Run, res: Result) -> None:
 
 def sc_nak3(run: Run, res: Result) -> None:
     start = run.mon.index()
+    t0 = time.time()
     run.udp.start(DRIVE_GAS)
-    time.sleep(0.2)
+    run.wait_packets(run.udp, t0)
     ex = run.clients[2].release()
     run.udp.stop()
     res.figures["gas_0.3"] = f"ack={ex.reply.ack} nak={ex.reply.nak_code}"
     res.check(not ex.reply.ack and ex.reply.nak_code == 3,
               "RELEASE with gas 0.3 in the latest packet: not NAK 3")
     time.sleep(0.05)
+    run.mon.sync()
     armed = [f for f in run.mon.since(start) if f.can_id == BRAKE_ID and f.data[2] == 1]
     res.check(not armed, "an ARMED frame appeared on the bus")
     time.sleep(0.25)  # let the link die before the next scenario
@@ -384,6 +617,7 @@ def sc_release(run: Run, res: Result) -> None:
     ex = run.clients[0].release()
     res.check(ex.reply.ack and ex.reply.state == 1, "RELEASE while ARMED: not ACK ARMED")
     time.sleep(0.1)
+    run.mon.sync()
     res.check(run.mon.ctl.braking is False, "brake controller emulator still braking")
     run.udp.stop()
     time.sleep(0.3)
@@ -393,19 +627,19 @@ def sc_deadman(run: Run, res: Result) -> None:
     over: list[tuple[float, float]] = []
     flag: list[tuple[float, float]] = []
     phase: list[float] = []
+    spoiled = 0
     for i in range(run.args.repeat):
         run.arm(res)
         time.sleep(0.1)
-        run.udp.stop()
-        # The last packet goes out just after a periodic frame, so the deadline falls just after
-        # a 10 ms tick: a daemon that waits for the next tick overshoots by nearly 10 ms.
-        tick = run.brake_after(run.mon.index(), lambda b: b.state == 1, 0.5)
-        if tick is None:
-            res.check(False, f"run {i}: no periodic ARMED frame")
-            continue
         start = run.mon.index()
-        t_last = run.udp.send(NEUTRAL)
-        phase.append(ms(t_last - tick[0].ts))
+        t_last = last_packet(run, res, run.udp, i)
+        if t_last is None:
+            spoiled += 1
+            time.sleep(0.3)
+            continue
+        tick = run.brake_after(start, lambda b: b.state == 1, 0.1)
+        if tick is not None:
+            phase.append(ms(t_last - tick[0].ts))
         got = run.brake_after(start, lambda b: b.state == 0, 1.0)
         if got is None:
             res.check(False, f"run {i}: no STOPPED frame within 1 s of the last packet")
@@ -434,7 +668,12 @@ def sc_deadman(run: Run, res: Result) -> None:
     judge(run, res, "degraded_flag_after_warn_ms", "degraded flag after warn time", flag,
           use_median=False, slack_ms=10.0)
     res.figures["last_packet_after_tick_ms"] = summary(phase)
-    res.check(len(over) == run.args.repeat, "not every run stopped")
+    if spoiled:
+        res.figures["samples_spoiled_by_harness_delay"] = spoiled
+        if spoiled > run.args.repeat // 2:
+            res.inconclusive = f"{spoiled} of {run.args.repeat} samples spoiled by the harness"
+            res.check(False, f"not judged: {res.inconclusive}")
+    res.check(len(over) == run.args.repeat - spoiled, "not every run stopped")
 
 
 def sc_tcp_stop(run: Run, res: Result) -> None:
@@ -475,53 +714,66 @@ def sc_tcp_stop(run: Run, res: Result) -> None:
     time.sleep(0.25)
 
 
-INVALID_PACKETS: list[bytes] = [
-    b"",
-    bytes(19),
-    bytes(21),
-    struct.pack("<ffiii", math.nan, 0.0, 4, 0, 0),
-    struct.pack("<ffiii", 0.0, math.inf, 4, 0, 0),
-    struct.pack("<ffiii", 1.5, 0.0, 4, 0, 0),
-    struct.pack("<ffiii", 0.0, 0.0, 3, 0, 0),
-    struct.pack("<ffiii", 0.0, 0.0, 4, 4, 0),
-    struct.pack("<ffiii", 0.0, 0.0, 4, 0, 2),
-    struct.pack("<ffii", 0.0, 0.0, 0, 0),
-    struct.pack("<ffiii", -1.0000001, 0.0, 4, 0, 0),
-    NEUTRAL + b"\x00",
-]
-
-
 def sc_invalid_flood(run: Run, res: Result) -> None:
+    """Invalid UDP from a flooder process of its own (flood.py, sendmmsg) after the last valid
+    packet: first an exactly counted burst (ESTOP_STATUS must count every packet of it), then
+    a flood of FLOOD_MIN_RATE packets/s or more across the deadline. The daemon's socket drops
+    what it has no room for (/proc/net/udp); the stop must come at the deadline all the same."""
     d = run.daemon
-    run.arm(res)
-    time.sleep(0.1)
-    start = run.mon.index()
-    stop_flood = threading.Event()
-    sent = [0]
-
-    def flood() -> None:
-        i = 0
-        while not stop_flood.is_set():
-            run.udp.send(INVALID_PACKETS[i % len(INVALID_PACKETS)])
-            sent[0] += 1
-            i += 1
-            time.sleep(0.001)
-
-    th = threading.Thread(target=flood, daemon=True)
-    t_last = run.udp.stop()
-    assert t_last is not None
-    t_flood = time.time()
-    th.start()
-    got = run.brake_after(start, lambda b: b.state == 0, 1.0)
-    time.sleep(0.05)
-    ex = run.clients[0].release()  # only invalid packets arrive: no live link
-    time.sleep(0.1)
-    stop_flood.set()
-    th.join(timeout=2)
-    t_end = time.time()
-    time.sleep(0.25)
-    res.figures["invalid_sent"] = sent[0]
-    res.figures["flood_rate_per_s"] = round(sent[0] / max(t_end - t_flood, 1e-6))
+    if run.flooder is None or run.flooder.proc.poll() is not None:
+        run.flooder = Flooder(run.udp_port, FLOOD_RATE)
+    fl = run.flooder
+    try:
+        t_up = fl.ready(60.0)
+        res.figures["flooder_up_s"] = round(t_up - fl.t_start, 2)
+        run.arm(res)
+        time.sleep(0.1)
+        # 1. The burst, while the keepalive still holds the link: counted exactly (no window
+        #    can saturate: fewer than 255 packets in all).
+        drops0 = udp_drops(run.udp_port)
+        burst = fl.burst(FLOOD_BURST)
+        time.sleep(0.25)  # two ESTOP_STATUS frames after it
+        drops1 = udp_drops(run.udp_port)
+        bw = windows_in(run, burst["t0"], time.time())
+        counted = sum(w.invalid for w in bw)
+        lost = (drops1[1] - drops0[1]) if drops0 and drops1 else None
+        res.figures["burst"] = {"sent": burst["sent"], "counted": counted, "kernel_drops": lost,
+                                "windows": [w.invalid for w in bw]}
+        res.check(burst["sent"] == FLOOD_BURST, f"the flooder sent {burst['sent']} of the "
+                                                f"{FLOOD_BURST} burst packets")
+        res.check(lost is not None, "no daemon socket in /proc/net/udp")
+        res.check(counted + (lost or 0) == burst["sent"],
+                  f"ESTOP_STATUS counted {counted} of a burst of {burst['sent']} invalid packets "
+                  f"({lost} dropped by the kernel)")
+        # 2. The flood, from just after the last valid packet until well after the deadline.
+        start = run.mon.index()
+        t_last = run.udp.stop()
+        assert t_last is not None
+        fl.start()
+        got = run.brake_after(start, lambda b: b.state == 0, 1.0)
+        time.sleep(0.05)
+        ex = run.clients[0].release()  # only invalid packets arrive: no live link
+        time.sleep(max(0.0, t_last + FLOOD_S - time.time()))
+        flood = fl.stop()
+        drops2 = udp_drops(run.udp_port)
+    except RigError:
+        fl.close()  # in an unknown state: a new one for a second try
+        raise
+    time.sleep(0.25)  # the ESTOP_STATUS frames that count the flood's tail
+    t0, t1, sent = flood["t0"], flood["t1"], flood["sent"]
+    rate = sent / max(t1 - t0, 1e-6)
+    dropped = (drops2[1] - drops1[1]) if drops1 and drops2 else None
+    res.figures["flood"] = {"sent": sent, "s": round(t1 - t0, 3), "rate_per_s": round(rate),
+                            "kernel_drops": dropped, "send_errors": flood["errors"],
+                            "started_after_last_valid_ms": ms(t0 - t_last)}
+    if dropped is not None:
+        res.figures["flood"]["handled_per_s"] = round((sent - dropped) / max(t1 - t0, 1e-6))
+    if rate < FLOOD_MIN_RATE:
+        res.inconclusive = f"the flooder reached {round(rate)} packets/s only"
+        res.check(False, f"not a flood: {round(rate)} < {FLOOD_MIN_RATE} packets/s")
+    if t0 > t_last + TIMEOUT_MS / 2000:
+        res.inconclusive = f"the flood began {ms(t0 - t_last)} ms after the last valid packet"
+        res.check(False, "the flood began after half the timeout")
     if got is None:
         res.check(False, "still ARMED 1 s after the last valid packet (flood keeps it alive)")
     else:
@@ -529,15 +781,24 @@ def sc_invalid_flood(run: Run, res: Result) -> None:
         judge(run, res, "overshoot_ms", "overshoot under invalid flood",
               [(t_last + TIMEOUT_MS / 1000, fr.ts)], use_median=False)
         res.check(b.reason == 3, f"stop reason {b.reason}, want 3 udp timeout")
-    res.figures["release_during_flood"] = f"ack={ex.reply.ack} nak={ex.reply.nak_code}"
+    res.figures["release_during_flood"] = show_ex(ex)
     res.check(not ex.reply.ack and ex.reply.nak_code == 2,
               "RELEASE while only invalid packets arrive: not NAK 2")
-    status = [f for f in run.mon.window(t_flood, t_end + 0.25)
-              if f.can_id == STATUS_ID and not StatusFrame.check(f.data)]
-    counted = sum(StatusFrame.parse(f.data).invalid_packets for f in status)
-    res.figures["invalid_counted_in_ESTOP_STATUS"] = counted
-    res.check(counted == sent[0], f"ESTOP_STATUS counted {counted} invalid packets, "
-                                  f"{sent[0]} were sent")
+    # 3. ESTOP_STATUS during the flood: every window wholly inside it is saturated (255 at
+    #    10000/s is 1000 a window), none counts an authentication failure (no key), and in all
+    #    it never counts more than was sent.
+    fw = windows_in(run, t0, t1 + 0.25)
+    inside = [w for w in fw if w.start >= t0 and w.end <= t1]
+    res.figures["status_invalid_per_window"] = [w.invalid for w in fw]
+    res.figures["sent_per_window_inside"] = [sent_between(flood["series"], w.start, w.end)[0]
+                                             for w in inside]
+    res.check(len(inside) >= 3, f"only {len(inside)} ESTOP_STATUS windows inside the flood")
+    low = [w.invalid for w in inside if w.invalid < 255]
+    res.check(not low, f"ESTOP_STATUS windows inside the flood below saturation: {low}")
+    res.check(all(w.auth_failures == 0 for w in fw),
+              "ESTOP_STATUS counted authentication failures on a unit without a key")
+    res.check(sum(w.invalid for w in fw) <= sent, "ESTOP_STATUS counted more than was sent")
+    frame_gap_check(run, res, "brake_max_gap_during_flood_ms", t0 - 0.02, t1 + 0.05)
     res.check(d.alive, "daemon exited")
 
 
@@ -570,12 +831,13 @@ def sc_iface_down(run: Run, res: Result) -> None:
         fr, b = first
         res.figures["up_to_first_frame_ms"] = ms(fr.ts - t_up0)
         res.figures["first_frame_after_up"] = fr.data.hex(" ")
-        res.check(fr.ts - t_up <= 0.05, "frames resumed more than 50 ms after link up")
+        judge_late(run, res, "up_done_to_first_frame_ms", "first frame after link up", t_up,
+                   fr.ts, 0.05)
         res.check(b.brakes and b.state == 0 and b.reason == 4,
                   "first frame after link up is not STOPPED reason fault with the brake on")
-        after = [f for f in run.mon.window(t_up, t_up + 0.3) if f.can_id == BRAKE_ID]
-        res.figures["frames_in_300ms_after_up"] = len(after)
-        res.check(len(after) >= 20, "periodic frames did not resume after link up")
+        judge_frames(run, res, "frames_in_300ms_after_up",
+                     "periodic frames in the 300 ms after link up", t_up, t_up + 0.3, 20)
+    run.mon.sync()
     trips = [t for t in run.mon.ctl.trips if t.detected >= t_down]
     res.figures["emulator_braked_after_down_ms"] = \
         ms(trips[0].detected - trips[0].last_good) if trips else None
@@ -629,9 +891,9 @@ def sc_txqueue_full(run: Run, res: Result) -> None:
     # The event loop must not be stuck in a blocking send: STATUS is answered meanwhile.
     try:
         ex_mid = run.clients[1].status()
-        res.figures["status_reply_during_full_queue_ms"] = ms(ex_mid.t_reply - ex_mid.t_send)
-        res.check(ex_mid.t_reply - ex_mid.t_send < 0.1,
-                  "STATUS took >= 100 ms while the queue was full (blocked event loop?)")
+        judge_late(run, res, "status_reply_during_full_queue_ms",
+                   "STATUS reply while the queue was full (blocked event loop?)", ex_mid.t_send,
+                   ex_mid.t_reply, 0.1)
     except (RigError, OSError) as exc:
         res.check(False, f"no STATUS reply while the queue was full: {exc}")
     time.sleep(0.3)
@@ -666,12 +928,12 @@ def sc_txqueue_full(run: Run, res: Result) -> None:
         res.check(False, "no ESTOP_BRAKE frame within 1 s after the queue drained")
     else:
         fr, b = first, BrakeFrame.parse(first.data)
-        res.figures["drain_to_first_frame_ms"] = ms(fr.ts - t_clear)
-        res.check(fr.ts - t_clear <= 0.05, "frames resumed more than 50 ms after the drain")
+        judge_late(run, res, "drain_to_first_frame_ms", "first frame after the drain", t_clear,
+                   fr.ts, 0.05)
         res.check(b.brakes and b.state == 0 and b.reason == 4,
                   f"after the queue drained: {fr.data.hex(' ')}, want STOPPED reason fault")
-        after = [f for f in run.mon.window(t_clear, t_clear + 0.3) if f.can_id == BRAKE_ID]
-        res.check(len(after) >= 20, "periodic frames did not resume after the queue drained")
+        judge_frames(run, res, "frames_in_300ms_after_drain",
+                     "periodic frames in the 300 ms after the drain", t_clear, t_clear + 0.3, 20)
     ex = run.clients[0].status()
     res.figures["status_reply"] = f"state={ex.reply.state} reason={ex.reply.reason}"
     res.check(ex.reply.state == 0 and ex.reply.reason == 4, "STATUS is not STOPPED fault")
@@ -690,6 +952,7 @@ def sc_sigkill(run: Run, res: Result) -> None:
     run.windows.append((t_kill - 0.01, time.time() + 3.0, "killed, restarting"))
     res.figures["exit"] = code
     res.check(code == -signal.SIGKILL, f"exit status {code}, want killed by SIGKILL")
+    run.mon.sync()
     unit = [f for f in run.mon.window(t_kill - 1.0, time.time())
             if f.can_id in (BRAKE_ID, STATUS_ID)]
     brake = [f for f in unit if f.can_id == BRAKE_ID and f.ts <= t_dead]
@@ -716,11 +979,10 @@ def sc_sigkill(run: Run, res: Result) -> None:
         res.check(False, "live brake controller emulator did not brake")
     else:
         react = live[0].detected - live[0].last_good
-        res.figures["live_emulator_braked_after_ms"] = ms(react)
         res.samples_ms["SIGKILL: last frame -> brake"] = [ms(react)]
-        res.check(react <= BRAKE_SILENCE_S + LIM.emu / 1000,
-                  f"live emulator braked {ms(react)} ms after the last frame "
-                  f"(> 50 + {LIM.emu} ms)")
+        judge_late(run, res, "live_emulator_braked_after_ms",
+                   "live emulator braked after the last frame", live[0].last_good,
+                   live[0].detected, BRAKE_SILENCE_S + LIM.emu / 1000)
     res.check(run.mon.ctl.braking, "brake controller emulator is not braking")
     run.udp.start(NEUTRAL)  # a live neutral link for the restart scenario
 
@@ -736,6 +998,7 @@ def sc_restart(run: Run, res: Result) -> None:
     res.check(first.data == bytes.fromhex("016400010000009C"),
               "first frame after restart is not the boot frame (STOPPED, boot, counter 0)")
     time.sleep(0.3)  # a live neutral link all along: still STOPPED (latched)
+    run.mon.sync()
     armed = [f for f in run.mon.window(first.ts, time.time())
              if f.can_id == BRAKE_ID and f.data[2] != 0]
     res.check(not armed, "left STOPPED without a RELEASE")
@@ -758,6 +1021,7 @@ def sc_sigterm(run: Run, res: Result) -> None:
     run.windows.append((t_term - 0.01, time.time() + 3.0, "SIGTERM, restarting"))
     res.figures["exit_code"] = code
     res.check(code == 0, f"exit code {code} after SIGTERM, want 0")
+    run.mon.sync()
     frames = [f for f in run.mon.window(t_term, t_exit + 0.1) if f.can_id == BRAKE_ID]
     if not frames:
         res.check(False, "no ESTOP_BRAKE frame after SIGTERM")
@@ -770,10 +1034,281 @@ def sc_sigterm(run: Run, res: Result) -> None:
     res.figures["exit_events"] = len(d.events("exit"))
 
 
+# ------------------------------------------------------------------ keyed rows (spec section 5)
+# These run last, on a daemon started with --key-file (a key made for the run, mode 0600, in
+# the output directory). The key holder's remote (hilrig.AuthRemote) learns the session with a
+# STATUS request frame and verifies every reply's tag under the key.
+
+def attack_packets(ar: AuthRemote, key: bytes, replay: list[bytes]) -> list[tuple[str, bytes]]:
+    """What an attacker without the key sends to keep the unit alive, one of each kind in turn:
+    a plain heartbeat, one under a wrong key (the right session and remote id, which travel in
+    clear, and counters above the remote's), and the remote's own recorded heartbeats again."""
+    body = udp.decode(NEUTRAL)
+    forged = [auth.AuthControlPacket(ar.remote_id, ar.session, ar.udp_counter + 1000 + i,
+                                     body).encode(wrong_key(key)) for i in range(len(replay))]
+    out: list[tuple[str, bytes]] = []
+    for i, rec in enumerate(replay):
+        out += [("plain", NEUTRAL), ("wrong_key", forged[i]), ("replay", rec)]
+    return out
+
+
+class Attacker:
+    """A thread that sends ``packets`` in turn, one every ATTACK_PERIOD_S, until stopped."""
+
+    def __init__(self, remote: UdpRemote, packets: list[tuple[str, bytes]]) -> None:
+        self.remote = remote
+        self.packets = packets
+        self.sent: dict[str, int] = {}
+        self.t0 = self.t1 = 0.0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="attacker", daemon=True)
+
+    def _run(self) -> None:
+        i = 0
+        self.t0 = time.time()
+        nxt = time.monotonic()
+        while not self._stop.is_set():
+            kind, data = self.packets[i % len(self.packets)]
+            errors = self.remote.errors
+            self.remote.send(data)
+            if self.remote.errors == errors:  # not refused (an ICMP error from earlier)
+                self.sent[kind] = self.sent.get(kind, 0) + 1
+            i += 1
+            nxt += ATTACK_PERIOD_S
+            self._stop.wait(max(0.0, nxt - time.monotonic()))
+        self.t1 = time.time()
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+
+
+def count_check(run: Run, res: Result, t0: float, t1: float, invalid: int, auth_failed: int,
+                drops: int | None) -> None:
+    """ESTOP_STATUS over ``[t0, t1]`` counted exactly ``invalid`` invalid packets, of which
+    ``auth_failed`` failed authentication (bytes 1 and 2); the kernel dropped ``drops``."""
+    ws = windows_in(run, t0, t1)
+    got_inv = sum(w.invalid for w in ws)
+    got_auth = sum(w.auth_failures for w in ws)
+    res.figures["status_counted"] = {"invalid": got_inv, "auth_failures": got_auth,
+                                     "windows": len(ws), "kernel_drops": drops}
+    if drops:
+        res.inconclusive = f"the kernel dropped {drops} packets at the daemon's socket"
+        res.check(False, f"ESTOP_STATUS counts not judged: {drops} packets dropped")
+        return
+    res.check(drops is not None, "no daemon socket in /proc/net/udp")
+    res.check(got_inv == invalid, f"ESTOP_STATUS byte 1 counted {got_inv} invalid packets, "
+                                  f"{invalid} were sent")
+    res.check(got_auth == auth_failed, f"ESTOP_STATUS byte 2 counted {got_auth} authentication "
+                                       f"failures, {auth_failed} were sent")
+
+
+def sc_auth_release(run: Run, res: Result) -> None:
+    ar = run.auth_remote()
+    key = run.ensure_key()
+    res.figures["session"] = f"{ar.session:#018x}"
+    start = run.mon.index()
+    t0 = time.time()
+    ar.start(NEUTRAL)  # a live authenticated neutral link: only the key can be missing
+    run.wait_packets(ar, t0)
+    # A forger who read the session and the remote id off the air, with counters above the
+    # remote's, and the wrong key.
+    forger = AuthClient(run.tcp_port, wrong_key(key), key, ar.remote_id)
+    forger.session, forger.counter = ar.session, ar.tcp.counter + 1000
+    try:
+        exf = forger.release()
+    finally:
+        forger.close()
+    res.figures["forged_release"] = show_ex(exf)
+    res.check(not exf.reply.ack and exf.reply.nak_code == 4,
+              "RELEASE under a wrong key: not NAK 4")
+    res.check(exf.tag_ok is True, "the unit's reply to the forged RELEASE does not verify")
+    exp = run.clients[1].release()
+    res.figures["plain_release"] = show_ex(exp)
+    res.check(not exp.reply.ack and exp.reply.nak_code == 4,
+              "plain RELEASE on a unit with a key: not NAK 4")
+    time.sleep(0.05)
+    run.mon.sync()
+    armed = [f for f in run.mon.since(start) if f.can_id == BRAKE_ID and f.data[2] == 1]
+    res.check(not armed, "an ARMED frame after a forged or plain RELEASE")
+    start2 = run.mon.index()
+    ex = ar.release()
+    res.figures["genuine_release"] = show_ex(ex)
+    res.check(ex.tag_ok is True, "the reply to the genuine RELEASE does not verify")
+    res.check(ex.reply.ack and ex.reply.state == 1,
+              "genuine RELEASE with a live authenticated link: not ACK ARMED")
+    got = run.brake_after(start2, lambda b: b.state == 1, 1.0)
+    if got is None:
+        res.check(False, "no ARMED frame after the genuine RELEASE")
+    else:
+        judge(run, res, "release_to_armed_frame_ms", "authenticated release -> ARMED frame",
+              [(ex.t_send, got[0].ts)], use_median=False)
+    time.sleep(0.25)  # the ESTOP_STATUS frame after the forged RELEASE
+    run.keepalive_held(res, t0, time.time())
+    # Byte 2 counts the forged RELEASE (a plain one is not an authentication attempt).
+    ws = windows_in(run, t0, time.time() - 0.1)
+    res.figures["status_auth_failures"] = sum(w.auth_failures for w in ws)
+    res.check(sum(w.auth_failures for w in ws) == 1,
+              "ESTOP_STATUS byte 2 did not count the one forged RELEASE")
+    ar.stop()
+    time.sleep(0.3)
+
+
+def sc_auth_spoof(run: Run, res: Result) -> None:
+    ar = run.auth_remote()
+    key = run.ensure_key()
+    over: list[tuple[float, float]] = []
+    sent: dict[str, int] = {}
+    t_first: float | None = None
+    drops0 = udp_drops(run.udp_port)
+    spoiled = 0
+    for i in range(run.args.repeat):
+        run.arm(res, remote=ar)
+        time.sleep(0.1)
+        replay = [p for _, p in ar.recorded[-10:]]  # the remote's latest heartbeats
+        start = run.mon.index()
+        # The last genuine packet just after a periodic frame (as in the dead-man row).
+        t_last = last_packet(run, res, ar, i)
+        if t_last is None:
+            spoiled += 1
+            time.sleep(0.3)
+            continue
+        attacker = Attacker(run.udp, attack_packets(ar, key, replay))
+        attacker.start()  # the finger is off: only the attacker sends now
+        got = run.brake_after(start, lambda b: b.state == 0, 1.0)
+        time.sleep(0.03)
+        attacker.stop()
+        t_first = attacker.t0 if t_first is None else t_first
+        for k, v in attacker.sent.items():
+            sent[k] = sent.get(k, 0) + v
+        if got is None:
+            res.check(False, f"run {i}: still ARMED 1 s after the last genuine packet")
+            continue
+        fr, b = got
+        res.check(b.reason == 3, f"run {i}: stop reason {b.reason}, want 3 udp timeout")
+        over.append((t_last + TIMEOUT_MS / 1000, fr.ts))
+    judge(run, res, "overshoot_ms", "dead-man overshoot under spoofing", over)
+    res.figures["attack_sent"] = dict(sent)
+    time.sleep(0.25)
+    drops1 = udp_drops(run.udp_port)
+    if t_first is not None:
+        drops = drops1[1] - drops0[1] if drops0 and drops1 else None
+        count_check(run, res, t_first, time.time() - 0.1, sum(sent.values()),
+                    sent.get("wrong_key", 0) + sent.get("replay", 0), drops)
+    if spoiled:
+        res.figures["samples_spoiled_by_harness_delay"] = spoiled
+        if spoiled > run.args.repeat // 2:
+            res.inconclusive = f"{spoiled} of {run.args.repeat} samples spoiled by the harness"
+            res.check(False, f"not judged: {res.inconclusive}")
+    res.check(len(over) == run.args.repeat - spoiled, "not every run stopped")
+
+
+def sc_auth_stop_datagram(run: Run, res: Result) -> None:
+    ar = run.auth_remote()
+    lat: list[tuple[float, float]] = []
+    spoiled = 0
+    n = run.args.repeat
+    for i in range(n):
+        t_arm = time.time()
+        run.arm(res, remote=ar)
+        time.sleep(0.05)
+        # A stop datagram from someone without the key: random session, remote id and tag.
+        dg = auth.stop_datagram(i + 1, i + 1, session=int.from_bytes(os.urandom(8), "little"),
+                                remote_id=int.from_bytes(os.urandom(4), "little"))
+        dg = dg[:32] + os.urandom(16)
+        start = run.mon.index()
+        t_send = run.udp.send(dg)
+        got = run.brake_after(start, lambda b: b.state == 0, 1.0)
+        ar.stop()
+        if got is not None and got[1].reason == 3 and ar.max_gap(t_arm, t_send) >= \
+                KEEPALIVE_GAP_S:
+            spoiled += 1  # the harness let the link die before its datagram: not a sample
+            continue
+        if got is None:
+            res.check(False, f"run {i}: no STOPPED frame within 1 s of the stop datagram")
+            continue
+        fr, b = got
+        res.check(b.reason == 2, f"run {i}: bus reason {b.reason}, want 2 (stop request)")
+        lat.append((t_send, fr.ts))
+        time.sleep(0.02)
+    judge(run, res, "stop_frame_latency_ms", "stop datagram -> stop frame", lat)
+    ex = run.clients[2].status()
+    res.figures["status_after"] = show_ex(ex)
+    res.check(ex.reply.state == 0 and ex.reply.reason == 2, "STATUS is not STOPPED reason 2")
+    try:
+        data = run.udp.sock.recv(128, socket.MSG_DONTWAIT)
+        res.check(False, f"a datagram came back over UDP: {data[:16].hex(' ')}")
+    except BlockingIOError:
+        pass
+    except OSError as exc:
+        res.figures["udp_socket_error"] = str(exc)
+    if spoiled:
+        res.figures["samples_spoiled_by_keepalive_pause"] = spoiled
+        if spoiled > n // 2:
+            res.inconclusive = f"{spoiled} of {n} samples: the harness's keepalive paused"
+    res.check(len(lat) == n - spoiled, "not every stop datagram showed on the bus")
+    time.sleep(0.25)
+
+
+def sc_auth_replay(run: Run, res: Result) -> None:
+    ar = run.auth_remote()
+    key = run.ensure_key()
+    run.arm(res, remote=ar)  # recorded: these heartbeats and this RELEASE
+    release = ar.tcp.sent[-1]
+    time.sleep(0.1)
+    ar.stop()
+    recording = [p for _, p in ar.recorded[-15:]]
+    old = ar.session
+    time.sleep(0.3)
+    # A new session: the unit restarts; an attacker replays the recording at its own pace.
+    d, first = run.restart_daemon("replay after a restart")
+    drops0 = udp_drops(run.udp_port)
+    start = run.mon.index()
+    t0 = time.time()
+    replayed = 0
+    for p in recording:
+        errors = run.udp.errors
+        run.udp.send(p)
+        replayed += run.udp.errors == errors  # not refused (an ICMP error from earlier)
+        time.sleep(0.02)
+    replayer = AuthClient(run.tcp_port, None, key, ar.remote_id)
+    try:
+        ex = replayer.exchange(release)
+    finally:
+        replayer.close()
+    res.figures["replayed_release"] = show_ex(ex)
+    res.check(not ex.reply.ack and ex.reply.nak_code == 4,
+              "recorded RELEASE replayed after a restart: not NAK 4")
+    res.check(ex.tag_ok is True, "the unit's reply to the replayed RELEASE does not verify")
+    new = ex.auth.session if ex.auth is not None else 0
+    res.figures["sessions"] = f"{old:#018x} -> {new:#018x}"
+    res.check(new not in (0, old), "the restarted unit kept its session (or has none)")
+    time.sleep(0.25)
+    drops1 = udp_drops(run.udp_port)
+    run.mon.sync()
+    armed = [f for f in run.mon.since(start) if f.can_id == BRAKE_ID and f.data[2] != 0]
+    res.check(not armed, "left STOPPED after the replay")
+    st = run.clients[0].status()
+    res.figures["status_after"] = show_ex(st)
+    res.check(st.reply.state == 0 and st.reply.reason == 1, "STATUS is not STOPPED boot")
+    # Every replayed heartbeat is invalid (old session) and an authentication failure; so is
+    # the replayed RELEASE (byte 2 only).
+    drops = drops1[1] - drops0[1] if drops0 and drops1 else None
+    count_check(run, res, t0, time.time() - 0.1, replayed, replayed + 1, drops)
+    lrn = ar.learn_session()
+    res.check(lrn.tag_ok is True and ar.session == new,
+              "the remote did not learn the new session from a STATUS")
+    res.check(d.alive, "daemon exited")
+
+
 SCENARIOS: list[tuple[str, str, str, Callable[[Run, Result], None]]] = [
     ("boot", "Boot: first frame, periods, STATUS",
-     "boot frame 01 64 00 01 00 00 00 9c; STATUS ACK STOPPED boot; period 10+-0.5 ms, "
-     "max gap < 50 ms; STATUS period 100+-5 ms", sc_boot),
+     "boot frame 01 64 00 01 00 00 00 9c; STATUS ACK STOPPED boot; mean periods on stall-free "
+     f"stretches (>= {BOOT_MIN_BRAKE_GAPS} / {BOOT_MIN_STATUS_GAPS} gaps): ESTOP_BRAKE 10+-0.5 "
+     "ms, ESTOP_STATUS 100+-5 ms; no ESTOP_BRAKE gap >= 50 ms at all", sc_boot),
     ("nak2", "RELEASE refused, no live link",
      "NAK 2 with no packets and with 3 (<5) packets; no ARMED frame", sc_nak2),
     ("nak3", "RELEASE refused, not neutral",
@@ -787,8 +1322,10 @@ SCENARIOS: list[tuple[str, str, str, Callable[[Run, Result], None]]] = [
      "ACK STOPPED tcp_stop; stop frame p50 <= {p50}, max <= {max} ms",
      sc_tcp_stop),
     ("invalid_flood", "Invalid UDP flood while ARMED",
-     "stops at last valid + 200 ms (overshoot <= {max} ms, reason udp_timeout); RELEASE NAK 2; "
-     "ESTOP_STATUS counts every invalid packet", sc_invalid_flood),
+     f"a burst of {FLOOD_BURST} counted exactly; then >= {FLOOD_MIN_RATE} packets/s from a "
+     "flooder process: stops at last valid + 200 ms (overshoot <= {max} ms, reason "
+     "udp_timeout); RELEASE NAK 2; ESTOP_STATUS windows inside the flood saturated (255); "
+     "no ESTOP_BRAKE gap of 50 ms; daemon alive", sc_invalid_flood),
     ("iface_down", "CAN link down 300 ms, then up",
      "can_error/fault logged; STOPPED fault; frames resume <= 50 ms after up", sc_iface_down),
     ("txqueue_full", "Transmit queue full (tbf qdisc + flood)",
@@ -802,7 +1339,24 @@ SCENARIOS: list[tuple[str, str, str, Callable[[Run, Result], None]]] = [
      sc_restart),
     ("sigterm", "SIGTERM: last frame brakes",
      "last ESTOP_BRAKE frame has brake_request 1; exit code 0", sc_sigterm),
+    ("auth_release", "Keyed: forged and genuine RELEASE",
+     "with a live authenticated link: RELEASE under a wrong key NAK 4, plain RELEASE NAK 4, no "
+     "ARMED frame, byte 2 counts 1; genuine RELEASE ACK ARMED, ARMED frame <= {max} ms; reply "
+     "tags verify", sc_auth_release),
+    ("auth_spoof", "Keyed: dead-man under spoofed heartbeats",
+     "plain, wrong-key and replayed heartbeats after the last genuine one: reason udp_timeout; "
+     f"overshoot >= -{EARLY_TOL_MS}, " "p50 <= {p50}, max <= {max} ms; ESTOP_STATUS byte 1 "
+     "counts all, byte 2 the wrong-key and replayed ones", sc_auth_spoof),
+    ("auth_stop_datagram", "Stop datagram with a garbage tag",
+     "ARMED -> STOPPED reason 2: p50 <= {p50}, max <= {max} ms; no UDP reply",
+     sc_auth_stop_datagram),
+    ("auth_replay", "Keyed: replay after a restart",
+     "recorded heartbeats and RELEASE replayed to the restarted unit: RELEASE NAK 4, stays "
+     "STOPPED/boot, new session; byte 1 counts the heartbeats, byte 2 them and the RELEASE",
+     sc_auth_replay),
 ]
+# Rows that need the daemon with a key (they run last; the others run keyless).
+KEYED = {"auth_release", "auth_spoof", "auth_stop_datagram", "auth_replay"}
 
 
 # =========================================================================== global checks
@@ -822,12 +1376,9 @@ def check_bus(run: Run, res: Result) -> None:
     for i in hard[:5]:
         res.notes.append(f"{i.kind} at {i.ts:.6f} id {i.can_id:#05x}: {i.detail}")
     res.check(not hard, f"{len(hard)} frames failed CRC/length/counter/content checks")
-    jumps = [i for i in ctl.issues if i.kind in lossy and not in_windows(i.ts, wins)]
-    for i in jumps[:3]:
-        res.notes.append(f"{i.kind} at {i.ts:.6f} id {i.can_id:#05x}: {i.detail}")
-    res.check(not jumps, f"{len(jumps)} counter jumps (lost frames) outside disturbances")
     gaps = []
     excuses: list[str] = []
+    stall_wins: list[tuple[float, float]] = []  # gaps the environment's stalls explain
     stalls = run.stalls()
     brake = [f for f in frames if f.can_id == BRAKE_ID]
     for a, b in zip(brake, brake[1:], strict=False):
@@ -838,14 +1389,35 @@ def check_bus(run: Run, res: Result) -> None:
             if stall is not None:
                 excuses.append(f"{ms(b.ts - a.ts)} ms gap at {a.ts:.3f}: a CPU stood still "
                                f"{ms(stall)} ms of it")
-                wins.append((a.ts, b.ts))  # the trip it caused is excused as well
+                stall_wins.append((a.ts, b.ts))  # the trip it caused is excused as well
                 continue
         gaps.append((b.ts - a.ts) * 1000)
+    # A counter that starts over after such a gap (resync) is its consequence, not a lost
+    # frame; an ESTOP_STATUS one after a 200 ms gap likewise when the stalls explain that gap
+    # (at most 2.5 of its periods left to run). A jump (a frame missing) is never excused.
+    resyncs_excused = 0
+    jumps = []
+    for i in ctl.issues:
+        if i.kind in lossy and not in_windows(i.ts, wins):
+            prev = max((f.ts for f in frames if f.can_id == i.can_id and f.ts < i.ts),
+                       default=None) if i.kind == "resync" else None
+            if prev is not None and (in_windows(i.ts, stall_wins) or excused(
+                    prev, i.ts, stalls, 2.5 * (0.1 if i.can_id == STATUS_ID else 0.01))):
+                resyncs_excused += 1
+                continue
+            jumps.append(i)
+    if resyncs_excused:
+        res.figures["resyncs_after_gaps_excused_by_cpu_stalls"] = resyncs_excused
+    for i in jumps[:3]:
+        res.notes.append(f"{i.kind} at {i.ts:.6f} id {i.can_id:#05x}: {i.detail}")
+    res.check(not jumps, f"{len(jumps)} counter jumps (lost frames) outside disturbances")
+    wins += stall_wins
     res.figures["brake_gap_ms_outside_disturbances"] = summary(gaps)
     long_stalls = [b - a for a, b in stalls if b - a >= 0.010]
     res.figures["cpu_stalls_10ms_or_more"] = (
         f"{len(long_stalls)}, max {ms(max(long_stalls))} ms" if long_stalls else 0)
     res.figures["stall_monitor_realtime"] = run.stallmon.realtime() if run.stallmon else None
+    res.figures["bus_monitor_max_lag_ms"] = ms(run.mon.max_lag)
     if excuses:
         res.figures["gaps_excused_by_cpu_stalls"] = excuses[:5]
     res.check(bool(gaps) and max(gaps) < BRAKE_SILENCE_S * 1000,
@@ -960,11 +1532,14 @@ GLOBAL: list[tuple[str, str, str, Callable[[Run, Result], None]]] = [
 # =========================================================================== main
 
 # Scenarios that start from any state and may run again when the environment spoiled them.
-RETRYABLE = {"release", "deadman", "tcp_stop", "invalid_flood", "iface_down", "txqueue_full"}
+RETRYABLE = {"boot", "release", "deadman", "tcp_stop", "invalid_flood", "iface_down",
+             "txqueue_full", "sigkill", *KEYED}
 
 
 def run_one(run: Run, sid: str, res: Result, fn: Callable[[Run, Result], None]) -> None:
     t0 = time.monotonic()
+    run.want_key = sid in KEYED
+    giveups = run.mon.lag_giveups if run.monitor is not None else 0
     try:
         if sid not in ("boot", "restart"):
             run.ensure_daemon()
@@ -977,6 +1552,12 @@ def run_one(run: Run, sid: str, res: Result, fn: Callable[[Run, Result], None]) 
         if run.remote is not None:
             run.remote.stop()
         run.windows.append((time.time() - 2.0, time.time() + 0.5, f"error in {sid}"))
+    if run.monitor is not None and run.mon.lag_giveups > giveups and not res.passed:
+        # The harness's bus monitor fell more than LAG_MAX_S behind the bus: the row's
+        # failures may be the harness's own. It is run once more; a second time is a FAIL.
+        res.inconclusive = (f"the bus monitor fell more than {LAG_MAX_S:g} s behind the bus "
+                            f"(max lag so far {ms(run.mon.max_lag)} ms)")
+        res.notes.append(f"FAIL: not judged: {res.inconclusive}")
     res.duration_s = round(time.monotonic() - t0, 2)
     log(f"  -> {'PASS' if res.passed else 'FAIL'} {json.dumps(res.figures)[:300]}")
     for n in res.notes:

@@ -9,6 +9,10 @@ that one can see the harness catch it:
 - ``invalid-alive``: invalid UDP packets also keep the link alive
 - ``no-fault``: CAN transmit errors are ignored (no fault, no stop)
 - ``bad-crc``: every 50th ESTOP_BRAKE frame carries a wrong CRC
+- ``no-tag-check``: (with a key) tags are not checked, so forged messages authenticate
+- ``no-replay-check``: (with a key) session and counter are not checked, so replays do
+
+With ``--key-file`` it has a key (spec section 5, codecs of ``estop.protocol.auth``).
 """
 
 from __future__ import annotations
@@ -24,7 +28,8 @@ import struct
 import sys
 import time
 
-from estop.protocol import tcp, udp
+from estop.keyfile import KeyFileError, load_key_file
+from estop.protocol import auth, tcp, udp
 from estop.protocol.can import BrakeFrame, StatusFrame
 
 PERIOD_US = 10_000
@@ -49,7 +54,10 @@ class Daemon:
         self.valid_run = 0
         self.neutral = False
         self.ctr_b = self.ctr_s = 0
-        self.n_valid = self.n_invalid = self.n_badcrc = self.n_stops = 0
+        self.n_valid = self.n_invalid = self.n_badcrc = self.n_stops = self.n_auth = 0
+        self.key: bytes | None = load_key_file(args.key_file) if args.key_file else None
+        self.session = int.from_bytes(os.urandom(8), "little") or 1
+        self.remotes: dict[int, dict[str, int]] = {}  # remote id -> channel -> counter
         self.fail_since: int | None = None
         self.sent_brake = 0
         self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
@@ -60,13 +68,14 @@ class Daemon:
         self.lsn.bind((args.bind, args.tcp_port))
         self.lsn.listen(8)
         self.lsn.setblocking(False)
-        self.clients: dict[socket.socket, tuple[tcp.FrameAssembler, str]] = {}
+        self.clients: dict[socket.socket, tuple[tcp.RequestAssembler, str]] = {}
         self.can = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)
         self.can.bind((args.can,))
         self.can.setblocking(False)
         self.running = True
         t = now_us()
-        self.log("start", can=args.can, udp_port=args.udp_port, tcp_port=args.tcp_port)
+        self.log("start", can=args.can, udp_port=args.udp_port, tcp_port=args.tcp_port,
+                 auth="key" if self.key else "none", session=f"0x{self.session:016X}")
         self.next_b = t
         self.next_s = t
 
@@ -112,9 +121,9 @@ class Daemon:
         if self.last_valid is not None and t - self.last_valid < self.timeout_us:
             age = min((t - self.last_valid) // 1000, 0xFFFE)
         data = StatusFrame(min(self.n_valid, 255), min(self.n_invalid, 255),
-                           0, min(self.n_stops, 255), age,  # no key: no auth failures
+                           min(self.n_auth, 255), min(self.n_stops, 255), age,
                            self.ctr_s).encode()
-        self.n_valid = self.n_invalid = 0
+        self.n_valid = self.n_invalid = self.n_auth = 0
         self.ctr_s = (self.ctr_s + 1) % 15
         self.next_s += STATUS_PERIOD_US
         self.send(0x051, data, t)
@@ -134,27 +143,66 @@ class Daemon:
         return (self.last_valid is not None and t - self.last_valid < self.timeout_us
                 and self.valid_run >= 5)
 
+    def authenticate(self, signed: bytes, tag: bytes, rid: int, session: int, counter: int,
+                     channel: str) -> bool:
+        """Spec section 5: tag, session, a place for the remote id, a rising counter."""
+        assert self.key is not None
+        ok = "no-tag-check" in self.bugs or auth.mac(self.key, signed) == tag
+        if ok and "no-replay-check" not in self.bugs:
+            seen = self.remotes.get(rid)
+            if session != self.session or (seen is None and len(self.remotes) >= 8):
+                ok = False
+            elif seen is not None and channel in seen and counter <= seen[channel]:
+                ok = False
+            else:
+                self.remotes.setdefault(rid, {})[channel] = counter
+        if not ok:
+            self.n_auth += 1
+        return ok
+
+    def body(self, data: bytes) -> bytes | None:
+        """The control body of a valid packet of the form this unit expects, or None."""
+        if self.key is None:
+            return data if udp.is_valid(data) else None
+        if len(data) != auth.CONTROL_SIZE or data[:4] != auth.CONTROL_MAGIC \
+                or not udp.is_valid(data[24:44]):
+            return None
+        rid, session, counter = struct.unpack_from("<IQQ", data, 4)
+        return data[24:44] if self.authenticate(data[:44], data[44:], rid, session, counter,
+                                                "udp") else None
+
     def on_udp(self, t: int) -> None:
         while True:
             try:
                 data = self.udp.recv(64)
             except BlockingIOError:
                 return
-            if udp.is_valid(data) or "invalid-alive" in self.bugs:
-                ok = udp.is_valid(data)
+            if len(data) == auth.REQUEST_SIZE and data[:4] == auth.REQUEST_MAGIC \
+                    and struct.unpack_from("<I", data, 4)[0] == self.a.stop_id:
+                self.stop(2, t, "udp")  # a stop datagram: whatever its tag says
+                continue
+            body = self.body(data)
+            if body is not None or "invalid-alive" in self.bugs:
                 self.last_valid = t
-                if ok:
+                if body is not None:
                     self.n_valid += 1
                     self.valid_run += 1
-                    self.neutral = udp.decode(data).is_neutral
+                    self.neutral = udp.decode(body).is_neutral
             else:
                 self.n_invalid += 1
 
-    def reply(self, sock: socket.socket, req: tcp.Request, nak: int, t: int) -> None:
+    def reply(self, sock: socket.socket, req: tcp.Request, nak: int, t: int,
+              frame: bytes | None = None) -> None:
         flags = 1 if (self.state == 1 and self.last_valid is not None
                       and t - self.last_valid >= self.warn_us) else 0
-        rep = tcp.Reply(nak == 0, req.seq, self.state, self.reason, flags, nak)
-        sock.sendall(rep.encode())
+        if frame is None:
+            rep = tcp.Reply(nak == 0, req.seq, self.state, self.reason, flags, nak)
+            sock.sendall(rep.encode())
+            return
+        counter = struct.unpack_from("<Q", frame, 24)[0]
+        arep = auth.AuthReply(nak == 0, req.seq, self.state, self.reason, flags=flags,
+                              nak_code=nak, session=self.session, counter=counter)
+        sock.sendall(arep.encode(self.key, auth.request_tag(frame)))
 
     def on_client(self, sock: socket.socket, t: int) -> None:
         asm, peer = self.clients[sock]
@@ -166,34 +214,48 @@ class Daemon:
             self.close(sock)
             return
         for raw in asm.feed(data):
-            try:
-                req = tcp.Request.decode(raw)
-            except tcp.FrameError:
-                self.n_badcrc += 1
-                self.log("bad_crc", src=peer)
-                self.close(sock)
-                return
+            frame: bytes | None = None
+            authed = self.key is None  # a plain RELEASE is authenticated only without a key
+            if len(raw) == auth.REQUEST_SIZE:
+                frame = raw
+                msg_id, seq, rid, session, counter = struct.unpack_from("<IIIQQ", raw, 4)
+                req = tcp.Request(msg_id, seq)
+                # without a key a request frame's RELEASE gets NAK 4; with one, only a RELEASE
+                # is authenticated (STOP and STATUS are honoured whatever the tag says)
+                authed = (self.key is not None and req.kind(self.a.stop_id) == "release"
+                          and self.authenticate(raw[:32], raw[32:], rid, session, counter,
+                                                "tcp"))
+            else:
+                try:
+                    req = tcp.Request.decode(raw)
+                except tcp.FrameError:
+                    self.n_badcrc += 1
+                    self.log("bad_crc", src=peer)
+                    self.close(sock)
+                    return
             kind = req.kind(self.a.stop_id)
             if kind == "stop":
                 self.stop(2, t, peer)
-                self.reply(sock, req, 0, t)
+                self.reply(sock, req, 0, t, frame)
             elif kind == "status":
-                self.reply(sock, req, 0, t)
+                self.reply(sock, req, 0, t, frame)
             elif kind == "release":
-                if self.state == 1:
-                    self.reply(sock, req, 0, t)
+                if not authed:
+                    self.reply(sock, req, 4, t, frame)
+                elif self.state == 1:
+                    self.reply(sock, req, 0, t, frame)
                 elif not self.live(t):
-                    self.reply(sock, req, 2, t)
+                    self.reply(sock, req, 2, t, frame)
                 elif not self.neutral:
-                    self.reply(sock, req, 3, t)
+                    self.reply(sock, req, 3, t, frame)
                 else:
                     self.state, self.reason = 1, 0
                     self.log("state", **{"from": "STOPPED", "to": "ARMED", "reason": "none",
                                          "src": peer})
                     self.send_brake(t)
-                    self.reply(sock, req, 0, t)
+                    self.reply(sock, req, 0, t, frame)
             else:
-                self.reply(sock, req, 1, t)
+                self.reply(sock, req, 1, t, frame)
 
     def close(self, sock: socket.socket) -> None:
         _, peer = self.clients.pop(sock)
@@ -234,7 +296,7 @@ class Daemon:
                 elif s is self.lsn:
                     c, addr = self.lsn.accept()
                     peer = f"{addr[0]}:{addr[1]}"
-                    self.clients[c] = (tcp.FrameAssembler(), peer)
+                    self.clients[c] = (tcp.RequestAssembler(), peer)
                     self.log("client_open", src=peer)
                 elif s in self.clients:
                     self.on_client(s, t)
@@ -255,10 +317,17 @@ def main() -> int:
     p.add_argument("--timeout-ms", type=int, default=200)
     p.add_argument("--stop-id", type=lambda s: int(s, 0), default=tcp.DEFAULT_STOP_ID)
     p.add_argument("--log-json", action="store_true")
-    p.add_argument("--no-auth", action="store_true", help="as estopd; the stand-in has no key")
+    keying = p.add_mutually_exclusive_group(required=True)
+    keying.add_argument("--no-auth", action="store_true", help="as estopd: no key")
+    keying.add_argument("--key-file", help="as estopd: the unit's key")
     p.add_argument("--bug", action="append", choices=["tick", "invalid-alive", "no-fault",
-                                                        "bad-crc"])
-    d = Daemon(p.parse_args())
+                                                        "bad-crc", "no-tag-check",
+                                                        "no-replay-check"])
+    args = p.parse_args()
+    try:
+        d = Daemon(args)
+    except KeyFileError as exc:
+        p.exit(1, f"standin_estopd: {exc}\n")
 
     def on_signal(_sig: int, _frm: object) -> None:
         d.running = False

@@ -7,7 +7,7 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 COVDIR := build/cov
 
-.PHONY: setup demo test check coverage hil bench mutants clean
+.PHONY: setup demo test check coverage hil bench mutants fuzz fuzz-smoke fuzz-build clean
 setup: $(STAMP) $(VENV)/bin/estopd
 
 $(STAMP): pyproject.toml setup.py pyext/build_core.py deps/debian-packages.txt $(wildcard firmware/core/*)
@@ -26,6 +26,7 @@ demo: setup
 
 test: setup
 	$(MAKE) check
+	$(MAKE) fuzz-smoke
 	$(MAKE) coverage
 	$(MAKE) hil
 
@@ -54,6 +55,39 @@ bench: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/stop_latency.py
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/rss_soak.py
 	$(VPY) bench/core_instructions.py
+
+# Coverage-guided fuzzing (libFuzzer with ASan and UBSan; fuzz/README.md). `make fuzz` runs each
+# target for FUZZ_TIME seconds on a corpus kept in build/fuzz/ (never committed); `make
+# fuzz-smoke` (part of `make test`) runs them for FUZZ_SMOKE_TIME seconds each. Both replay
+# the regression inputs of fuzz/regressions/ first. FUZZ_ARGS passes more libFuzzer flags.
+FUZZDIR         := build/fuzz
+FUZZ_TIME       ?= 600
+FUZZ_SMOKE_TIME ?= 15
+FUZZ_TARGETS    := core parsers
+FUZZ_CFLAGS     := -std=c99 -D_GNU_SOURCE -g -O2 -fsanitize=fuzzer,address,undefined \
+                   -fno-sanitize-recover=all -Wall -Wextra -Werror -Ifirmware/core -Ifirmware/estopd
+FUZZ_CORE_SRC   := firmware/core/estop_core.c firmware/core/estop_crc.c firmware/core/estop_blake2s.c
+FUZZ_PARSER_SRC := firmware/estopd/keyfile.c firmware/estopd/opts.c
+
+$(FUZZDIR)/fuzz_core: fuzz/fuzz_core.c $(wildcard firmware/core/*)
+	@mkdir -p $(FUZZDIR)
+	clang $(FUZZ_CFLAGS) -o $@ fuzz/fuzz_core.c $(FUZZ_CORE_SRC)
+
+$(FUZZDIR)/fuzz_parsers: fuzz/fuzz_parsers.c $(wildcard firmware/core/*) $(FUZZ_PARSER_SRC) \
+                         firmware/estopd/keyfile.h firmware/estopd/opts.h
+	@mkdir -p $(FUZZDIR)
+	clang $(FUZZ_CFLAGS) -o $@ fuzz/fuzz_parsers.c $(FUZZ_PARSER_SRC) $(FUZZ_CORE_SRC)
+
+fuzz-build: setup
+	scripts/ensure-debs fuzz
+	$(MAKE) $(FUZZ_TARGETS:%=$(FUZZDIR)/fuzz_%)
+	$(VPY) tools/fuzz_seeds.py $(FUZZDIR)/seeds
+
+fuzz: fuzz-build
+	FUZZ_TIME=$(FUZZ_TIME) FUZZ_ARGS="$(FUZZ_ARGS)" fuzz/run $(FUZZDIR) $(FUZZ_TARGETS)
+
+fuzz-smoke: fuzz-build
+	FUZZ_TIME=$(FUZZ_SMOKE_TIME) FUZZ_ARGS="$(FUZZ_ARGS)" fuzz/run $(FUZZDIR) $(FUZZ_TARGETS)
 
 # Mutation testing of the core (about 1.5 minutes; not part of `make test`).
 mutants: setup

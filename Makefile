@@ -33,7 +33,7 @@ test: setup
 check: setup
 	scripts/ensure-debs check
 	$(MAKE) -C firmware strict
-	$(VENV)/bin/ruff check src tests hil bench pyext
+	$(VENV)/bin/ruff check src tests hil bench pyext tools
 
 # The whole suite runs once against a build of the core instrumented for gcov and UBSan
 # (UB aborts the process), then the spec vectors run again on the installed optimised build.

@@ -20,7 +20,8 @@ ROOT = Path(__file__).resolve().parent.parent
 HEX_LINE = re.compile(r"^`((?:[0-9A-F]{2} )+[0-9A-F]{2})`$")
 
 # Opcodes of fuzz_core.c (the op byte is taken modulo 16).
-OP_TICK_NEXT, OP_UDP_RAW, OP_OPEN, OP_TCP_RAW, OP_REQUEST, OP_FAULT, OP_DRIVE = 1, 2, 6, 8, 10, 11, 14
+OP_TICK_NEXT, OP_UDP_RAW, OP_OPEN, OP_TCP_RAW = 1, 2, 6, 8
+OP_REQUEST, OP_FAULT, OP_DRIVE = 10, 11, 14
 KEY_FLAG, SHORT_TIMES_FLAG = 1, 2
 SOON = 100  # time selector: most of the way to the core's next call time
 

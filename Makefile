@@ -34,6 +34,8 @@ check: setup
 	scripts/ensure-debs check
 	$(MAKE) -C firmware strict
 	$(VENV)/bin/ruff check src tests hil bench pyext tools
+	$(VENV)/bin/mypy --strict src/estop
+	$(VPY) tools/misra.py
 
 # The whole suite runs once against a build of the core instrumented for gcov and UBSan
 # (UB aborts the process), then the spec vectors run again on the installed optimised build.

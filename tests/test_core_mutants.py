@@ -1,0 +1,134 @@
+"""Tests written for the mutants that survived the other core tests (tools/mutants.py, issue 9).
+
+Each test pins down a behaviour that a planted change showed to be unchecked; the docstring
+names the kind of mutant it kills. They drive the C entry points through cffi with raw 32-bit
+ticks, as a microcontroller host would, so the wrapper's own care (splitting long gaps) cannot
+hide the core's.
+"""
+
+from __future__ import annotations
+
+from core_util import packet, request
+from estop.core import Config, ffi, lib
+from estop.protocol import auth
+
+U32 = 0xFFFFFFFF
+MAX_STEP = 0x7FFFFFFF
+GAP_LONG = 1 << 30
+
+
+class Raw:
+    """A core driven with raw uint32 ticks."""
+
+    def __init__(self, now: int = 0, config: Config | None = None) -> None:
+        self.core = ffi.new("estop_core_t *")
+        self.out = ffi.new("estop_out_t *")
+        self.consumed = ffi.new("size_t *")
+        cfg = (config or Config()).to_c()
+        assert lib.estop_init(self.core, cfg, now & U32) == lib.ESTOP_OK
+
+    def tick(self, t: int) -> None:
+        assert lib.estop_tick(self.core, t & U32, self.out) == lib.ESTOP_OK
+
+    def udp(self, data: bytes, t: int) -> None:
+        buf = ffi.from_buffer("uint8_t[]", data)
+        assert lib.estop_udp_rx(self.core, buf, len(data), t & U32, self.out) == lib.ESTOP_OK
+
+    def tcp(self, slot: int, data: bytes, t: int) -> int:
+        buf = ffi.from_buffer("uint8_t[]", data)
+        return int(lib.estop_tcp_rx(self.core, slot, buf, len(data), self.consumed, t & U32,
+                                    self.out))
+
+    def status(self) -> object:
+        st = ffi.new("estop_status_t *")
+        assert lib.estop_get_status(self.core, st) == lib.ESTOP_OK
+        return st
+
+    def gaps(self) -> tuple[list[int], int]:
+        ls = ffi.new("estop_link_stats_t *")
+        assert lib.estop_get_link_stats(self.core, ls) == lib.ESTOP_OK
+        return [ls.gaps[i] for i in range(32)], ls.silences
+
+    def walk(self, start: int, end: int) -> None:
+        """Ticks from start to end in the longest steps the contract allows."""
+        t = start
+        while end - t > MAX_STEP:
+            t += MAX_STEP
+            self.tick(t)
+        self.tick(end)
+
+
+# -- a tick that goes backwards ----------------------------------------------------------------
+def test_a_tick_going_backwards_forgets_the_link_even_after_the_latest_packet() -> None:
+    """Mutant: the backwards branch keeps link_fresh. The tick lands between the latest valid
+    packet and the previous call, so the age alone would still look young."""
+    r = Raw(1_000_000)
+    r.udp(packet(), 1_000_000)
+    r.tick(1_100_000)
+    r.tick(1_050_000)  # backwards, yet after the packet at 1_000_000
+    st = r.status()
+    assert st.counters.faults == 1  # type: ignore[attr-defined]
+    assert st.link_age_us == U32  # type: ignore[attr-defined]
+    assert st.link_live == 0  # type: ignore[attr-defined]
+
+
+# -- the gap histogram: gaps too long for the tick ---------------------------------------------
+def test_a_long_silence_after_the_timeout_is_recorded_once_in_the_top_bin() -> None:
+    """Mutants: the 'very long' record made only while the link is fresh; made one call late
+    (>= to >); the top bin counted from a neighbouring bin or field. The link goes stale at the
+    timeout first, then the silence grows past the tick's reach before the next packet."""
+    r = Raw(0)
+    r.udp(packet(), 0)
+    r.udp(packet(), 33_000_000)  # a 33 s gap: bin 30 (the top bin's neighbour)
+    r.udp(b"junk", 33_000_001)  # an invalid packet, so the counter after gaps[] is not 0
+    r.tick(33_000_000 + 300_000)  # the link goes stale at the timeout
+    r.tick(33_000_000 + GAP_LONG - 1)
+    assert r.gaps()[0][31] == 0
+    r.tick(33_000_000 + GAP_LONG)  # exactly the age past which a gap is "very long"
+    gaps, silences = r.gaps()
+    assert gaps[31] == 1 and gaps[30] == 1 and sum(gaps) == 2 and silences == 2
+    r.walk(33_000_000 + GAP_LONG, 33_000_000 + (1 << 32) + 40_000)  # past the wrap
+    r.udp(packet(), 33_000_000 + (1 << 32) + 40_000)  # would look like a 40 ms gap
+    gaps, silences = r.gaps()
+    assert gaps[31] == 1 and gaps[30] == 1 and sum(gaps) == 2 and silences == 2
+
+
+# -- flags are 0 or 1 --------------------------------------------------------------------------
+def test_the_output_flags_are_0_or_1() -> None:
+    """Mutants: a flag set to another true value (2). The header calls them flags; hosts in C
+    may compare them with 1."""
+    r = Raw(0)
+    r.tick(0)
+    for _ in range(5):
+        r.udp(packet(), 0)
+    assert lib.estop_tcp_open(r.core, 0, 0, r.out) == lib.ESTOP_OK
+    assert r.tcp(0, request(2), 0) == lib.ESTOP_OK  # RELEASE: state change by the input
+    assert (r.out.state_changed, r.out.changed_by_clock, r.out.has_reply) == (1, 0, 1)
+    assert r.status().link_live == 1  # type: ignore[attr-defined]
+    r.tick(200_000)  # the deadline: state change by the clock
+    assert (r.out.state_changed, r.out.changed_by_clock, r.out.has_reply) == (1, 1, 0)
+    bad = request(1, good_crc=False)
+    assert r.tcp(0, bad, 200_001) == lib.ESTOP_OK
+    assert r.out.close_slot == 1
+
+
+# -- TCP framing -------------------------------------------------------------------------------
+def test_a_frame_length_is_decided_on_its_own_four_bytes_never_on_stale_ones() -> None:
+    """Mutants: fewer magic bytes than 4 decide a frame's length (MAGIC_LEN 0, 1, 3). After a
+    request frame the slot's buffer still starts with "ESQ2"; a plain frame beginning "ESQ3"
+    arrives as 3 bytes, then its rest together with a second plain frame."""
+    r = Raw(0)
+    assert lib.estop_tcp_open(r.core, 0, 0, r.out) == lib.ESTOP_OK
+    status = auth.AuthRequest(1, 7, 7, 0, 1).encode(None)  # STATUS as a request frame
+    assert r.tcp(0, status, 0) == lib.ESTOP_OK and r.out.has_reply == 1
+    assert r.consumed[0] == 48
+    odd = request(0x33515345, seq=5)  # "ESQ3": a plain frame with an unknown msg_id
+    assert r.tcp(0, odd[:3], 1) == lib.ESTOP_OK
+    assert r.consumed[0] == 3 and r.out.has_reply == 0
+    rest = odd[3:] + request(1, seq=6)
+    assert r.tcp(0, rest, 2) == lib.ESTOP_OK
+    assert r.consumed[0] == 13 and r.out.has_reply == 1 and r.out.reply_len == 16
+    assert bytes(ffi.buffer(r.out.reply, 16))[4:8] == (5).to_bytes(4, "little")
+    assert r.tcp(0, rest[13:], 3) == lib.ESTOP_OK
+    assert r.consumed[0] == 16 and r.out.has_reply == 1
+    assert bytes(ffi.buffer(r.out.reply, 16))[4:8] == (6).to_bytes(4, "little")

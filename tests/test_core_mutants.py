@@ -132,3 +132,82 @@ def test_a_frame_length_is_decided_on_its_own_four_bytes_never_on_stale_ones() -
     assert r.tcp(0, rest[13:], 3) == lib.ESTOP_OK
     assert r.consumed[0] == 16 and r.out.has_reply == 1
     assert bytes(ffi.buffer(r.out.reply, 16))[4:8] == (6).to_bytes(4, "little")
+
+
+# -- saturating counters -----------------------------------------------------------------------
+def test_32_bit_counters_saturate_at_the_top_and_not_before() -> None:
+    """Mutants: sat32_inc wrapping to 0 (< to <=) or stopping one short (0xFFFFFFFE). Four
+    billion packets are out of a test's reach, so the counters are set near the top in the
+    caller-owned state (white box), then real packets and gaps move them."""
+    r = Raw(0)
+    r.udp(packet(), 0)
+    r.core.valid_run = 0xFFFFFFFD
+    r.core.gaps[lib.estop_gap_bin(20_000)] = 0xFFFFFFFD
+    r.core.silences = 0xFFFFFFFD
+    for t in (20_000, 40_000):
+        r.udp(packet(), t)
+    st = r.status()
+    gaps, silences = r.gaps()
+    assert st.valid_run == 0xFFFFFFFF  # type: ignore[attr-defined]
+    assert gaps[lib.estop_gap_bin(20_000)] == 0xFFFFFFFF
+    r.udp(packet(), 60_000)
+    r.udp(packet(), 400_000)  # a silence (past the warn time)
+    r.udp(packet(), 800_000)
+    gaps, silences = r.gaps()
+    assert r.status().valid_run == 1  # type: ignore[attr-defined]  # the silence restarted it
+    assert gaps[lib.estop_gap_bin(20_000)] == 0xFFFFFFFF
+    assert silences == 0xFFFFFFFF
+
+
+# -- configuration -----------------------------------------------------------------------------
+def test_config_default_sets_every_field_and_writes_nothing_else() -> None:
+    """Mutants: a field of estop_config_default left as it was, the warn time at another
+    fraction, the key wipe shortened or run one byte past the key. The struct starts as
+    garbage (0xA5) and must come out as PROTOCOL.md's defaults, its padding untouched."""
+    cfg = ffi.new("estop_config_t *")
+    size = ffi.sizeof("estop_config_t")
+    ffi.memmove(cfg, b"\xa5" * size, size)
+    lib.estop_config_default(cfg)
+    assert (cfg.timeout_us, cfg.warn_us, cfg.stop_id) == (200_000, 100_000, 0xE570E570)
+    assert (cfg.brake_can_id, cfg.status_can_id) == (0x050, 0x051)
+    assert (cfg.brake_data_id, cfg.status_data_id) == (0x0E57, 0x0E58)
+    assert (cfg.release_packets, cfg.brake_period_us, cfg.status_period_us) == (5, 10_000,
+                                                                                100_000)
+    assert (cfg.session, cfg.key_len) == (0, 0)
+    assert bytes(ffi.buffer(cfg.key, 32)) == bytes(32)
+    end_of_key = ffi.offsetof("estop_config_t", "key") + 32
+    assert bytes(ffi.buffer(cfg, size))[end_of_key:] == b"\xa5" * (size - end_of_key)
+    lib.estop_config_default(ffi.NULL)  # a NULL is ignored
+
+
+def test_config_limits_are_inclusive_at_the_edges() -> None:
+    """Mutants: > to >= on the status CAN id's limit, < to <= on 'status period below the brake
+    period'. Both edges are valid configurations."""
+    for cfg in (Config(status_can_id=0x7FF), Config(brake_can_id=0x7FF),
+                Config(brake_period_us=20_000, status_period_us=20_000)):
+        assert lib.estop_config_check(cfg.to_c()) == lib.ESTOP_OK
+    assert lib.estop_config_check(Config(status_can_id=0x800).to_c()) == lib.ESTOP_ERR_CAN_ID
+    assert lib.estop_config_check(Config(brake_period_us=20_000, status_period_us=19_999)
+                                  .to_c()) == lib.ESTOP_ERR_STATUS_PERIOD
+
+
+def test_init_keeps_no_key_byte() -> None:
+    """Mutants: the key wipe in estop_init starting at byte 1 or writing another value. The
+    key is absorbed into the MAC state; none of its bytes stays in the caller-owned state."""
+    key = bytes(range(1, 33))
+    r = Raw(0, Config(key=key))
+    assert r.core.cfg.key_len == 32
+    assert bytes(ffi.buffer(r.core.cfg.key, 32)) == bytes(32)
+    assert key not in bytes(ffi.buffer(r.core, ffi.sizeof("estop_core_t")))
+
+
+def test_init_starts_the_clock_at_its_own_tick() -> None:
+    """Mutant: estop_init leaves the core's tick at 0. Booted at a tick more than half the
+    range away from 0, the first call at the same tick must not look like a tick going
+    backwards (a fault)."""
+    for boot in (3_000_000_000, 0x80000000):
+        r = Raw(boot)
+        r.tick(boot)
+        st = r.status()
+        assert st.counters.faults == 0  # type: ignore[attr-defined]
+        assert r.out.n_can == 2 and r.out.next_call_us == (boot + 10_000) & U32

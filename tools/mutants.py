@@ -37,6 +37,7 @@ import dataclasses
 import hashlib
 import os
 import re
+import resource
 import shutil
 import signal
 import subprocess
@@ -52,9 +53,10 @@ CORE = ROOT / "firmware" / "core"
 sys.path.insert(0, str(ROOT / "pyext"))
 
 EQUIVALENTS = ROOT / "tools" / "mutants_equivalent.txt"
+CACHE = ROOT / "build" / "mutants-cache"
 MODULE = "_estop_mutant"
 ORIGINAL = "_estop_orig"  # the unmutated build the test server imports the tests against
-SWAP_FAILED = 97  # a child's exit status: the mutant's module could not be swapped in
+SWAP_FAILED = 97  # a child's exit status: the mutant's module could not be set up
 CFLAGS = ["-O2", "-fPIC", "-fno-strict-aliasing", "-fwrapv", "-std=c99", "-w"]
 # Fastest killers first; the stateful model test always last.
 TESTS = ["tests/test_spec_vectors.py", "tests/test_core_rules.py", "tests/test_core_c_api.py",
@@ -426,29 +428,56 @@ def digest(obj: Path) -> str:
     return hashlib.sha256(obj.read_bytes()).hexdigest()
 
 
+def source_key(m: Mutant, text: str) -> str:
+    """Names a mutant's object in the cache: its source, the headers and the flags."""
+    h = hashlib.sha256(" ".join(CFLAGS).encode() + m.file.encode() + text.encode())
+    for header in sorted(CORE.glob("*.h")):
+        h.update(header.read_bytes())
+    return h.hexdigest()
+
+
 def compile_all(builder: Builder, muts: list[Mutant], jobs: int) -> dict[int, str]:
-    """Object hashes of the mutants that compile (two gcc at a time)."""
+    """Object hashes of the mutants that compile (two gcc at a time). Objects are kept in
+    build/mutants-cache/ by source, so a run after a test-only change compiles nothing."""
     hashes: dict[int, str] = {}
-    running: dict[int, tuple[subprocess.Popen[bytes], Path, Path]] = {}
-    todo = list(enumerate(muts))
+    running: dict[int, tuple[subprocess.Popen[bytes], Path, Path, str]] = {}
+    CACHE.mkdir(parents=True, exist_ok=True)
+    todo = []
+    sources = {f: (CORE / f).read_text() for f in {m.file for m in muts}}
+    for index, m in enumerate(muts):
+        text = m.apply(sources[m.file])
+        key = source_key(m, text)
+        cached = CACHE / f"{key}.o"
+        obj = builder.work / "obj" / f"{index}.o"
+        obj.parent.mkdir(exist_ok=True)
+        if cached.exists():
+            shutil.copy(cached, obj)
+            hashes[index] = digest(obj)
+        elif (CACHE / f"{key}.invalid").exists():
+            pass
+        else:
+            todo.append((index, m, text, key))
     while todo or running:
         while todo and len(running) < jobs:
-            index, m = todo.pop(0)
+            index, m, text, key = todo.pop(0)
             d = builder.work / "src" / str(index)
             d.mkdir(parents=True)
-            (d / m.file).write_text(m.apply((CORE / m.file).read_text()))
+            (d / m.file).write_text(text)
             for h in CORE.glob("*.h"):
                 (d / h.name).symlink_to(builder.base / h.name)
             obj = builder.work / "obj" / f"{index}.o"
             obj.parent.mkdir(exist_ok=True)
             p = subprocess.Popen(["gcc", *CFLAGS, "-c", m.file, "-o", str(obj)], cwd=d,
                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            running[index] = (p, d, obj)
+            running[index] = (p, d, obj, key)
         for index in list(running):
-            p, d, obj = running[index]
+            p, d, obj, key = running[index]
             if p.poll() is not None:
                 if p.returncode == 0:
                     hashes[index] = digest(obj)
+                    shutil.copy(obj, CACHE / f"{key}.o")
+                else:
+                    (CACHE / f"{key}.invalid").touch()
                 shutil.rmtree(d)
                 del running[index]
         time.sleep(0.005)
@@ -477,8 +506,12 @@ class Runner:
             original(self_, parent, **kw)  # type: ignore[arg-type]
 
         hypothesis.settings.__init__ = capped  # type: ignore[assignment,method-assign]
+        # No shrinking: a failing example kills the mutant as it is (shrinking would rerun
+        # the test many times for nothing).
         hypothesis.settings.register_profile(
-            "mutants", derandomize=True, database=None, deadline=None, print_blob=False)
+            "mutants", derandomize=True, database=None, deadline=None, print_blob=False,
+            phases=(hypothesis.Phase.explicit, hypothesis.Phase.generate),
+            report_multiple_bugs=False)
         hypothesis.settings.load_profile("mutants")
         # The tests are imported once, here, against the unmutated build; each child swaps in
         # its mutant's lib and ffi (the tests hold no cdata at module level). The baseline run
@@ -493,9 +526,9 @@ class Runner:
             if (ROOT / test).exists():
                 importlib.import_module(Path(test).stem)
 
-    def start(self, objs: dict[str, Path], outdir: Path, file: str = "") -> int:
-        """Forks a child that runs the tests against the module in outdir."""
-        self.builder.link(objs, outdir)
+    def start(self, objs: dict[str, Path], outdir: Path, file: str = "",
+              cpu_limit: int = 0) -> int:
+        """Forks a child that links the module into outdir and runs the tests against it."""
         pid = os.fork()
         if pid != 0:
             try:
@@ -503,8 +536,13 @@ class Runner:
             except OSError:
                 pass
         if pid == 0:  # the child
-            code = 3
+            code = SWAP_FAILED  # any failure to set the mutant up is the tool's, not a kill
             try:
+                if cpu_limit > 0:
+                    # CPU seconds, not wall time: a loaded machine does not turn a slow
+                    # survivor into a "timeout"; a mutant that loops gets SIGXCPU.
+                    resource.setrlimit(resource.RLIMIT_CPU, (cpu_limit, cpu_limit + 5))
+                self.builder.link(objs, outdir)
                 code = self.child(outdir, file)
             finally:
                 os._exit(code)
@@ -520,7 +558,10 @@ class Runner:
         sys.path.insert(0, str(outdir))
         import importlib
 
-        new = importlib.import_module(MODULE)
+        try:
+            new = importlib.import_module(MODULE)
+        except ImportError:
+            return SWAP_FAILED
         old = sys.modules[ORIGINAL]
         olds = (old, old.lib, old.ffi)  # type: ignore[attr-defined]
         swap = {id(old): new, id(old.lib): new.lib, id(old.ffi): new.ffi}  # type: ignore[attr-defined]
@@ -611,22 +652,24 @@ def campaign(args: argparse.Namespace, muts: list[Mutant], equivalents: dict[str
             to_run.append(i)
     compile_time = time.monotonic() - t0
     runner = Runner(builder, args.examples, args.max_examples)
-    limit = args.min_timeout
+    limit = args.wall_limit
+    cpu_limit = args.cpu_limit
     baseline_note = "not run (make coverage runs the suite)"
     if not args.changed and to_run:
-        # The unmutated core first: it must pass, and its time sets the limit per mutant.
+        # The unmutated core first: it must pass, and its CPU time sets the limit per mutant.
         t1 = time.monotonic()
         pid = runner.start(dict(builder.objs), work / "run" / "original")
-        _, status = os.waitpid(pid, 0)
+        _, status, usage = os.wait4(pid, 0)
         baseline = time.monotonic() - t1
         if os.waitstatus_to_exitcode(status) != 0:
             print("mutants: error: the core tests fail on the unmutated core", file=sys.stderr)
             return 2
-        limit = max(args.min_timeout, 3.0 * baseline)
-        baseline_note = f"passes in {baseline:.1f} s"
+        cpu = usage.ru_utime + usage.ru_stime
+        cpu_limit = max(cpu_limit, int(4 * cpu) + 1)
+        baseline_note = f"passes in {baseline:.1f} s ({cpu:.1f} s CPU)"
     print(f"mutants: {scope}: {len(muts)} mutants, {len(to_run)} to test after compiling "
-          f"({compile_time:.0f} s); the unmutated core {baseline_note}; "
-          f"limit {limit:.0f} s a mutant, {args.jobs} at a time", flush=True)
+          f"({compile_time:.0f} s); the unmutated core {baseline_note}; limit {cpu_limit} s "
+          f"CPU ({limit:.0f} s wall) a mutant, {args.jobs} at a time", flush=True)
     running: dict[int, tuple[int, float, Path]] = {}
     queue = list(to_run)
     done = 0
@@ -637,7 +680,8 @@ def campaign(args: argparse.Namespace, muts: list[Mutant], equivalents: dict[str
             objs = dict(builder.objs)
             objs[m.file] = work / "obj" / f"{i}.o"
             outdir = work / "run" / str(i)
-            running[runner.start(objs, outdir, m.file)] = (i, time.monotonic(), outdir)
+            pid = runner.start(objs, outdir, m.file, cpu_limit)
+            running[pid] = (i, time.monotonic(), outdir)
         pid, status = os.waitpid(-1, os.WNOHANG)
         if pid == 0:
             now = time.monotonic()
@@ -655,8 +699,10 @@ def campaign(args: argparse.Namespace, muts: list[Mutant], equivalents: dict[str
         i, _, outdir = running.pop(pid)
         m = muts[i]
         code = os.waitstatus_to_exitcode(status)
+        if os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGXCPU:
+            m.outcome = "timeout"
         if code == SWAP_FAILED:
-            print("mutants: error: a child could not swap its mutant in", file=sys.stderr)
+            print(f"mutants: error: could not set up the module of {m.key}", file=sys.stderr)
             return 2
         if m.outcome != "timeout":
             if code == 0:
@@ -743,8 +789,11 @@ def main() -> int:
                         help="stateful examples a mutant (default 60)")
     parser.add_argument("--max-examples", type=int, default=100,
                         help="cap on any other hypothesis test's examples (default 100)")
-    parser.add_argument("--min-timeout", type=float, default=120.0,
-                        help="least time limit a mutant, seconds (default 120)")
+    parser.add_argument("--cpu-limit", type=int, default=20,
+                        help="least CPU seconds a mutant (default 20; 4 times the unmutated "
+                             "run's when that is more)")
+    parser.add_argument("--wall-limit", type=float, default=300.0,
+                        help="wall-clock seconds a mutant, a backstop (default 300)")
     parser.add_argument("--only", default="", help="mutants whose name contains this")
     parser.add_argument("--cls", default="", help="comma-separated operator classes")
     parser.add_argument("--list", action="store_true", help="list the mutants, run none")

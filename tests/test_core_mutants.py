@@ -211,3 +211,54 @@ def test_init_starts_the_clock_at_its_own_tick() -> None:
         st = r.status()
         assert st.counters.faults == 0  # type: ignore[attr-defined]
         assert r.out.n_can == 2 and r.out.next_call_us == (boot + 10_000) & U32
+
+
+# -- ESTOP_STATUS: the link age in milliseconds --------------------------------------------------
+def status_age_ms(r: Raw) -> int:
+    frames = [r.out.can[i] for i in range(r.out.n_can) if r.out.can[i].id == 0x051]
+    assert len(frames) == 1
+    return int(frames[0].data[4]) | (int(frames[0].data[5]) << 8)
+
+
+def test_status_link_age_is_floored_to_whole_milliseconds() -> None:
+    """Mutants: the age divided by 999 or 1001 instead of 1000. Status frames go out every
+    100 ms from boot; a packet 1 ms and 199.8 ms before one of them."""
+    r = Raw(0)
+    r.tick(0)
+    r.udp(packet(), 99_000)
+    r.tick(100_000)
+    assert status_age_ms(r) == 1  # 1000 us: 1 (not 0 with /1001)
+    r = Raw(0)
+    r.tick(0)
+    r.udp(packet(), 200)
+    r.tick(100_000)
+    assert status_age_ms(r) == 99
+    r.tick(200_000)
+    assert status_age_ms(r) == 199  # 199800 us: 199 (not 200 with /999)
+    r.tick(300_000)
+    assert status_age_ms(r) == 0xFFFF  # the link went stale at the timeout: no age
+
+
+def test_reply_len_is_0_on_every_call_without_a_reply() -> None:
+    """Mutant: clear_out leaving reply_len as the previous call set it. reply_len says how
+    much of the output is meaningful, so a host may send reply[0 .. reply_len-1] by it alone."""
+    r = Raw(0)
+    assert lib.estop_tcp_open(r.core, 0, 0, r.out) == lib.ESTOP_OK
+    assert r.tcp(0, request(1), 0) == lib.ESTOP_OK
+    assert (r.out.has_reply, r.out.reply_len) == (1, 16)
+    r.tick(1)
+    assert (r.out.has_reply, r.out.reply_len) == (0, 0)
+
+
+def test_change_flags_are_cleared_on_the_next_call() -> None:
+    """Mutants: clear_out leaving state_changed or changed_by_clock set from the previous
+    call. The deadline stops the unit (both set), the next tick changes nothing (both clear)."""
+    r = Raw(0)
+    for t in range(0, 100_000, 20_000):
+        r.udp(packet(), t)
+    assert lib.estop_tcp_open(r.core, 0, 80_000, r.out) == lib.ESTOP_OK
+    assert r.tcp(0, request(2), 80_000) == lib.ESTOP_OK and r.out.state == 1
+    r.tick(280_000)  # the deadline
+    assert (r.out.state, r.out.state_changed, r.out.changed_by_clock) == (0, 1, 1)
+    r.tick(280_001)
+    assert (r.out.state_changed, r.out.changed_by_clock) == (0, 0)

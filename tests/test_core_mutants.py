@@ -262,3 +262,26 @@ def test_change_flags_are_cleared_on_the_next_call() -> None:
     assert (r.out.state, r.out.state_changed, r.out.changed_by_clock) == (0, 1, 1)
     r.tick(280_001)
     assert (r.out.state_changed, r.out.changed_by_clock) == (0, 0)
+
+
+# -- estop_ct_equal: every length, every position -------------------------------------------------
+def ct_equal(a: bytes | None, b: bytes | None, n: int) -> int:
+    pa = ffi.NULL if a is None else ffi.from_buffer("uint8_t[]", a)
+    pb = ffi.NULL if b is None else ffi.from_buffer("uint8_t[]", b)
+    return int(lib.estop_ct_equal(pa, pb, n))
+
+
+def test_ct_equal_sees_a_difference_in_any_byte_of_any_length() -> None:
+    """Mutants: the byte-wise tail after the 4-byte groups skipped, run backwards or masking
+    instead of collecting; a NULL pointer with n 1 taken as equal. Lengths that are not a
+    multiple of 4 put bytes in the tail."""
+    for n in range(0, 21):
+        a = bytes(range(1, n + 1))
+        assert ct_equal(a, bytes(a), n) == 1
+        for where in range(n):
+            for flip in (0x01, 0x80):
+                other = bytearray(a)
+                other[where] ^= flip
+                assert ct_equal(a, bytes(other), n) == 0, (n, where, flip)
+    assert ct_equal(None, b"\x00", 1) == 0
+    assert ct_equal(b"\x00", None, 1) == 0

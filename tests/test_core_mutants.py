@@ -11,6 +11,7 @@ from __future__ import annotations
 from core_util import packet, request
 from estop.core import Config, ffi, lib
 from estop.protocol import auth
+from estop.protocol.udp import ControlPacket, Gear
 
 U32 = 0xFFFFFFFF
 MAX_STEP = 0x7FFFFFFF
@@ -285,3 +286,237 @@ def test_ct_equal_sees_a_difference_in_any_byte_of_any_length() -> None:
                 assert ct_equal(a, bytes(other), n) == 0, (n, where, flip)
     assert ct_equal(None, b"\x00", 1) == 0
     assert ct_equal(b"\x00", None, 1) == 0
+
+
+# -- the deadline as a call time ---------------------------------------------------------------
+def test_a_host_that_calls_only_when_asked_stops_at_the_deadline_off_the_frame_grid() -> None:
+    """Mutants: finish() leaving the deadline out of next_call_us (or putting it a timeout
+    before the packet). The latest packet arrives 3.333 ms off the 10 ms brake grid, so only
+    the deadline itself can make the host call at latest + timeout."""
+    r = Raw(0)
+    r.tick(0)
+    for t in range(0, 100_000, 20_000):
+        r.udp(packet(), t)
+    assert lib.estop_tcp_open(r.core, 0, 80_000, r.out) == lib.ESTOP_OK
+    assert r.tcp(0, request(2), 80_000) == lib.ESTOP_OK and r.out.state == 1
+    last = 93_333
+    r.udp(packet(), last)
+    t = last
+    calls = 0
+    while r.out.state == 1 and calls < 100:
+        t = r.out.next_call_us
+        r.tick(t)
+        calls += 1
+    assert r.out.state == 0 and r.out.reason == lib.ESTOP_REASON_UDP_TIMEOUT
+    assert t == last + 200_000  # the stop at the deadline itself, not at the next frame time
+
+
+# -- authentication (PROTOCOL.md 5) ------------------------------------------------------------
+K = bytes(range(32))
+N = 0x0123456789ABCDEF
+
+
+def auth_packet(rid: int, counter: int, horn: int = 0) -> bytes:
+    body = ControlPacket(gas_brake=0.0, gear=Gear.NEUTRAL, horn=horn)
+    return auth.AuthControlPacket(rid, N, counter, body).encode(K, validate=False)
+
+
+def valid_count(r: Raw) -> int:
+    return int(r.status().counters.udp_valid)  # type: ignore[attr-defined]
+
+
+def test_a_new_remote_id_may_start_at_counter_0_on_either_channel() -> None:
+    """Mutants: a new remote's entry born with a counter 'seen' (seen = 1), and the seen test
+    made always true (& to |): counter 0 would then count as a replay of nothing."""
+    r = Raw(0, Config(key=K))
+    r.udp(auth_packet(7, 0), 0)
+    assert valid_count(r) == 1
+    assert lib.estop_tcp_open(r.core, 0, 0, r.out) == lib.ESTOP_OK
+    status = auth.AuthRequest(1, 1, 7, N, 0).encode(K)  # TCP counter 0 of the same remote
+    release = auth.AuthRequest(2, 2, 9, N, 0).encode(K)  # a new remote, counter 0, on TCP
+    assert r.tcp(0, status, 1) == lib.ESTOP_OK
+    assert r.tcp(0, release, 2) == lib.ESTOP_OK
+    st = r.status()
+    assert st.counters.auth_old_counter == 0  # type: ignore[attr-defined]
+    reply = bytes(ffi.buffer(r.out.reply, 48))
+    assert reply[4] == 0x81 and reply[15] == lib.ESTOP_NAK_NO_LIVE_LINK  # authenticated
+
+
+def test_the_authenticated_body_is_checked_with_its_horn() -> None:
+    """Mutant: the 60-byte packet's body checked as the 16-byte form (no horn)."""
+    r = Raw(0, Config(key=K))
+    r.udp(auth_packet(7, 1, horn=2), 0)
+    assert valid_count(r) == 0
+    r.udp(auth_packet(7, 2, horn=1), 1)
+    assert valid_count(r) == 1
+
+
+def test_remote_ids_differing_only_in_their_top_byte_are_kept_apart() -> None:
+    """Mutants: the remote id read from offset 1 or 3 instead of 4. Two remotes whose ids
+    differ only in the top byte must keep separate counters."""
+    r = Raw(0, Config(key=K))
+    r.udp(auth_packet(0x01000007, 10), 0)
+    r.udp(auth_packet(0x02000007, 1), 1)
+    assert valid_count(r) == 2
+
+
+def test_the_counter_is_compared_as_the_whole_u64_at_its_offset() -> None:
+    """Mutant: the counter read from offset 15 (one byte early). Above 2^56 the order of the
+    shifted values differs from the real ones: 2 after 2^56 is stale."""
+    r = Raw(0, Config(key=K))
+    r.udp(auth_packet(7, 1 << 56), 0)
+    r.udp(auth_packet(7, 2), 1)
+    assert valid_count(r) == 1
+    assert r.status().counters.auth_old_counter == 1  # type: ignore[attr-defined]
+
+
+def guarded_core(extra: bytes) -> tuple[object, object]:
+    """A core in a buffer with a guard zone after it: `extra` where a 9th remote entry would
+    be, zeros elsewhere."""
+    size = ffi.sizeof("estop_core_t")
+    ninth = ffi.offsetof("estop_core_t", "remotes") + 8 * ffi.sizeof("estop_remote_t")
+    assert ninth >= size - 8
+    buf = ffi.new("uint8_t[]", ninth + 256)
+    ffi.memmove(buf + ninth, extra, len(extra))
+    return buf, ffi.cast("estop_core_t *", buf)
+
+
+def test_the_remote_table_never_reaches_past_its_8_entries() -> None:
+    """Mutants: the table's loops running to index 8 (one past the end). The memory after the
+    core is made to look like a free entry, then like a used entry for the 9th id: either way
+    the 9th remote id must not be authenticated."""
+    entry = ffi.new("estop_remote_t *")
+    entry.used = 1
+    entry.id = 99
+    used = bytes(ffi.buffer(entry))
+    for extra in (b"", used):
+        buf, core = guarded_core(extra)
+        out = ffi.new("estop_out_t *")
+        assert lib.estop_init(core, Config(key=K).to_c(), 0) == lib.ESTOP_OK
+        for rid in range(8):
+            data = auth_packet(rid, 1)
+            assert lib.estop_udp_rx(core, ffi.from_buffer("uint8_t[]", data), 60, rid,
+                                    out) == lib.ESTOP_OK
+        data = auth_packet(99, 5)
+        assert lib.estop_udp_rx(core, ffi.from_buffer("uint8_t[]", data), 60, 9, out) == \
+            lib.ESTOP_OK
+        st = ffi.new("estop_status_t *")
+        assert lib.estop_get_status(core, st) == lib.ESTOP_OK
+        assert st.counters.udp_valid == 8 and st.counters.auth_table_full == 1
+        del buf
+
+
+# -- counters of the TCP channel -----------------------------------------------------------------
+def test_release_and_frame_counters() -> None:
+    """Mutants: releases_accepted, releases_refused or tcp_frames not counted (or counted
+    down, or in the wrong case)."""
+    r = Raw(0)
+
+    def counts() -> tuple[int, int, int]:
+        c = r.status().counters  # type: ignore[attr-defined]
+        return int(c.releases_refused), int(c.releases_accepted), int(c.tcp_frames)
+
+    assert lib.estop_tcp_open(r.core, 0, 0, r.out) == lib.ESTOP_OK
+    assert r.tcp(0, request(2), 0) == lib.ESTOP_OK  # NAK 2: refused
+    assert counts() == (1, 0, 1)
+    for t in range(1, 6):
+        r.udp(packet(), t)
+    assert r.tcp(0, request(2), 6) == lib.ESTOP_OK and r.out.state == 1  # accepted
+    assert counts() == (1, 1, 2)
+    assert r.tcp(0, request(2), 7) == lib.ESTOP_OK  # while ARMED: ACK, neither
+    assert counts() == (1, 1, 3)
+    assert r.tcp(0, request(1), 8) == lib.ESTOP_OK  # STATUS
+    assert counts() == (1, 1, 4)
+
+
+# -- outputs filled whatever the caller's buffer held ---------------------------------------------
+def test_open_and_close_fill_the_read_out_of_out() -> None:
+    """Mutant: estop_tcp_open / close not finishing (next_call_us, state, reason, flags left
+    as the caller's buffer had them)."""
+    r = Raw(0)
+    r.tick(0)
+    for fn in (lib.estop_tcp_open, lib.estop_tcp_close):
+        out = ffi.new("estop_out_t *")
+        ffi.memmove(out, b"\xa5" * ffi.sizeof("estop_out_t"), ffi.sizeof("estop_out_t"))
+        assert fn(r.core, 0, 1_000, out) == lib.ESTOP_OK
+        assert (out.state, out.reason, out.flags) == (0, lib.ESTOP_REASON_BOOT, 0)
+        assert out.next_call_us == 10_000
+
+
+def test_a_keyless_reply_frame_has_a_zero_tag_whatever_the_buffer_held() -> None:
+    """Mutants: the zero tag of a keyless unit's reply frame written partly or not at all, or
+    a MAC attempted without a key (which writes nothing)."""
+    r = Raw(0)
+    ffi.memmove(r.out, b"\xa5" * ffi.sizeof("estop_out_t"), ffi.sizeof("estop_out_t"))
+    assert lib.estop_tcp_open(r.core, 0, 0, r.out) == lib.ESTOP_OK
+    ffi.memmove(r.out.reply, b"\xa5" * 48, 48)
+    assert r.tcp(0, auth.AuthRequest(1, 1, 7, 0, 1).encode(None), 1) == lib.ESTOP_OK
+    reply = bytes(ffi.buffer(r.out.reply, 48))
+    assert r.out.reply_len == 48 and reply[32:] == bytes(16)
+
+
+# -- silences --------------------------------------------------------------------------------------
+def test_a_gap_of_exactly_the_warn_time_is_a_silence() -> None:
+    """Mutant: >= to > on the warn time in record_gap."""
+    r = Raw(0)
+    r.udp(packet(), 0)
+    r.udp(packet(), 100_000)  # the default warn time: half the 200 ms timeout
+    r.udp(packet(), 199_999)
+    assert r.gaps()[1] == 1
+
+
+# -- TCP: after a bad frame, on a closed slot ----------------------------------------------------
+def test_a_slot_with_a_bad_frame_takes_no_more_bytes_until_reopened() -> None:
+    """Mutant: handle_plain not marking the slot closed. A host that calls again before it
+    has closed the slot gets ESTOP_ERR_SLOT_CLOSED, consumed 0 (whatever it held) and a filled
+    read-out."""
+    r = Raw(0)
+    assert lib.estop_tcp_open(r.core, 0, 0, r.out) == lib.ESTOP_OK
+    assert r.tcp(0, request(1, good_crc=False) + request(1), 1) == lib.ESTOP_OK
+    assert r.out.close_slot == 1 and r.consumed[0] == 32
+    r.consumed[0] = 12345
+    ffi.memmove(r.out, b"\xa5" * ffi.sizeof("estop_out_t"), ffi.sizeof("estop_out_t"))
+    assert r.tcp(0, request(1), 2) == lib.ESTOP_ERR_SLOT_CLOSED
+    assert r.consumed[0] == 0
+    assert (r.out.state, r.out.reason, r.out.n_can, r.out.has_reply) == (0, 1, 0, 0)
+    assert r.out.next_call_us == 10_000
+
+
+# -- TCP request frames: authentication only for RELEASE on a keyed unit ---------------------------
+def test_only_a_release_on_a_keyed_unit_is_authenticated() -> None:
+    """Mutants: handle_request authenticating on a keyless unit (key_len != 1), or every
+    request frame on a keyed one (&& to ||). Neither may touch the authentication counters."""
+    r = Raw(0)  # no key
+    assert lib.estop_tcp_open(r.core, 0, 0, r.out) == lib.ESTOP_OK
+    assert r.tcp(0, auth.AuthRequest(2, 1, 7, N, 1).encode(K), 1) == lib.ESTOP_OK
+    assert bytes(ffi.buffer(r.out.reply, 48))[15] == lib.ESTOP_NAK_NOT_AUTHENTICATED
+    c = r.status().counters  # type: ignore[attr-defined]
+    assert (c.auth_bad_tag, c.auth_bad_session, c.auth_old_counter) == (0, 0, 0)
+    r = Raw(0, Config(key=K))
+    assert lib.estop_tcp_open(r.core, 0, 0, r.out) == lib.ESTOP_OK
+    forged = bytearray(auth.AuthRequest(1, 1, 7, N, 1).encode(K))
+    forged[40] ^= 1
+    assert r.tcp(0, bytes(forged), 1) == lib.ESTOP_OK  # STATUS, wrong tag: answered
+    assert r.tcp(0, auth.AuthRequest(1, 2, 7, 0, 0).encode(K), 2) == lib.ESTOP_OK
+    c = r.status().counters  # type: ignore[attr-defined]
+    assert (c.auth_bad_tag, c.auth_bad_session, c.auth_old_counter) == (0, 0, 0)
+
+
+def release_nak(r: Raw, rid: int, counter: int, t: int) -> int:
+    assert r.tcp(0, auth.AuthRequest(2, 1, rid, N, counter).encode(K), t) == lib.ESTOP_OK
+    return int(bytes(ffi.buffer(r.out.reply, 48))[15])
+
+
+def test_request_frames_read_remote_id_and_counter_at_their_offsets() -> None:
+    """Mutants: the request frame's remote id read from offset 0, 1, 11 or 13, its counter
+    from 23. Remote ids that differ only in one end byte must stay apart; a counter of 2 after
+    2^56 is stale."""
+    for a, b in ((0x01000007, 0x02000007), (0x07, 0x08)):
+        r = Raw(0, Config(key=K))
+        assert lib.estop_tcp_open(r.core, 0, 0, r.out) == lib.ESTOP_OK
+        assert release_nak(r, a, 10, 1) == lib.ESTOP_NAK_NO_LIVE_LINK  # authenticated
+        assert release_nak(r, b, 1, 2) == lib.ESTOP_NAK_NO_LIVE_LINK  # its own counter
+    r = Raw(0, Config(key=K))
+    assert lib.estop_tcp_open(r.core, 0, 0, r.out) == lib.ESTOP_OK
+    assert release_nak(r, 7, 1 << 56, 1) == lib.ESTOP_NAK_NO_LIVE_LINK
+    assert release_nak(r, 7, 2, 2) == lib.ESTOP_NAK_NOT_AUTHENTICATED

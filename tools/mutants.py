@@ -358,10 +358,11 @@ def load_equivalents() -> dict[str, str]:
         for raw in EQUIVALENTS.read_text().splitlines():
             if not raw.strip() or raw.startswith("#"):
                 continue
-            key, sep, reason = raw.rpartition(" | ")
-            if not sep or not reason.strip():
+            # The name ends at the backtick closing the line's text (code has no backticks).
+            m = re.match(r"^(.*? in `[^`]*`(?: #\d+)?) \| (.+)$", raw)
+            if not m or not m.group(2).strip():
                 raise SystemExit(f"mutants: error: {EQUIVALENTS.name}: no reason: {raw}")
-            out[key.strip()] = reason.strip()
+            out[m.group(1)] = m.group(2).strip()
     return out
 
 

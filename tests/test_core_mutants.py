@@ -520,3 +520,25 @@ def test_request_frames_read_remote_id_and_counter_at_their_offsets() -> None:
     assert lib.estop_tcp_open(r.core, 0, 0, r.out) == lib.ESTOP_OK
     assert release_nak(r, 7, 1 << 56, 1) == lib.ESTOP_NAK_NO_LIVE_LINK
     assert release_nak(r, 7, 2, 2) == lib.ESTOP_NAK_NOT_AUTHENTICATED
+
+
+# -- read-outs filled whatever the caller's struct held --------------------------------------------
+def test_read_outs_fill_every_field() -> None:
+    """Mutants: estop_get_status leaving flags unset, estop_get_link_stats skipping bin 0.
+    The read-out structs start as garbage; the unit is ARMED with a degraded link and has
+    recorded a gap of bin 0 (under 1.024 ms)."""
+    r = Raw(0)
+    for t in (0, 500, 20_000, 40_000, 60_000):
+        r.udp(packet(), t)
+    assert lib.estop_tcp_open(r.core, 0, 60_000, r.out) == lib.ESTOP_OK
+    assert r.tcp(0, request(2), 60_000) == lib.ESTOP_OK and r.out.state == 1
+    r.tick(170_000)  # 110 ms of silence: past the 100 ms warn time
+    st = ffi.new("estop_status_t *")
+    ffi.memmove(st, b"\xa5" * ffi.sizeof("estop_status_t"), ffi.sizeof("estop_status_t"))
+    assert lib.estop_get_status(r.core, st) == lib.ESTOP_OK
+    assert (st.state, st.reason, st.flags, st.link_live) == (1, 0, 1, 1)
+    ls = ffi.new("estop_link_stats_t *")
+    ffi.memmove(ls, b"\xa5" * ffi.sizeof("estop_link_stats_t"),
+                ffi.sizeof("estop_link_stats_t"))
+    assert lib.estop_get_link_stats(r.core, ls) == lib.ESTOP_OK
+    assert ls.gaps[0] == 1 and sum(ls.gaps[i] for i in range(32)) == 4 and ls.valid == 5

@@ -615,6 +615,9 @@ def run(args: argparse.Namespace) -> int:
             muts = picked
     if args.only:
         muts = [m for m in muts if args.only in m.key]
+    if args.keys:
+        wanted = {k.strip() for k in Path(args.keys).read_text().splitlines() if k.strip()}
+        muts = [m for m in muts if m.key in wanted]
     if args.cls:
         muts = [m for m in muts if m.cls in args.cls.split(",")]
     if args.list:
@@ -771,7 +774,7 @@ def report(args: argparse.Namespace, muts: list[Mutant], equivalents: dict[str, 
         print(f"mutants: listed as equivalent but killed (remove it from {EQUIVALENTS.name}): "
               f"{m.key}")
         rc = 1
-    if not args.changed and not args.only and not args.cls:
+    if not args.changed and not args.only and not args.cls and not args.keys:
         keys = {m.key for m in muts}
         for k in equivalents:
             if k not in keys:
@@ -797,6 +800,8 @@ def main() -> int:
                         help="wall-clock seconds a mutant, a backstop (default 300)")
     parser.add_argument("--only", default="", help="mutants whose name contains this")
     parser.add_argument("--cls", default="", help="comma-separated operator classes")
+    parser.add_argument("--keys", default="", help="a file of mutant names, one a line: only "
+                        "those (e.g. the survivors of a run, once tests are added)")
     parser.add_argument("--list", action="store_true", help="list the mutants, run none")
     parser.add_argument("--verbose", action="store_true", help="one line a mutant")
     args = parser.parse_args()

@@ -4,19 +4,6 @@
 static const uint32_t b2s_iv[8] = {0x6A09E667u, 0xBB67AE85u, 0x3C6EF372u, 0xA54FF53Au,
                                    0x510E527Fu, 0x9B05688Cu, 0x1F83D9ABu, 0x5BE0CD19u};
 
-/* RFC 7693 section 2.7: message word order of each of the 10 rounds. */
-static const uint8_t b2s_sigma[10][16] = {
-    {0u, 1u, 2u, 3u, 4u, 5u, 6u, 7u, 8u, 9u, 10u, 11u, 12u, 13u, 14u, 15u},
-    {14u, 10u, 4u, 8u, 9u, 15u, 13u, 6u, 1u, 12u, 0u, 2u, 11u, 7u, 5u, 3u},
-    {11u, 8u, 12u, 0u, 5u, 2u, 15u, 13u, 10u, 14u, 3u, 6u, 7u, 1u, 9u, 4u},
-    {7u, 9u, 3u, 1u, 13u, 12u, 11u, 14u, 2u, 6u, 5u, 10u, 4u, 0u, 15u, 8u},
-    {9u, 0u, 5u, 7u, 2u, 4u, 10u, 15u, 14u, 1u, 11u, 12u, 6u, 8u, 3u, 13u},
-    {2u, 12u, 6u, 10u, 0u, 11u, 8u, 3u, 4u, 13u, 7u, 5u, 15u, 14u, 1u, 9u},
-    {12u, 5u, 1u, 15u, 14u, 13u, 4u, 10u, 0u, 7u, 6u, 3u, 9u, 2u, 8u, 11u},
-    {13u, 11u, 7u, 14u, 12u, 1u, 3u, 9u, 5u, 0u, 15u, 4u, 8u, 6u, 2u, 10u},
-    {6u, 15u, 14u, 9u, 11u, 3u, 0u, 8u, 12u, 2u, 13u, 7u, 1u, 4u, 10u, 5u},
-    {10u, 2u, 8u, 4u, 7u, 6u, 1u, 5u, 15u, 11u, 9u, 14u, 3u, 12u, 13u, 0u}};
-
 #define B2S_ROUNDS 10u
 #define B2S_WORDS 16u
 /* Final-block flag f0 (RFC 7693 section 3.2): all ones on the last block. */
@@ -91,6 +78,18 @@ static inline void b2s_g(uint32_t v[B2S_WORDS], uint32_t a, uint32_t b, uint32_t
 static void b2s_compress(uint32_t h[8], const uint8_t *block, size_t n, uint32_t t0, uint32_t t1,
                          uint32_t f)
 {
+    /* RFC 7693 section 2.7: message word order of each of the 10 rounds. */
+    static const uint8_t b2s_sigma[10][16] = {
+        {0u, 1u, 2u, 3u, 4u, 5u, 6u, 7u, 8u, 9u, 10u, 11u, 12u, 13u, 14u, 15u},
+        {14u, 10u, 4u, 8u, 9u, 15u, 13u, 6u, 1u, 12u, 0u, 2u, 11u, 7u, 5u, 3u},
+        {11u, 8u, 12u, 0u, 5u, 2u, 15u, 13u, 10u, 14u, 3u, 6u, 7u, 1u, 9u, 4u},
+        {7u, 9u, 3u, 1u, 13u, 12u, 11u, 14u, 2u, 6u, 5u, 10u, 4u, 0u, 15u, 8u},
+        {9u, 0u, 5u, 7u, 2u, 4u, 10u, 15u, 14u, 1u, 11u, 12u, 6u, 8u, 3u, 13u},
+        {2u, 12u, 6u, 10u, 0u, 11u, 8u, 3u, 4u, 13u, 7u, 5u, 15u, 14u, 1u, 9u},
+        {12u, 5u, 1u, 15u, 14u, 13u, 4u, 10u, 0u, 7u, 6u, 3u, 9u, 2u, 8u, 11u},
+        {13u, 11u, 7u, 14u, 12u, 1u, 3u, 9u, 5u, 0u, 15u, 4u, 8u, 6u, 2u, 10u},
+        {6u, 15u, 14u, 9u, 11u, 3u, 0u, 8u, 12u, 2u, 13u, 7u, 1u, 4u, 10u, 5u},
+        {10u, 2u, 8u, 4u, 7u, 6u, 1u, 5u, 15u, 11u, 9u, 14u, 3u, 12u, 13u, 0u}};
     uint32_t m[B2S_WORDS];
     uint32_t v[B2S_WORDS];
     uint32_t i;
@@ -223,10 +222,13 @@ int estop_blake2s(uint8_t *out, size_t outlen, const uint8_t *key, size_t keylen
 int estop_ct_equal(const uint8_t *a, const uint8_t *b, size_t n)
 {
     uint32_t diff = 0u;
-    size_t i;
+    uint32_t equal;
     if ((a == NULL) || (b == NULL)) {
-        diff = (n > 0u) ? 1u : 0u;
+        if (n > 0u) {
+            diff = 1u;
+        }
     } else {
+        size_t i;
         /* Four bytes at a time (the loads are byte-wise, so any alignment), then the rest:
          * every byte is looked at, whatever an earlier one was. */
         for (i = 0u; (i + 4u) <= n; i += 4u) {
@@ -240,5 +242,6 @@ int estop_ct_equal(const uint8_t *a, const uint8_t *b, size_t n)
         diff = (diff | (diff >> 8)) & 0xFFu;
     }
     /* diff is 0..255: diff - 1 has bit 8 set only when diff is 0. */
-    return (int)(((diff - 1u) >> 8) & 1u);
+    equal = ((diff - 1u) >> 8) & 1u;
+    return (int)equal;
 }

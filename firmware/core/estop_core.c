@@ -49,13 +49,13 @@ static void wr_u32le(uint8_t *p, uint32_t v)
 
 static uint64_t rd_u64le(const uint8_t *p)
 {
-    return (uint64_t)rd_u32le(p) | ((uint64_t)rd_u32le(p + 4) << 32);
+    return (uint64_t)rd_u32le(p) | ((uint64_t)rd_u32le(&p[4]) << 32);
 }
 
 static void wr_u64le(uint8_t *p, uint64_t v)
 {
     wr_u32le(p, (uint32_t)(v & 0xFFFFFFFFu));
-    wr_u32le(p + 4, (uint32_t)(v >> 32));
+    wr_u32le(&p[4], (uint32_t)(v >> 32));
 }
 
 static uint8_t sat8_inc(uint8_t v)
@@ -65,7 +65,7 @@ static uint8_t sat8_inc(uint8_t v)
 
 static uint32_t sat32_inc(uint32_t v)
 {
-    return (v < 0xFFFFFFFFu) ? (v + 1u) : v;
+    return (v < 0xFFFFFFFFu) ? (uint32_t)(v + 1u) : v;
 }
 
 /* floor(log2(v)) for v > 0: O(1). GCC and Clang count leading zeros (one instruction where
@@ -140,8 +140,8 @@ static void copy_bytes(uint8_t *dst, const uint8_t *src, size_t n)
 
 void estop_config_default(estop_config_t *cfg)
 {
-    uint32_t i;
     if (cfg != NULL) {
+        uint32_t i;
         cfg->timeout_us = ESTOP_DEFAULT_TIMEOUT_US;
         cfg->warn_us = ESTOP_DEFAULT_TIMEOUT_US / 2u;
         cfg->stop_id = ESTOP_DEFAULT_STOP_ID;
@@ -273,9 +273,9 @@ static void push_frame(estop_out_t *out, uint32_t id, uint16_t data_id, const ui
 static void send_brake(estop_core_t *core, estop_out_t *out)
 {
     uint8_t p[6];
-    int stopped = (core->state == ESTOP_STATE_STOPPED);
-    p[0] = stopped ? 1u : 0u;
-    p[1] = stopped ? (uint8_t)BRAKE_LEVEL_FULL : 0u;
+    const uint8_t stopped = (core->state == ESTOP_STATE_STOPPED) ? 1u : 0u;
+    p[0] = stopped;
+    p[1] = (stopped != 0u) ? (uint8_t)BRAKE_LEVEL_FULL : 0u;
     p[2] = core->state;
     p[3] = core->reason;
     p[4] = current_flags(core);
@@ -353,6 +353,8 @@ static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
         core->gaps[ESTOP_GAP_BINS - 1u] = sat32_inc(core->gaps[ESTOP_GAP_BINS - 1u]);
         core->silences = sat32_inc(core->silences);
         core->gap_known = 0u; /* recorded as "very long" now, before the tick can wrap */
+    } else {
+        /* a gap still measurable: record_gap() records it when the next packet arrives */
     }
     if ((core->link_fresh != 0u) && (link_age(core) >= core->cfg.timeout_us)) {
         core->link_fresh = 0u; /* latched: a wrapped tick can never make this link young again */
@@ -379,7 +381,7 @@ static int frame_due(uint32_t now, uint32_t due, uint32_t period)
 static uint32_t next_due(uint32_t due, uint32_t period, uint32_t now)
 {
     uint32_t next = due + period;
-    if (frame_due(now, next, period)) {
+    if (frame_due(now, next, period) != 0) {
         next = now + period;
     }
     return next;
@@ -387,11 +389,11 @@ static uint32_t next_due(uint32_t due, uint32_t period, uint32_t now)
 
 static void send_due_frames(estop_core_t *core, estop_out_t *out)
 {
-    if (frame_due(core->now_us, core->brake_due_us, core->cfg.brake_period_us)) {
+    if (frame_due(core->now_us, core->brake_due_us, core->cfg.brake_period_us) != 0) {
         send_brake(core, out);
         core->brake_due_us = next_due(core->brake_due_us, core->cfg.brake_period_us, core->now_us);
     }
-    if (frame_due(core->now_us, core->status_due_us, core->cfg.status_period_us)) {
+    if (frame_due(core->now_us, core->status_due_us, core->cfg.status_period_us) != 0) {
         send_status(core, out);
         core->status_due_us =
             next_due(core->status_due_us, core->cfg.status_period_us, core->now_us);
@@ -459,10 +461,10 @@ estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out)
 /* Section 1: every field of a control body in range (the 16-byte form has no horn). */
 static int body_valid(const uint8_t *b, int has_horn)
 {
-    uint32_t gear = rd_u32le(b + 8);
-    uint32_t turn = rd_u32le(b + 12);
-    uint32_t horn = has_horn ? rd_u32le(b + 16) : 0u;
-    return unit_range_bits(rd_u32le(b)) && unit_range_bits(rd_u32le(b + 4)) &&
+    uint32_t gear = rd_u32le(&b[8]);
+    uint32_t turn = rd_u32le(&b[12]);
+    uint32_t horn = has_horn ? rd_u32le(&b[16]) : 0u;
+    return unit_range_bits(rd_u32le(b)) && unit_range_bits(rd_u32le(&b[4])) &&
            ((gear == 1u) || (gear == 2u) || (gear == 4u) || (gear == 8u)) && (turn <= 3u) &&
            (horn <= 1u);
 }
@@ -498,7 +500,7 @@ static int authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, u
     const uint8_t bit = (uint8_t)(1u << channel);
     int ok = 0;
     (void)estop_b2s_mac(&core->mac, msg, tag_at, tag);
-    if (!estop_ct_equal(tag, msg + tag_at, ESTOP_TAG_LEN)) {
+    if (!estop_ct_equal(tag, &msg[tag_at], ESTOP_TAG_LEN)) {
         core->counters.auth_bad_tag++;
     } else if (session != core->cfg.session) {
         core->counters.auth_bad_session++;
@@ -533,12 +535,16 @@ static const uint8_t *valid_body(estop_core_t *core, const uint8_t *d, size_t le
             body = d;
         } else if ((len == ESTOP_UDP_LEN_NO_HORN) && body_valid(d, 0)) {
             body = d;
+        } else {
+            /* no valid plain packet: body stays NULL */
         }
     } else if ((len == ESTOP_UDP_AUTH_LEN) && (rd_u32le(d) == ESTOP_MAGIC_CONTROL) &&
-               body_valid(d + CONTROL_BODY_AT, 1) &&
-               authenticate(core, d, CONTROL_TAG_AT, rd_u32le(d + 4), rd_u64le(d + 8),
-                            rd_u64le(d + 16), CHANNEL_UDP)) {
-        body = d + CONTROL_BODY_AT;
+               body_valid(&d[CONTROL_BODY_AT], 1) &&
+               authenticate(core, d, CONTROL_TAG_AT, rd_u32le(&d[4]), rd_u64le(&d[8]),
+                            rd_u64le(&d[16]), CHANNEL_UDP)) {
+        body = &d[CONTROL_BODY_AT];
+    } else {
+        /* no valid authenticated packet: body stays NULL */
     }
     return body;
 }
@@ -546,7 +552,7 @@ static const uint8_t *valid_body(estop_core_t *core, const uint8_t *d, size_t le
 uint32_t estop_gap_bin(uint32_t gap_us)
 {
     uint32_t bin = 0u;
-    if (gap_us >= (1u << GAP_FIRST_EXP)) {
+    if (gap_us >= ((uint32_t)1u << GAP_FIRST_EXP)) {
         uint32_t e = log2_floor(gap_us);
         bin = 1u + (2u * (e - GAP_FIRST_EXP)) + ((gap_us >> (e - 1u)) & 1u);
         if (bin > (ESTOP_GAP_BINS - 1u)) {
@@ -575,7 +581,7 @@ static void record_gap(estop_core_t *core, uint32_t now_us)
 static int stop_datagram(const estop_core_t *core, const uint8_t *d, size_t len)
 {
     return (d != NULL) && (len == ESTOP_REQ_FRAME_LEN) && (rd_u32le(d) == ESTOP_MAGIC_REQUEST) &&
-           (rd_u32le(d + 4) == core->cfg.stop_id);
+           (rd_u32le(&d[4]) == core->cfg.stop_id);
 }
 
 estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
@@ -584,7 +590,7 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
     estop_err_t err = begin(core, now_us, out);
     if (err == ESTOP_OK) {
         const uint8_t *body = NULL;
-        if (stop_datagram(core, data, len)) {
+        if (stop_datagram(core, data, len) != 0) {
             core->counters.udp_stops++;
             stop(core, (uint8_t)ESTOP_REASON_TCP_STOP, out);
         } else {
@@ -614,6 +620,8 @@ static estop_err_t check_slot(const estop_core_t *core, uint32_t slot)
         err = ESTOP_ERR_NULL_ARG;
     } else if (slot >= ESTOP_MAX_SLOTS) {
         err = ESTOP_ERR_SLOT;
+    } else {
+        /* a slot in range: err stays ESTOP_OK */
     }
     return err;
 }
@@ -648,7 +656,7 @@ estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, 
 static void reply_head(const estop_core_t *core, uint8_t *r, uint32_t seq, uint8_t nak_code)
 {
     wr_u32le(r, (nak_code == ESTOP_NAK_NONE) ? ESTOP_MSG_ACK : ESTOP_MSG_NAK);
-    wr_u32le(r + 4, seq);
+    wr_u32le(&r[4], seq);
     r[8] = core->state;
     r[9] = core->reason;
     r[10] = current_flags(core);
@@ -659,7 +667,7 @@ static void reply_head(const estop_core_t *core, uint8_t *r, uint32_t seq, uint8
 static void reply_plain(const estop_core_t *core, uint32_t seq, uint8_t nak_code, estop_out_t *out)
 {
     reply_head(core, out->reply, seq, nak_code);
-    wr_u32le(out->reply + 12, estop_crc32(out->reply, 12u));
+    wr_u32le(&out->reply[12], estop_crc32(out->reply, 12u));
     out->reply_len = (uint8_t)ESTOP_TCP_FRAME_LEN;
     out->has_reply = 1u;
 }
@@ -672,9 +680,9 @@ static void reply_request(const estop_core_t *core, const uint8_t *req, uint8_t 
     uint8_t *r = out->reply;
     uint32_t i;
     wr_u32le(r, ESTOP_MAGIC_REPLY);
-    reply_head(core, r + 4, rd_u32le(req + 8), nak_code);
-    wr_u64le(r + 16, core->cfg.session);
-    wr_u64le(r + 24, rd_u64le(req + 24));
+    reply_head(core, &r[4], rd_u32le(&req[8]), nak_code);
+    wr_u64le(&r[16], core->cfg.session);
+    wr_u64le(&r[24], rd_u64le(&req[24]));
     if (core->cfg.key_len != 0u) {
         uint8_t m[ESTOP_TAG_LEN + REQUEST_TAG_AT];
         for (i = 0u; i < ESTOP_TAG_LEN; i++) {
@@ -683,7 +691,7 @@ static void reply_request(const estop_core_t *core, const uint8_t *req, uint8_t 
         for (i = 0u; i < REQUEST_TAG_AT; i++) {
             m[ESTOP_TAG_LEN + i] = r[i];
         }
-        (void)estop_b2s_mac(&core->mac, m, sizeof m, r + REQUEST_TAG_AT);
+        (void)estop_b2s_mac(&core->mac, m, sizeof m, &r[REQUEST_TAG_AT]);
     } else {
         for (i = 0u; i < ESTOP_TAG_LEN; i++) {
             r[REQUEST_TAG_AT + i] = 0u;
@@ -715,6 +723,8 @@ static uint8_t release(estop_core_t *core, int authenticated, estop_out_t *out)
         core->counters.releases_accepted++;
     } else if (nak != ESTOP_NAK_NONE) {
         core->counters.releases_refused++;
+    } else {
+        /* acknowledged while already ARMED: neither accepted nor refused */
     }
     return nak;
 }
@@ -732,6 +742,8 @@ static uint8_t handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
     } else if (msg_id != ESTOP_MSG_STATUS) {
         core->counters.tcp_unknown_id++;
         nak = (uint8_t)ESTOP_NAK_UNKNOWN_ID;
+    } else {
+        /* STATUS: answered with ACK, changes nothing */
     }
     return nak;
 }
@@ -741,14 +753,14 @@ static uint8_t handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
 static void handle_plain(estop_core_t *core, estop_slot_t *slot, estop_out_t *out)
 {
     const uint8_t *f = slot->buf;
-    if (estop_crc32(f, 12u) != rd_u32le(f + 12)) {
+    if (estop_crc32(f, 12u) != rd_u32le(&f[12])) {
         /* The stream has lost framing: nothing after this can be trusted. */
         core->counters.tcp_bad_crc++;
         slot->open = 0u;
         out->close_slot = 1u;
     } else {
         uint8_t nak = handle_msg(core, rd_u32le(f), core->cfg.key_len == 0u, out);
-        reply_plain(core, rd_u32le(f + 4), nak, out);
+        reply_plain(core, rd_u32le(&f[4]), nak, out);
     }
 }
 
@@ -757,12 +769,12 @@ static void handle_plain(estop_core_t *core, estop_slot_t *slot, estop_out_t *ou
 static void handle_request(estop_core_t *core, const estop_slot_t *slot, estop_out_t *out)
 {
     const uint8_t *f = slot->buf;
-    uint32_t msg_id = rd_u32le(f + 4);
+    uint32_t msg_id = rd_u32le(&f[4]);
     int authenticated = 0;
     uint8_t nak;
     if ((msg_id == ESTOP_MSG_RELEASE) && (core->cfg.key_len != 0u)) {
-        authenticated = authenticate(core, f, REQUEST_TAG_AT, rd_u32le(f + 12),
-                                     rd_u64le(f + 16), rd_u64le(f + 24), CHANNEL_TCP);
+        authenticated = authenticate(core, f, REQUEST_TAG_AT, rd_u32le(&f[12]),
+                                     rd_u64le(&f[16]), rd_u64le(&f[24]), CHANNEL_TCP);
     }
     nak = handle_msg(core, msg_id, authenticated, out);
     reply_request(core, f, nak, out);
@@ -888,7 +900,8 @@ const char *estop_err_name(estop_err_t err)
         "bad_brake_period", "bad_status_period", "not_initialised", "bad_slot",
         "slot_closed",  "bad_key",          "bad_session"};
     const char *name = "unknown_error";
-    const int count = (int)(sizeof(names) / sizeof(names[0]));
+    const size_t n = sizeof(names) / sizeof(names[0]);
+    const int count = (int)n;
     /* Range first: negating an arbitrary int (INT_MIN) would overflow. */
     if (((int)err <= 0) && ((int)err > -count)) {
         name = names[-(int)err];

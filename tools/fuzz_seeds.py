@@ -1,7 +1,7 @@
 """Writes the seed corpora of the fuzz targets (fuzz/fuzz_core.c, fuzz/fuzz_parsers.c).
 
 The core's seeds are programs in the harness's input language (see fuzz/fuzz_core.c) built
-around the byte vectors of PROTOCOL.md: every hex example of the spec is read from the spec
+around the byte vectors of docs/PROTOCOL.md: every hex example is read from the document
 itself, then sent as a datagram and as TCP bytes to a unit with and without the key of 5.4,
 and two whole scenarios (drive, RELEASE, STOP) arm and stop a unit each way. The parsers'
 seeds are a valid key file and typical command lines.
@@ -27,12 +27,9 @@ SOON = 100  # time selector: most of the way to the core's next call time
 
 
 def spec_path() -> Path:
-    """PROTOCOL.md lives in shared/ beside the checkout (or beside one of its parents)."""
-    for parent in ROOT.parents:
-        candidate = parent / "shared" / "spec" / "PROTOCOL.md"
-        if candidate.is_file():
-            return candidate
-    raise SystemExit("fuzz_seeds: error: shared/spec/PROTOCOL.md not found beside the checkout")
+    """The project's own protocol document: it carries every example of the shared contract
+    (tests/test_docs.py checks that), and unlike ../shared it is always in the checkout."""
+    return ROOT / "docs" / "PROTOCOL.md"
 
 
 def spec_vectors(text: str) -> list[bytes]:

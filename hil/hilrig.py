@@ -336,6 +336,7 @@ class Daemon:
         self._reader = threading.Thread(target=self._read, name="daemon-log", daemon=True)
         self._reader.start()
         self.signal_time: float | None = None
+        self.signal_mono: float | None = None  # the daemon's clock (t_mono) at the signal
         self.keyed = "--key-file" in argv  # the unit has a key (spec section 5)
 
     def _read(self) -> None:
@@ -381,6 +382,7 @@ class Daemon:
 
     def signal(self, sig: int) -> float:
         t = time.time()
+        self.signal_mono = time.monotonic()  # CLOCK_MONOTONIC, as estopd's t_mono
         self.proc.send_signal(sig)
         self.signal_time = t
         return t

@@ -1506,10 +1506,13 @@ def check_logs(run: Run, res: Result) -> None:
             if prev is not None and st != prev:
                 bus_changes += 1
             prev = st
+        # Which lines came before the signal is judged on the daemon's own clock: the
+        # harness may read a line written before the signal only after it.
         with d.lock:
             log_changes += sum(1 for ln in d.lines if ln.rec is not None
                                and ln.rec.get("event") == "state"
-                               and (d.signal_time is None or ln.t_wall < d.signal_time))
+                               and (d.signal_mono is None
+                                    or float(ln.rec.get("t_mono", 0.0)) < d.signal_mono))
     res.figures["state_changes_bus"] = bus_changes
     res.figures["state_changes_log"] = log_changes
     res.check(bus_changes == log_changes,

@@ -67,8 +67,16 @@ static void *writer_main(void *arg)
         uint32_t head = load_acq(&q->head);
         uint32_t tail = q->tail;
         if (head == tail) {
-            uint64_t v;
-            (void)read(q->wake_fd, &v, sizeof v); /* sleeps until the loop queues more */
+            /* Say "asleep" first, then look again (both sequentially consistent, as the loop's
+             * store of head and load of the flag): either this look sees the new line, or the
+             * loop sees the flag and wakes us. Without it, a line queued while the writer was
+             * finishing a write left it asleep with the ring non-empty, for good. */
+            __atomic_store_n(&q->asleep, 1, __ATOMIC_SEQ_CST);
+            if (__atomic_load_n(&q->head, __ATOMIC_SEQ_CST) == tail) {
+                uint64_t v;
+                (void)read(q->wake_fd, &v, sizeof v); /* sleeps until the loop queues more */
+            }
+            __atomic_store_n(&q->asleep, 0, __ATOMIC_SEQ_CST);
         } else {
             uint32_t len = head - tail;
             uint32_t room = OUTQ_SIZE - (tail & OUTQ_MASK); /* up to the end of the ring */
@@ -88,6 +96,7 @@ int outq_start(outq_t *q, int fd, char *err, size_t errlen)
     q->head = q->tail = 0u;
     q->lines_full = q->lines_failed = 0u;
     q->last_errno = 0;
+    q->asleep = 0;
     q->running = 0;
     q->wake_fd = eventfd(0, EFD_CLOEXEC);
     if (q->wake_fd < 0) {
@@ -132,10 +141,10 @@ int outq_put(outq_t *q, const char *line, size_t len)
     for (i = 0; i < (uint32_t)len; i++) {
         q->ring[(head + i) & OUTQ_MASK] = line[i];
     }
-    store_rel(&q->head, head + (uint32_t)len);
-    if (used == 0u) {
-        /* The writer may be asleep only when it saw the ring empty; an eventfd counts, so a
-         * wake-up sent before it sleeps is not lost. */
+    __atomic_store_n(&q->head, head + (uint32_t)len, __ATOMIC_SEQ_CST);
+    if (__atomic_load_n(&q->asleep, __ATOMIC_SEQ_CST) != 0) {
+        /* An eventfd counts: a wake-up sent just before the writer reads it is not lost, and
+         * one too many only costs the writer a look at an empty ring. */
         uint64_t one = 1u;
         (void)write(q->wake_fd, &one, sizeof one);
     }

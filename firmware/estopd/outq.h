@@ -4,8 +4,8 @@
  * thread that empties it into the file descriptor with ordinary writes. A reader that stalls (a
  * terminal nobody reads, a full pipe, a stuck disk, a FIFO whose reader went to sleep) stalls
  * only that writer thread; once its ring is full, new lines are dropped and counted, never
- * waited for. The ring is single-producer (the loop) single-consumer (the writer): head and
- * tail are the only shared words, each written by one side, with acquire/release ordering. */
+ * waited for. The ring is single-producer (the loop) single-consumer (the writer): head, tail
+ * and the writer's "asleep" flag are the only shared words, each written by one side. */
 #ifndef ESTOPD_OUTQ_H
 #define ESTOPD_OUTQ_H
 
@@ -22,6 +22,7 @@ typedef struct {
     pthread_t thread;
     uint32_t head;             /* bytes queued so far (written by the loop only) */
     uint32_t tail;             /* bytes handed to write() so far (written by the writer only) */
+    int asleep;                /* the writer is about to sleep or sleeps on wake_fd (writer) */
     uint64_t lines_full;       /* lines dropped because the ring was full (loop side) */
     uint64_t lines_failed;     /* lines lost to failed writes, EPIPE, ENOSPC... (writer side) */
     int last_errno;            /* of the latest failed write (writer side) */

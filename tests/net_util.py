@@ -1,10 +1,12 @@
-"""Loopback helpers for the tool tests: a counting UDP sink, a scripted TCP stop port."""
+"""Loopback helpers for the tool tests: a counting UDP sink, a scripted TCP stop port, and the
+polling loops of fake units (datagrams, connections, chunks)."""
 
 from __future__ import annotations
 
 import socket
 import threading
 import time
+from collections.abc import Iterator
 
 LOCAL = "127.0.0.1"
 
@@ -25,13 +27,7 @@ class UdpSink:
         self._thread.start()
 
     def _run(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.sock.recv(2048)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for data in datagrams(self.sock, self._stop):
             with self._lock:
                 self.datagrams.append(data)
 
@@ -103,13 +99,7 @@ class ScriptedStopPort:
             return len(self.accepted_at)
 
     def _accept(self) -> None:
-        while not self._stop.is_set():
-            try:
-                conn, _ = self.sock.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for conn in connections(self.sock, self._stop):
             with self._lock:
                 n = len(self.accepted_at)
                 self.accepted_at.append(time.monotonic())
@@ -122,17 +112,8 @@ class ScriptedStopPort:
     def _serve(self, conn: socket.socket, word: str) -> None:
         tcp = self._tcp
         asm = tcp.FrameAssembler()
-        conn.settimeout(0.02)
         with conn:
-            while not self._stop.is_set():
-                try:
-                    chunk = conn.recv(4096)
-                except TimeoutError:
-                    continue
-                except OSError:
-                    return
-                if not chunk:
-                    return
+            for chunk in chunks(conn, self._stop, 0.02):
                 for frame in asm.feed(chunk):
                     with self._lock:
                         self.requests.append(frame)
@@ -164,3 +145,41 @@ class ScriptedStopPort:
         for th in self._threads:
             th.join(timeout=5)
         self.sock.close()
+
+
+def datagrams(sock: socket.socket, stop: threading.Event) -> Iterator[bytes]:
+    """Datagrams arriving on a socket with a timeout, until stop is set or the socket fails."""
+    while not stop.is_set():
+        try:
+            yield sock.recv(2048)
+        except TimeoutError:
+            continue
+        except OSError:
+            return
+
+
+def connections(sock: socket.socket, stop: threading.Event) -> Iterator[socket.socket]:
+    """Connections accepted on a listening socket with a timeout, until stop or failure."""
+    while not stop.is_set():
+        try:
+            conn, _ = sock.accept()
+        except TimeoutError:
+            continue
+        except OSError:
+            return
+        yield conn
+
+
+def chunks(conn: socket.socket, stop: threading.Event, timeout: float) -> Iterator[bytes]:
+    """What a peer sends, chunk by chunk, until it closes, the connection fails or stop."""
+    conn.settimeout(timeout)
+    while not stop.is_set():
+        try:
+            chunk = conn.recv(4096)
+        except TimeoutError:
+            continue
+        except OSError:
+            return
+        if not chunk:
+            return
+        yield chunk

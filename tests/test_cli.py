@@ -29,11 +29,11 @@ from estop.protocol.canlog import CanLogRecord, format_line
 from estop.protocol.tcp import FrameAssembler, Reply, Request
 from estop.protocol.udp import ControlPacket, Gear
 from estop.remote import Remote, ScriptError, parse_script
+from net_util import LOCAL, chunks, connections, datagrams
 
 pytestmark = pytest.mark.timeout(60)
 
 SRC = Path(__file__).resolve().parents[1] / "src"
-LOCAL = "127.0.0.1"
 
 
 # --------------------------------------------------------------------------- a fake unit
@@ -86,13 +86,7 @@ class FakeUnit:
 
     # UDP side
     def _udp_loop(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.udp.recv(2048)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for data in datagrams(self.udp, self._stop):
             now = time.monotonic()
             with self.lock:
                 if len(data) == auth.REQUEST_SIZE and data[:4] == auth.REQUEST_MAGIC:
@@ -119,28 +113,13 @@ class FakeUnit:
 
     # TCP side
     def _tcp_loop(self) -> None:
-        while not self._stop.is_set():
-            try:
-                conn, _ = self.tcp.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for conn in connections(self.tcp, self._stop):
             threading.Thread(target=self._serve, args=(conn,), daemon=True).start()
 
     def _serve(self, conn: socket.socket) -> None:
         asm = FrameAssembler()
-        conn.settimeout(0.05)
         with conn:
-            while not self._stop.is_set():
-                try:
-                    chunk = conn.recv(4096)
-                except TimeoutError:
-                    continue
-                except OSError:
-                    return
-                if not chunk:
-                    return
+            for chunk in chunks(conn, self._stop, 0.05):
                 for frame in asm.feed(chunk):
                     self.raw_requests.append(frame)
                     try:

@@ -24,7 +24,7 @@ from estop.protocol import tcp, udp
 from estop.protocol.udp import Gear
 from estop.remote import Remote
 from estop.stopchannel import ReplyNotAuthentic
-from net_util import LOCAL
+from net_util import LOCAL, chunks, connections, datagrams
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -85,13 +85,7 @@ class KeyedUnit:
         return True
 
     def _udp_loop(self) -> None:
-        while not self._stop.is_set():
-            try:
-                data = self.udp.recv(2048)
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for data in datagrams(self.udp, self._stop):
             if len(data) == 60 and data[:4] == b"ESU2":
                 rid, session, counter = struct.unpack("<IQQ", data[4:24])
                 if self._authentic(data[:44], data[44:], rid, session, counter, "udp") and \
@@ -109,30 +103,15 @@ class KeyedUnit:
                 self.rejected += 1
 
     def _tcp_loop(self) -> None:
-        while not self._stop.is_set():
-            try:
-                conn, _ = self.tcp.accept()
-            except TimeoutError:
-                continue
-            except OSError:
-                return
+        for conn in connections(self.tcp, self._stop):
             th = threading.Thread(target=self._serve, args=(conn,), daemon=True)
             self._threads.append(th)
             th.start()
 
     def _serve(self, conn: socket.socket) -> None:
         asm = tcp.RequestAssembler()
-        conn.settimeout(0.02)
         with conn:
-            while not self._stop.is_set():
-                try:
-                    chunk = conn.recv(4096)
-                except TimeoutError:
-                    continue
-                except OSError:
-                    return
-                if not chunk:
-                    return
+            for chunk in chunks(conn, self._stop, 0.02):
                 for frame in asm.feed(chunk):
                     conn.sendall(self._answer(frame))
 

@@ -183,3 +183,16 @@ def chunks(conn: socket.socket, stop: threading.Event, timeout: float) -> Iterat
         if not chunk:
             return
         yield chunk
+
+
+def unit_sockets(timeout: float) -> tuple[socket.socket, socket.socket]:
+    """A fake unit's UDP control port and listening TCP stop port on loopback."""
+    u = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    u.bind((LOCAL, 0))
+    u.settimeout(timeout)
+    t = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    t.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    t.bind((LOCAL, 0))
+    t.listen(8)
+    t.settimeout(timeout)
+    return u, t

@@ -29,7 +29,7 @@ from estop.protocol.canlog import CanLogRecord, format_line
 from estop.protocol.tcp import FrameAssembler, Reply, Request
 from estop.protocol.udp import ControlPacket, Gear
 from estop.remote import Remote, ScriptError, parse_script
-from net_util import LOCAL, chunks, connections, datagrams
+from net_util import LOCAL, chunks, connections, datagrams, unit_sockets
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -61,14 +61,7 @@ class FakeUnit:
 
     def __post_init__(self) -> None:
         self.lock = threading.Lock()
-        self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.udp.bind((LOCAL, 0))
-        self.udp.settimeout(0.05)
-        self.tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self.tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self.tcp.bind((LOCAL, 0))
-        self.tcp.listen(8)
-        self.tcp.settimeout(0.05)
+        self.udp, self.tcp = unit_sockets(0.05)
         self.udp_port = self.udp.getsockname()[1]
         self.tcp_port = self.tcp.getsockname()[1]
         self._stop = threading.Event()

@@ -24,7 +24,7 @@ from estop.protocol import tcp, udp
 from estop.protocol.udp import Gear
 from estop.remote import Remote
 from estop.stopchannel import ReplyNotAuthentic
-from net_util import LOCAL, chunks, connections, datagrams
+from net_util import LOCAL, chunks, connections, datagrams, unit_sockets
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -53,13 +53,7 @@ class KeyedUnit:
 
     def __post_init__(self) -> None:
         self.high: dict[tuple[int, str], int] = {}
-        self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-        self.udp.bind((LOCAL, 0))
-        self.udp.settimeout(0.02)
-        self.tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self.tcp.bind((LOCAL, 0))
-        self.tcp.listen(8)
-        self.tcp.settimeout(0.02)
+        self.udp, self.tcp = unit_sockets(0.02)
         self.udp_port = self.udp.getsockname()[1]
         self.tcp_port = self.tcp.getsockname()[1]
         self._stop = threading.Event()

@@ -5,4 +5,12 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+import pytest
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+
+@pytest.fixture(autouse=True)
+def _no_key_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A developer's $ESTOP_KEY_FILE must not change what the tools send in the tests."""
+    monkeypatch.delenv("ESTOP_KEY_FILE", raising=False)

@@ -183,6 +183,33 @@ def test_status_with_a_key(unit: KeyedUnit, key_path: str, capsys) -> None:
     assert unit.requests == [(tcp.STATUS, False, 0, 48)]
 
 
+def test_the_key_file_may_come_from_the_environment(unit: KeyedUnit, key_path: str, capsys,
+                                                   monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("ESTOP_KEY_FILE", key_path)
+    code, out, _ = run_cli(capsys, "release", "--host", LOCAL, "--port", str(unit.tcp_port))
+    assert code == 0
+    assert out.strip().startswith("ACK seq=1 state=ARMED")
+    assert unit.requests == [(tcp.STATUS, False, 0, 48), (tcp.RELEASE, True, N, 48)]
+
+
+def test_key_file_option_wins_over_the_environment(unit: KeyedUnit, key_path: str, capsys,
+                                                   monkeypatch: pytest.MonkeyPatch,
+                                                   tmp_path: Path) -> None:
+    monkeypatch.setenv("ESTOP_KEY_FILE", str(tmp_path / "missing.key"))
+    code, out, _ = run_cli(capsys, "status", "--host", LOCAL, "--port", str(unit.tcp_port),
+                           "--key-file", key_path)
+    assert code == 0, out
+
+
+def test_a_bad_key_file_in_the_environment_is_one_line_naming_it(capsys,
+                                                                 monkeypatch: pytest.MonkeyPatch,
+                                                                 tmp_path: Path) -> None:
+    monkeypatch.setenv("ESTOP_KEY_FILE", str(tmp_path / "missing.key"))
+    code, out, err = run_cli(capsys, "status", "--host", LOCAL, "--port", "9")
+    assert code == 2 and out == ""
+    assert len(err.strip().splitlines()) == 1 and "ESTOP_KEY_FILE" in err, err
+
+
 def test_release_with_a_key_learns_the_session_first(unit: KeyedUnit, key_path: str,
                                                      capsys) -> None:
     code, out, _ = run_cli(capsys, "release", "--host", LOCAL, "--port", str(unit.tcp_port),

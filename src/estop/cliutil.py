@@ -75,7 +75,8 @@ def add_key_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--key-file", metavar="PATH",
                         help="the unit's key (64 hex digits, mode 0600; estop keygen makes "
                              "one): authenticated 60-byte packets and 48-byte requests, and "
-                             "every reply must verify. Without it: the plain forms")
+                             "every reply must verify. Default: $ESTOP_KEY_FILE; neither: "
+                             "the plain forms")
     parser.add_argument("--remote-id", type=parse_u32, default=DEFAULT_REMOTE_ID, metavar="N",
                         help=f"this remote's id among those sharing the key "
                              f"(default {DEFAULT_REMOTE_ID})")

@@ -23,6 +23,7 @@ __all__ = [
     "EPILOG",
     "KeyFileError",
     "add_arguments",
+    "KEY_FILE_ENV",
     "key_from_args",
     "load_key_file",
     "new_key",
@@ -118,15 +119,23 @@ def write_key_file(path: str | os.PathLike[str], key: bytes | None = None) -> by
     return raw
 
 
+KEY_FILE_ENV = "ESTOP_KEY_FILE"
+
+
 def key_from_args(args: argparse.Namespace) -> bytes | None:
-    """The key of ``--key-file`` (None without one); a bad key file is a usage error."""
+    """The key of ``--key-file``, else of the file named by $ESTOP_KEY_FILE (unset or empty:
+    no key, the plain forms). A bad key file is a usage error naming where it came from."""
     path: str | None = getattr(args, "key_file", None)
+    source = "--key-file"
+    if path is None:
+        path = os.environ.get(KEY_FILE_ENV) or None
+        source = KEY_FILE_ENV
     if path is None:
         return None
     try:
         return load_key_file(path)
     except KeyFileError as exc:
-        raise UsageError(f"--key-file: {exc}") from None
+        raise UsageError(f"{source}: {exc}") from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -306,3 +306,52 @@ def test_null_status_read_out_and_empty_tcp_read() -> None:
     lib.estop_tcp_open(raw.core, 0, 0, raw.out)
     assert lib.estop_tcp_rx(raw.core, 0, ffi.NULL, 0, raw.consumed, 0, raw.out) == lib.ESTOP_OK
     assert raw.consumed[0] == 0 and not raw.out.has_reply
+
+
+# -- the core's own byte loops (zero_bytes, copy_bytes) ------------------------------------------
+GUARD = 16  # bytes of 0xA5 on each side of a structure, checked after every call
+
+
+def guarded(ctype: str) -> tuple[object, object]:
+    """A `ctype` inside a buffer with guard bytes before and after it: (pointer, buffer)."""
+    size = ffi.sizeof(ctype)
+    buf = ffi.new("uint8_t[]", size + 2 * GUARD)
+    ffi.memmove(buf, b"\xa5" * (size + 2 * GUARD), size + 2 * GUARD)
+    return ffi.cast(ctype + " *", buf + GUARD), buf
+
+
+def guards_intact(buf: object, size: int) -> bool:
+    raw = bytes(ffi.buffer(buf, size + 2 * GUARD))
+    return raw[:GUARD] == b"\xa5" * GUARD and raw[GUARD + size:] == b"\xa5" * GUARD
+
+
+def test_init_over_a_used_core_starts_afresh_and_writes_only_the_core() -> None:
+    """A host may re-initialise the core in place (a reset without a reboot): every byte of the
+    old state must go, and not one byte around the structure may change."""
+    size = ffi.sizeof("estop_core_t")
+    core, buf = guarded("estop_core_t")
+    out = ffi.new("estop_out_t *")
+    cfg = ffi.new("estop_config_t *")
+    lib.estop_config_default(cfg)
+    cfg.session = 1
+    fresh = ffi.new("estop_core_t *")
+    assert lib.estop_init(fresh, cfg, 0) == lib.ESTOP_OK
+    # Use the guarded core, then fill it with junk, as memory never cleared would be.
+    assert lib.estop_init(core, cfg, 0) == lib.ESTOP_OK
+    for t in range(0, 200 * MS, 20 * MS):
+        data = ffi.from_buffer("uint8_t[]", packet())
+        lib.estop_udp_rx(core, data, 20, t, out)
+    ffi.memmove(core, b"\x5a" * size, size)
+    assert lib.estop_init(core, cfg, 0) == lib.ESTOP_OK
+    assert bytes(ffi.buffer(core, size)) == bytes(ffi.buffer(fresh, size))
+    assert guards_intact(buf, size)
+
+
+def test_status_read_out_writes_only_the_status() -> None:
+    size = ffi.sizeof("estop_status_t")
+    status, buf = guarded("estop_status_t")
+    raw = Raw()
+    assert lib.estop_get_status(raw.core, status) == lib.ESTOP_OK
+    assert status.counters.stops[lib.ESTOP_REASON_BOOT] == 1
+    assert guards_intact(buf, size)
+

@@ -6,7 +6,7 @@ from __future__ import annotations
 import socket
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 LOCAL = "127.0.0.1"
 
@@ -196,3 +196,12 @@ def unit_sockets(timeout: float) -> tuple[socket.socket, socket.socket]:
     t.listen(8)
     t.settimeout(timeout)
     return u, t
+
+
+def wait_until(cond: Callable[[], bool], timeout: float = 5.0) -> None:
+    """A fake unit's threads may lag on a busy machine: wait (bounded) for what must come, then
+    a little longer, so that what must not come has had its chance too."""
+    deadline = time.monotonic() + timeout
+    while not cond() and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.05)

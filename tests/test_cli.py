@@ -29,7 +29,7 @@ from estop.protocol.canlog import CanLogRecord, format_line
 from estop.protocol.tcp import FrameAssembler, Reply, Request
 from estop.protocol.udp import ControlPacket, Gear
 from estop.remote import Remote, ScriptError, parse_script
-from net_util import LOCAL, chunks, connections, datagrams, unit_sockets
+from net_util import LOCAL, chunks, connections, datagrams, unit_sockets, wait_until
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -192,10 +192,7 @@ def test_stop_sends_the_spec_frame_and_prints_ack(unit: FakeUnit, capsys) -> Non
     assert code == 0 and err == ""
     assert unit.raw_requests == [bytes.fromhex("70E570E5010000000000000" "0DC09BF43")]
     assert out.strip() == "ACK seq=1 state=STOPPED reason=boot flags=0x00 (after 1 attempt)"
-    deadline = time.monotonic() + 5  # the fake unit's UDP thread may lag on a busy machine
-    while not unit.stop_datagrams and time.monotonic() < deadline:
-        time.sleep(0.01)
-    time.sleep(0.05)
+    wait_until(lambda: bool(unit.stop_datagrams))
     assert len(unit.stop_datagrams) == 1
 
 
@@ -252,9 +249,8 @@ def test_broken_replies_exit_3(mode: str, message: str, kind: str, capsys) -> No
         t0 = time.monotonic()
         code, out, err = run_cli(capsys, *argv)
         assert time.monotonic() - t0 < 3
-        deadline = time.monotonic() + 5  # the fake unit's UDP thread may lag
-        while kind == "stop" and not u.stop_datagrams and time.monotonic() < deadline:
-            time.sleep(0.01)
+        if kind == "stop":
+            wait_until(lambda: bool(u.stop_datagrams))
     finally:
         u.close()
     assert code == 3 and out == ""
@@ -473,7 +469,7 @@ def test_remote_script_sends_at_rate_with_exact_content(unit: FakeUnit, capsys) 
     code, out, _ = run_cli(capsys, "remote", "--host", LOCAL, "--udp-port", str(unit.udp_port),
                            "--tcp-port", str(unit.tcp_port), "--script", "hold 1.0; lift 0.1")
     assert code == 0
-    time.sleep(0.05)
+    wait_until(lambda: len(unit.packets) >= 35)
     datas = [d for _, d in unit.packets]
     assert 35 <= len(datas) <= 60  # 50 Hz for 1 s, roughly
     assert set(datas) == {bytes.fromhex("00000000 00000000 04000000 00000000 00000000")}
@@ -523,7 +519,7 @@ def test_remote_script_file_and_legacy(unit: FakeUnit, tmp_path: Path, capsys) -
                          "--tcp-port", str(unit.tcp_port), "--legacy", "-q",
                          "--script-file", str(script))
     assert code == 0
-    time.sleep(0.05)
+    wait_until(lambda: bool(unit.packets))
     assert unit.packets and all(len(d) == 16 and udp.is_valid(d) for _, d in unit.packets)
 
 
@@ -541,9 +537,7 @@ def test_remote_tcp_refused_exit_3(unit: FakeUnit, capsys) -> None:
                            "--script", "hold 0.1; stop")
     line = one_error_line(err)
     assert code == 3 and "cannot connect" in line and "no ACK within 0.5 s" in line
-    deadline = time.monotonic() + 5
-    while not unit.stop_datagrams and time.monotonic() < deadline:
-        time.sleep(0.01)
+    wait_until(lambda: bool(unit.stop_datagrams))
     assert unit.stop_datagrams  # the stop datagram went out all the same
 
 
@@ -558,10 +552,10 @@ def test_remote_loss_via_cli(unit: FakeUnit, capsys) -> None:
                            "--tcp-port", str(unit.tcp_port), "--rate", "200", "--loss", "30",
                            "--burst", "2", "--seed", "7", "--script", "hold 1.0; lift 0.05")
     assert code == 0
-    time.sleep(0.05)
     summary = out.splitlines()[-1]
     sent = int(summary.split()[1])
     delivered = int(summary.split()[4])
+    wait_until(lambda: len(unit.packets) >= delivered)
     assert delivered == len(unit.packets)
     assert 0.15 <= 1 - delivered / sent <= 0.45
 
@@ -577,6 +571,7 @@ def test_remote_api_delay_and_hook(unit: FakeUnit) -> None:
         r.lift()
         assert r.held is False
     # close() flushed the packets in flight
+    wait_until(lambda: len(unit.packets) >= r.stats.delivered)
     assert len(unit.packets) == len(log) == r.stats.delivered
     first_arrival = unit.packets[0][0]
     assert first_arrival - t_hold >= 0.1

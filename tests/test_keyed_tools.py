@@ -13,7 +13,7 @@ import socket
 import struct
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -24,7 +24,7 @@ from estop.protocol import tcp, udp
 from estop.protocol.udp import Gear
 from estop.remote import Remote
 from estop.stopchannel import ReplyNotAuthentic
-from net_util import LOCAL, chunks, connections, datagrams, unit_sockets
+from net_util import LOCAL, chunks, connections, datagrams, unit_sockets, wait_until
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -156,14 +156,6 @@ def key_path(tmp_path: Path) -> str:
     p.write_text(K.hex() + "\n")
     p.chmod(0o600)
     return str(p)
-
-
-def wait_until(cond: Callable[[], bool], timeout: float = 5.0) -> None:
-    """The unit's threads may lag on a busy machine: wait (bounded) for what must come."""
-    deadline = time.monotonic() + timeout
-    while not cond() and time.monotonic() < deadline:
-        time.sleep(0.01)
-    time.sleep(0.05)
 
 
 def run_cli(capsys: pytest.CaptureFixture[str], *argv: str) -> tuple[int, str, str]:

@@ -120,6 +120,7 @@ class Sent:
     may_release: bool = False  # a RELEASE the unit may accept: plain without a key; made with
     #                            the key for this session with one (the model judges the rest)
     must_refuse: bool = False  # a RELEASE the spec says is NAK 4 whatever else holds
+    record: bool = False       # genuine: a recorder keeps it for replays once the unit took it
 
 
 class CoreVsModel(RuleBasedStateMachine):
@@ -315,6 +316,10 @@ class CoreVsModel(RuleBasedStateMachine):
             if expected.closed:
                 self.open_slots.discard(slot)
                 break
+        # Only what the unit answered was heard: a frame behind one that closed the connection
+        # never reached it, and sent again later it is a first delivery, not a replay.
+        self.recording += [("tcp", s.raw) for s in sent
+                           if s.record and not any(s is p for p in pending)]
         return replies
 
     def _frame(self, msg_id: int, rid: int, *, key: bytes | None, session: int,
@@ -339,8 +344,7 @@ class CoreVsModel(RuleBasedStateMachine):
             return Sent(request(RELEASE_ID, self.seq & 0xFFFFFFFF), may_release=True)
         frame = self._frame(RELEASE_ID, rid, key=self.remote_key, session=self.known_session,
                             counter=self._counter(rid, "tcp"))
-        self.recording.append(("tcp", frame))
-        return Sent(frame, may_release=self.known_session == self.session)
+        return Sent(frame, may_release=self.known_session == self.session, record=True)
 
     # -- operations ----------------------------------------------------------------------
     @rule(data=valid_packets, dt=small_dt)

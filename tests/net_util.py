@@ -185,18 +185,40 @@ def chunks(conn: socket.socket, stop: threading.Event, timeout: float) -> Iterat
         yield chunk
 
 
-def unit_sockets(timeout: float) -> tuple[socket.socket, socket.socket]:
-    """A fake unit's UDP control port and listening TCP stop port on loopback."""
-    u = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    u.bind((LOCAL, 0))
-    u.settimeout(timeout)
-    t = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    t.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-    t.bind((LOCAL, 0))
-    t.listen(8)
-    t.settimeout(timeout)
-    return u, t
 
+class FakeUnitPorts:
+    """A fake unit's UDP control port and listening TCP stop port on loopback, each served by
+    a thread of the subclass (``_udp_loop``, ``_tcp_loop``) until ``close``."""
+
+    def _open_ports(self, timeout: float) -> None:
+        self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.udp.bind((LOCAL, 0))
+        self.udp.settimeout(timeout)
+        self.tcp = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self.tcp.bind((LOCAL, 0))
+        self.tcp.listen(8)
+        self.tcp.settimeout(timeout)
+        self.udp_port: int = self.udp.getsockname()[1]
+        self.tcp_port: int = self.tcp.getsockname()[1]
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._udp_loop, daemon=True),
+                         threading.Thread(target=self._tcp_loop, daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    def _udp_loop(self) -> None:
+        raise NotImplementedError
+
+    def _tcp_loop(self) -> None:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(timeout=5)
+        self.udp.close()
+        self.tcp.close()
 
 def wait_until(cond: Callable[[], bool], timeout: float = 5.0) -> None:
     """A fake unit's threads may lag on a busy machine: wait (bounded) for what must come, then

@@ -29,7 +29,7 @@ from estop.protocol.canlog import CanLogRecord, format_line
 from estop.protocol.tcp import FrameAssembler, Reply, Request
 from estop.protocol.udp import ControlPacket, Gear
 from estop.remote import Remote, ScriptError, parse_script
-from net_util import LOCAL, chunks, connections, datagrams, unit_sockets, wait_until
+from net_util import LOCAL, FakeUnitPorts, chunks, connections, datagrams, wait_until
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -39,7 +39,7 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 # --------------------------------------------------------------------------- a fake unit
 
 @dataclass
-class FakeUnit:
+class FakeUnit(FakeUnitPorts):
     """Just enough of the unit for the CLI: a UDP port recording control packets (and stop
     datagrams, which stop it) and a TCP stop port answering per spec section 3 (STOPPED
     latched, RELEASE needs a live, neutral link of >= 5 valid packets, udp timeout 200 ms).
@@ -61,21 +61,7 @@ class FakeUnit:
 
     def __post_init__(self) -> None:
         self.lock = threading.Lock()
-        self.udp, self.tcp = unit_sockets(0.05)
-        self.udp_port = self.udp.getsockname()[1]
-        self.tcp_port = self.tcp.getsockname()[1]
-        self._stop = threading.Event()
-        self._threads = [threading.Thread(target=self._udp_loop, daemon=True),
-                         threading.Thread(target=self._tcp_loop, daemon=True)]
-        for t in self._threads:
-            t.start()
-
-    def close(self) -> None:
-        self._stop.set()
-        for t in self._threads:
-            t.join(timeout=5)
-        self.udp.close()
-        self.tcp.close()
+        self._open_ports(0.05)
 
     # UDP side
     def _udp_loop(self) -> None:

@@ -24,7 +24,7 @@ from estop.protocol import tcp, udp
 from estop.protocol.udp import Gear
 from estop.remote import Remote
 from estop.stopchannel import ReplyNotAuthentic
-from net_util import LOCAL, chunks, connections, datagrams, unit_sockets, wait_until
+from net_util import LOCAL, FakeUnitPorts, chunks, connections, datagrams, wait_until
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -37,7 +37,7 @@ def blake(data: bytes, key: bytes = K) -> bytes:
 
 
 @dataclass
-class KeyedUnit:
+class KeyedUnit(FakeUnitPorts):
     """UDP and TCP ports of a unit with key K and session N. ``mode``: ``normal``, ``forge``
     (reply tags are wrong), ``keyless`` (reply tags are zero, as from a unit without a key).
     It keeps what it authenticated: ``packets`` (60-byte control packets, decoded fields),
@@ -53,21 +53,7 @@ class KeyedUnit:
 
     def __post_init__(self) -> None:
         self.high: dict[tuple[int, str], int] = {}
-        self.udp, self.tcp = unit_sockets(0.02)
-        self.udp_port = self.udp.getsockname()[1]
-        self.tcp_port = self.tcp.getsockname()[1]
-        self._stop = threading.Event()
-        self._threads = [threading.Thread(target=self._udp_loop, daemon=True),
-                         threading.Thread(target=self._tcp_loop, daemon=True)]
-        for t in self._threads:
-            t.start()
-
-    def close(self) -> None:
-        self._stop.set()
-        for t in self._threads:
-            t.join(timeout=5)
-        self.udp.close()
-        self.tcp.close()
+        self._open_ports(0.02)
 
     def _authentic(self, signed: bytes, tag: bytes, rid: int, session: int, counter: int,
                    channel: str) -> bool:

@@ -19,11 +19,8 @@ machine cannot turn them into discards of another kind.
 
 from __future__ import annotations
 
-import importlib.util
 import io
-import os
 import re
-import sys
 import time
 from collections.abc import Iterable, Iterator
 from pathlib import Path
@@ -32,31 +29,12 @@ from typing import IO
 
 import pytest
 
-from estop.loopback import Daemon, Link, find_estopd
+from estop.loopback import Daemon, Link
 from estop.protocol import can, canlog
+from tool_util import estopd_or_skip
 
-BENCH = Path(__file__).resolve().parents[1] / "bench" / "stop_latency.py"
 TIMEOUT_MS = 300  # packets > 150 ms apart would be discarded as a gap: far from any hiccup
 LOST = "timeout overshoot: log lines lost"
-
-
-@pytest.fixture(scope="module")
-def bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("stop_latency", BENCH)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["stop_latency"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
-def _estopd() -> str:
-    exe = find_estopd()
-    if exe is None:
-        if os.environ.get("CI"):
-            pytest.fail("estopd not found in CI (make setup should have built it)")
-        pytest.skip("estopd not built (make -C firmware)")
-    return exe
 
 
 class LossyPipe(Daemon):
@@ -96,7 +74,7 @@ class LossyPipe(Daemon):
 
 
 def _one_timeout_trial(bench: ModuleType, drop: int) -> tuple[object, LossyPipe, bool]:
-    d = LossyPipe([_estopd()], drop, timeout_ms=TIMEOUT_MS)
+    d = LossyPipe([estopd_or_skip()], drop, timeout_ms=TIMEOUT_MS)
     r = bench.RunResult("estopd", "idle", TIMEOUT_MS)
     d.start()
     try:
@@ -250,7 +228,7 @@ def test_the_demo_gives_no_figure_for_a_stop_with_lost_lines(tmp_path: Path) -> 
     key_file = tmp_path / "key"
     key_file.write_bytes(auth.format_key(key))
     key_file.chmod(0o600)
-    d = LossyPipe([_estopd()], 3, timeout_ms=TIMEOUT_MS, key_file=str(key_file))
+    d = LossyPipe([estopd_or_skip()], 3, timeout_ms=TIMEOUT_MS, key_file=str(key_file))
     view = demo.View(out=io.StringIO(), live=False, t0=time.time())
     res = demo.Result()
     d.start()

@@ -6,26 +6,14 @@ No timing is measured or asserted here: the stop-latency goals live in bench/sto
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import random
-import sys
 from pathlib import Path
 from types import ModuleType
 
 import pytest
 
-BENCH = Path(__file__).resolve().parents[1] / "bench" / "stop_latency.py"
-
-
-@pytest.fixture(scope="module")
-def bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("stop_latency", BENCH)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["stop_latency"] = mod
-    spec.loader.exec_module(mod)
-    return mod
+from tool_util import load_bench_script
 
 
 def test_percentile_matches_linear_interpolation(bench: ModuleType) -> None:
@@ -132,18 +120,8 @@ def test_lost_lines_are_a_column_and_settle_moves_samples(bench: ModuleType) -> 
     assert "timeout overshoot: log lines lost 1" in md
 
 
-def _tables() -> ModuleType:
-    path = BENCH.parent / "latency_tables.py"
-    spec = importlib.util.spec_from_file_location("latency_tables", path)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["latency_tables"] = mod
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def test_latency_tables_from_synthetic_runs(bench: ModuleType) -> None:
-    tables = _tables()
+    tables = load_bench_script("latency_tables")
     args = tables.argparse.Namespace(hog=2, rt_prio=50, timeout_ms=20, trials=10,
                                      out=Path("/nonexistent"), estopd=None)
     names = [c.name for c in tables.configs(["hog", "issue11"], args)]

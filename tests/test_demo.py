@@ -17,18 +17,9 @@ from pathlib import Path
 import pytest
 
 from estop.demo import main
-from estop.loopback import find_estopd
+from tool_util import estopd_or_skip
 
 ROOT = Path(__file__).resolve().parents[1]
-
-
-def _estopd() -> str:
-    exe = find_estopd()
-    if exe is None:
-        if os.environ.get("CI"):
-            pytest.fail("estopd not found in CI (make setup should have built it)")
-        pytest.skip("estopd not built (make -C firmware)")
-    return exe
 
 
 def _pid_alive(pid: int) -> bool:
@@ -40,7 +31,7 @@ def _pid_alive(pid: int) -> bool:
 
 
 def test_demo_runs_both_stops_and_cleans_up() -> None:
-    exe = _estopd()
+    exe = estopd_or_skip()
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(
         [str(ROOT / "src"), *filter(None, [env.get("PYTHONPATH")])])

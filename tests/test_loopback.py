@@ -6,12 +6,10 @@ forged flood packets reaching the keyed daemon's tag check.
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import os
 import queue
 import socket
-import sys
 import time
 from pathlib import Path
 from types import ModuleType
@@ -26,21 +24,10 @@ from estop.loopback import (
     Link,
     OutputDropped,
     drop_windows,
-    find_estopd,
     parse_output_dropped,
 )
 from estop.protocol import auth, can, canlog, tcp, udp
-
-BENCH = Path(__file__).resolve().parents[1] / "bench" / "stop_latency.py"
-
-
-def _estopd() -> str:
-    exe = find_estopd()
-    if exe is None:
-        if os.environ.get("CI"):
-            pytest.fail("estopd not found in CI (make setup should have built it)")
-        pytest.skip("estopd not built (make -C firmware)")
-    return exe
+from tool_util import estopd_or_skip
 
 
 def test_output_dropped_lines_are_parsed_text_and_json() -> None:
@@ -100,7 +87,7 @@ def test_counter_follower_finds_jumps_and_repeats_per_id() -> None:
 
 
 def test_reader_threads_run_at_the_asked_real_time_priority() -> None:
-    d = Daemon([_estopd()], reader_rt_prio=1)
+    d = Daemon([estopd_or_skip()], reader_rt_prio=1)
     try:
         d.start()
     except DaemonError as exc:
@@ -132,7 +119,7 @@ def keyed(tmp_path: Path) -> tuple[bytes, str]:
 def test_keyed_link_learns_the_session_arms_and_verifies_replies(
         keyed: tuple[bytes, str]) -> None:
     key, path = keyed
-    with Daemon([_estopd()], key_file=path, timeout_ms=300) as d:
+    with Daemon([estopd_or_skip()], key_file=path, timeout_ms=300) as d:
         link = Link(d.udp_port, d.tcp_port, key=key)
         try:
             assert link.session != 0 and link.session == d.session
@@ -154,7 +141,7 @@ def test_keyed_link_learns_the_session_arms_and_verifies_replies(
 def test_a_plain_link_gets_nak_4_for_release_from_a_keyed_unit(
         keyed: tuple[bytes, str]) -> None:
     _key, path = keyed
-    with Daemon([_estopd()], key_file=path) as d:
+    with Daemon([estopd_or_skip()], key_file=path) as d:
         link = Link(d.udp_port, d.tcp_port)
         try:
             for _ in range(5):
@@ -163,16 +150,6 @@ def test_a_plain_link_gets_nak_4_for_release_from_a_keyed_unit(
             assert not reply.ack and reply.nak_code == tcp.NakCode.NOT_AUTHENTICATED
         finally:
             link.close()
-
-
-@pytest.fixture(scope="module")
-def bench() -> ModuleType:
-    spec = importlib.util.spec_from_file_location("stop_latency", BENCH)
-    assert spec is not None and spec.loader is not None
-    mod = importlib.util.module_from_spec(spec)
-    sys.modules["stop_latency"] = mod
-    spec.loader.exec_module(mod)
-    return mod
 
 
 def test_forged_flood_packets_look_valid_but_fail_the_tag(bench: ModuleType) -> None:
@@ -192,7 +169,7 @@ def test_forged_flood_packets_look_valid_but_fail_the_tag(bench: ModuleType) -> 
 def test_forged_flood_packets_reach_the_keyed_daemons_tag_check(
         bench: ModuleType, keyed: tuple[bytes, str]) -> None:
     key, path = keyed
-    with Daemon([_estopd()], key_file=path) as d:
+    with Daemon([estopd_or_skip()], key_file=path) as d:
         link = Link(d.udp_port, d.tcp_port, key=key)
         link.close()
         forged = bench.forged_packets(link.session)

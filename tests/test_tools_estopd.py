@@ -4,7 +4,6 @@ without: what the unit does is read from its can-log (the brake frames), not fro
 
 from __future__ import annotations
 
-import os
 import queue
 import subprocess
 import time
@@ -15,21 +14,13 @@ import pytest
 
 from estop import cli
 from estop.keyfile import load_key_file
-from estop.loopback import Daemon, find_estopd
+from estop.loopback import Daemon
 from estop.protocol import can, canlog
 from estop.remote import Remote
 from net_util import LOCAL, unused_tcp_port
+from tool_util import estopd_or_skip
 
 pytestmark = pytest.mark.timeout(120)
-
-
-def estopd() -> str:
-    exe = find_estopd()
-    if exe is None:
-        if os.environ.get("CI"):
-            pytest.fail("estopd not found in CI (make setup should have built it)")
-        pytest.skip("estopd not built (make -C firmware)")
-    return exe
 
 
 @pytest.fixture
@@ -42,13 +33,13 @@ def key_path(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> str:
 
 @pytest.fixture
 def keyed(key_path: str) -> Iterator[Daemon]:
-    with Daemon([estopd()], key_file=key_path) as d:
+    with Daemon([estopd_or_skip()], key_file=key_path) as d:
         yield d
 
 
 @pytest.fixture
 def keyless() -> Iterator[Daemon]:
-    with Daemon([estopd()]) as d:
+    with Daemon([estopd_or_skip()]) as d:
         yield d
 
 
@@ -165,7 +156,7 @@ def test_keyless_unit_with_the_plain_tools(keyless: Daemon, capsys) -> None:
 
 
 def test_stop_button_survives_a_daemon_restart(key_path: str, tmp_path: Path) -> None:
-    exe = estopd()
+    exe = estopd_or_skip()
     first = Daemon([exe], key_file=key_path)
     first.start()
     udp_port, tcp_port = first.udp_port, first.tcp_port

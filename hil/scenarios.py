@@ -399,6 +399,25 @@ def judge(run: Run, res: Result, key: str, label: str, pairs: list[tuple[float, 
     return vals
 
 
+def judge_spoiled(res: Result, spoiled: int, n: int, judged: int, missing: str, *,
+                  keepalive: bool) -> None:
+    """The verdict on the samples the harness itself spoiled (its own send came too late, or
+    its keepalive paused): counted; more than half of them make the row inconclusive (one
+    spoiled by a late send is also not judged); every other sample must have been judged."""
+    if spoiled:
+        if keepalive:
+            res.figures["samples_spoiled_by_keepalive_pause"] = spoiled
+        else:
+            res.figures["samples_spoiled_by_harness_delay"] = spoiled
+        if spoiled > n // 2:
+            if keepalive:
+                res.inconclusive = f"{spoiled} of {n} samples: the harness's keepalive paused"
+            else:
+                res.inconclusive = f"{spoiled} of {n} samples spoiled by the harness"
+                res.check(False, f"not judged: {res.inconclusive}")
+    res.check(judged == n - spoiled, missing)
+
+
 def judge_late(run: Run, res: Result, key: str, what: str, t0: float, t1: float,
                limit_s: float) -> None:
     """One time ``t0 -> t1`` against ``limit_s``. Over the limit while a CPU stood still
@@ -668,12 +687,8 @@ def sc_deadman(run: Run, res: Result) -> None:
     judge(run, res, "degraded_flag_after_warn_ms", "degraded flag after warn time", flag,
           use_median=False, slack_ms=10.0)
     res.figures["last_packet_after_tick_ms"] = summary(phase)
-    if spoiled:
-        res.figures["samples_spoiled_by_harness_delay"] = spoiled
-        if spoiled > run.args.repeat // 2:
-            res.inconclusive = f"{spoiled} of {run.args.repeat} samples spoiled by the harness"
-            res.check(False, f"not judged: {res.inconclusive}")
-    res.check(len(over) == run.args.repeat - spoiled, "not every run stopped")
+    judge_spoiled(res, spoiled, run.args.repeat, len(over), "not every run stopped",
+                  keepalive=False)
 
 
 def sc_tcp_stop(run: Run, res: Result) -> None:
@@ -706,11 +721,7 @@ def sc_tcp_stop(run: Run, res: Result) -> None:
     res.samples_ms["TCP STOP -> reply"] = rep
     res.figures["reply_latency_ms"] = summary(rep)
     res.figures["clients"] = len(run.clients)
-    if spoiled:
-        res.figures["samples_spoiled_by_keepalive_pause"] = spoiled
-        if spoiled > n // 2:
-            res.inconclusive = f"{spoiled} of {n} samples: the harness's keepalive paused"
-    res.check(len(lat) == n - spoiled, "not every STOP showed on the bus")
+    judge_spoiled(res, spoiled, n, len(lat), "not every STOP showed on the bus", keepalive=True)
     time.sleep(0.25)
 
 
@@ -1198,12 +1209,8 @@ def sc_auth_spoof(run: Run, res: Result) -> None:
         drops = drops1[1] - drops0[1] if drops0 and drops1 else None
         count_check(run, res, t_first, time.time() - 0.1, sum(sent.values()),
                     sent.get("wrong_key", 0) + sent.get("replay", 0), drops)
-    if spoiled:
-        res.figures["samples_spoiled_by_harness_delay"] = spoiled
-        if spoiled > run.args.repeat // 2:
-            res.inconclusive = f"{spoiled} of {run.args.repeat} samples spoiled by the harness"
-            res.check(False, f"not judged: {res.inconclusive}")
-    res.check(len(over) == run.args.repeat - spoiled, "not every run stopped")
+    judge_spoiled(res, spoiled, run.args.repeat, len(over), "not every run stopped",
+                  keepalive=False)
 
 
 def sc_auth_stop_datagram(run: Run, res: Result) -> None:
@@ -1245,11 +1252,8 @@ def sc_auth_stop_datagram(run: Run, res: Result) -> None:
         pass
     except OSError as exc:
         res.figures["udp_socket_error"] = str(exc)
-    if spoiled:
-        res.figures["samples_spoiled_by_keepalive_pause"] = spoiled
-        if spoiled > n // 2:
-            res.inconclusive = f"{spoiled} of {n} samples: the harness's keepalive paused"
-    res.check(len(lat) == n - spoiled, "not every stop datagram showed on the bus")
+    judge_spoiled(res, spoiled, n, len(lat), "not every stop datagram showed on the bus",
+                  keepalive=True)
     time.sleep(0.25)
 
 

@@ -339,6 +339,17 @@ def _still_armed(view: View, res: Result) -> bool:
     return False
 
 
+def _release_and_drive(s: Script, view: View, res: Result, which: str, seconds: float) -> bool:
+    """The operator's RELEASE, then a drive of `seconds`; False (a problem noted) when the
+    RELEASE was refused or the unit did not stay ARMED."""
+    if not s.release():
+        res.problems.append(f"{which} RELEASE was refused")
+        return False
+    view.phase = "drive"
+    s.wait(seconds, _drive)
+    return _still_armed(view, res)
+
+
 def run_script(daemon: Daemon, view: View, timeout_ms: int, res: Result, key: bytes) -> None:
     """The scripted drive with an attacker; fills ``res`` as it goes."""
     link = Link(daemon.udp_port, daemon.tcp_port, key=key)
@@ -352,12 +363,7 @@ def run_script(daemon: Daemon, view: View, timeout_ms: int, res: Result, key: by
         s.wait(0.3)
         s.request("RELEASE (no packets yet)", tcp.RELEASE)
 
-        if not s.release():
-            res.problems.append("the first RELEASE was refused")
-            return
-        view.phase = "drive"
-        s.wait(2.0, _drive)
-        if not _still_armed(view, res):
+        if not _release_and_drive(s, view, res, "the first", 2.0):
             return
 
         # The finger lifts; the attacker tries to keep the car alive.
@@ -389,12 +395,7 @@ def run_script(daemon: Daemon, view: View, timeout_ms: int, res: Result, key: by
         res.forged_release_nak = forged.nak_code if not forged.ack else 0
         view.event(time.time(),
                    f"attacker: RELEASE under a wrong key -> {_reply_text(forged.reply)}")
-        if not s.release():
-            res.problems.append("the operator's RELEASE was refused")
-            return
-        view.phase = "drive"
-        s.wait(1.0, _drive)
-        if not _still_armed(view, res):
+        if not _release_and_drive(s, view, res, "the operator's", 1.0):
             return
 
         # Anyone may stop: the attacker's stop datagram, whatever its tag.
@@ -410,12 +411,7 @@ def run_script(daemon: Daemon, view: View, timeout_ms: int, res: Result, key: by
         res.datagram_span = _span(t_dgram, stop.t)
         s.wait(0.2)
 
-        if not s.release():
-            res.problems.append("the third RELEASE was refused")
-            return
-        view.phase = "drive"
-        s.wait(1.0, _drive)
-        if not _still_armed(view, res):
+        if not _release_and_drive(s, view, res, "the third", 1.0):
             return
 
         view.phase = "stop button"

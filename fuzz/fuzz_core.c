@@ -9,7 +9,9 @@
  * kept with its own code (bitwise CRCs, its own TCP framing, its own clock in 64 bits):
  *   - never ARMED without an accepted RELEASE (the right form, an ACK, a good CRC or tag, a
  *     live link of enough valid packets since the latest stop, a neutral latest packet);
- *   - never ARMED past the deadline (the latest valid packet is younger than the timeout);
+ *   - never ARMED past the slow time, never ARMED or SLOWING past the timeout (from the
+ *     latest valid packet); SLOWING only from ARMED, and left for ARMED only after 3 valid
+ *     packets since it began;
  *   - ESTOP_BRAKE and ESTOP_STATUS never later than their period, every frame's CRC, alive
  *     counter and content right, the latest brake frame telling the state after the call;
  *   - next_call_us never in the past and never after a due frame or the deadline;
@@ -153,6 +155,7 @@ typedef struct {
     uint64_t last_valid_t;
     int last_neutral;
     uint32_t run;            /* valid packets since boot, the latest stop request, silence */
+    uint32_t slow_run;       /* valid packets since SLOWING began */
     int link_dead;           /* silent for the timeout since the latest valid packet */
     /* shadow of the frames */
     uint64_t last_brake_t;
@@ -241,12 +244,17 @@ static void check_frame(world_t *w, const estop_can_frame_t *f, uint64_t t)
         CHECK(f->data[7] == crc8_e2e(cfg->brake_data_id, f->data), "brake frame: crc");
         CHECK(w->brake_counter < 0 || f->data[6] == w->brake_counter, "brake frame: counter");
         w->brake_counter = (f->data[6] + 1) % 15;
-        CHECK(f->data[0] == (f->data[2] == ESTOP_STATE_STOPPED ? 1u : 0u), "brake: request");
-        CHECK(f->data[1] == (f->data[2] == ESTOP_STATE_STOPPED ? 100u : 0u), "brake: level");
-        CHECK(f->data[2] <= 1u && f->data[3] < ESTOP_REASON_COUNT, "brake: state/reason");
-        CHECK((f->data[2] == ESTOP_STATE_ARMED) == (f->data[3] == ESTOP_REASON_NONE),
-              "brake: reason none exactly while ARMED");
-        CHECK(f->data[4] <= 1u && (f->data[4] == 0u || f->data[2] == ESTOP_STATE_ARMED),
+        CHECK(f->data[2] <= 2u && f->data[3] < ESTOP_REASON_COUNT, "brake: state/reason");
+        if (f->data[2] == ESTOP_STATE_STOPPED) {
+            CHECK(f->data[0] == 1u && f->data[1] == 100u, "brake: emergency while STOPPED");
+        } else if (f->data[2] == ESTOP_STATE_SLOWING) {
+            CHECK(f->data[0] == 2u && f->data[1] == cfg->slow_level, "brake: slow level");
+        } else {
+            CHECK(f->data[0] == 0u && f->data[1] == 0u, "brake: released while ARMED");
+        }
+        CHECK((f->data[2] != ESTOP_STATE_STOPPED) == (f->data[3] == ESTOP_REASON_NONE),
+              "brake: reason none exactly while ARMED or SLOWING");
+        CHECK(f->data[4] <= 1u && (f->data[4] == 0u || f->data[2] != ESTOP_STATE_STOPPED),
               "brake: flags");
         CHECK(f->data[5] == 0u, "brake: byte 5");
         w->last_brake_t = t;
@@ -293,7 +301,7 @@ static void check_reply(const world_t *w, const estop_out_t *out, const call_t *
         CHECK(nak <= ESTOP_NAK_NOT_AUTHENTICATED, "reply: nak code");
         CHECK(r[8] == out->state && r[9] == out->reason && r[10] == out->flags,
               "reply: state, reason, flags after the call");
-        if (msg == w->cfg.stop_id) {
+        if (msg == w->cfg.stop_id || msg == ESTOP_MSG_LIFT) {
             CHECK(nak == 0u && r[8] == ESTOP_STATE_STOPPED, "reply: STOP acknowledged, STOPPED");
         } else if (msg != ESTOP_MSG_RELEASE && msg != ESTOP_MSG_STATUS) {
             CHECK(nak == ESTOP_NAK_UNKNOWN_ID, "reply: unknown id NAK 1");
@@ -365,6 +373,16 @@ static void after_call(world_t *w, estop_err_t err, const estop_out_t *out, call
         w->booted = 1;
     }
 
+    /* SLOWING only from ARMED (or by a RELEASE of a link already silent for the slow time,
+     * checked with the other releases below), and only once the link was silent for the slow
+     * time (the input comes after the clock, so the time of this call decides). */
+    if (st.state == ESTOP_STATE_SLOWING && w->prev_state != ESTOP_STATE_SLOWING) {
+        CHECK(t_new >= w->last_valid_t + cfg->slow_us, "SLOWING before the slow time");
+        CHECK(cfg->slow_us < cfg->timeout_us, "SLOWING with the slow time = the timeout");
+        CHECK(st.counters.slowdowns == w->prev.slowdowns + 1u, "slow-down counted");
+        w->slow_run = 0;
+    }
+
     /* The input. */
     if (c->kind == 1 && st.counters.udp_valid != w->prev.udp_valid) {
         const uint8_t *body = c->len == ESTOP_UDP_AUTH_LEN ? c->data + 24 : c->data;
@@ -378,6 +396,9 @@ static void after_call(world_t *w, estop_err_t err, const estop_out_t *out, call
         w->last_neutral = neutral_bits(get32(body));
         if (w->run < 0xFFFFFFFFu) {
             w->run++;
+        }
+        if (w->prev_state == ESTOP_STATE_SLOWING || st.state == ESTOP_STATE_SLOWING) {
+            w->slow_run++;
         }
     }
     if (c->kind == 1 && st.counters.udp_stops != w->prev.udp_stops) {
@@ -399,7 +420,7 @@ static void after_call(world_t *w, estop_err_t err, const estop_out_t *out, call
         if (out->has_reply) {
             check_reply(w, out, c);
         }
-        if (c->frame_done && good && msg == cfg->stop_id) {
+        if (c->frame_done && good && (msg == cfg->stop_id || msg == ESTOP_MSG_LIFT)) {
             stop_request = 1;
         }
     } else {
@@ -413,8 +434,15 @@ static void after_call(world_t *w, estop_err_t err, const estop_out_t *out, call
         CHECK(st.state == ESTOP_STATE_STOPPED, "a clock going backwards stops the unit");
     }
 
-    /* Never ARMED without an accepted RELEASE. */
-    if (st.state == ESTOP_STATE_ARMED && w->prev_state != ESTOP_STATE_ARMED) {
+    /* SLOWING -> ARMED: only a valid packet, the third since SLOWING began. */
+    if (st.state == ESTOP_STATE_ARMED && w->prev_state == ESTOP_STATE_SLOWING) {
+        CHECK(c->kind == 1 && st.counters.udp_valid == w->prev.udp_valid + 1u,
+              "SLOWING left for ARMED without a valid packet");
+        CHECK(w->slow_run == 3u, "SLOWING left for ARMED before 3 valid packets");
+        CHECK(st.counters.rearms == w->prev.rearms + 1u, "way back to ARMED counted");
+    }
+    /* Never ARMED (or SLOWING) without an accepted RELEASE. */
+    if (st.state != ESTOP_STATE_STOPPED && w->prev_state == ESTOP_STATE_STOPPED) {
         int good = 0;
         uint32_t msg;
         CHECK(c->kind == 2 && c->frame_done && out->has_reply, "ARMED without a RELEASE frame");
@@ -433,11 +461,13 @@ static void after_call(world_t *w, estop_err_t err, const estop_out_t *out, call
         CHECK(st.counters.releases_accepted == w->prev.releases_accepted + 1u,
               "release counted");
     }
-    /* Never ARMED past the deadline. */
-    if (st.state == ESTOP_STATE_ARMED) {
+    /* Never ARMED past the slow time, never moving past the timeout. */
+    if (st.state != ESTOP_STATE_STOPPED) {
         CHECK(w->have_valid && !w->link_dead && t_new < w->last_valid_t + cfg->timeout_us,
-              "ARMED past the deadline");
-        CHECK(st.reason == ESTOP_REASON_NONE, "ARMED with a reason");
+              "ARMED or SLOWING past the deadline");
+        CHECK(st.state == ESTOP_STATE_SLOWING || t_new < w->last_valid_t + cfg->slow_us,
+              "ARMED past the slow time");
+        CHECK(st.reason == ESTOP_REASON_NONE, "ARMED or SLOWING with a reason");
     } else {
         CHECK(st.reason != ESTOP_REASON_NONE, "STOPPED without a reason");
     }
@@ -454,6 +484,8 @@ static void after_call(world_t *w, estop_err_t err, const estop_out_t *out, call
     CHECK(t_new + d <= w->last_status_t + cfg->status_period_us || backwards,
           "next_call_us after the next status frame is due");
     if (st.state == ESTOP_STATE_ARMED) {
+        CHECK(t_new + d <= w->last_valid_t + cfg->slow_us, "next_call_us after the slow time");
+    } else if (st.state == ESTOP_STATE_SLOWING) {
         CHECK(t_new + d <= w->last_valid_t + cfg->timeout_us, "next_call_us after the deadline");
     }
     w->next_call = out->next_call_us;
@@ -664,13 +696,21 @@ static void setup(world_t *w, input_t *in)
         memcpy(w->cfg.key, w->key, ESTOP_KEY_LEN);
     }
     if (flags & 2u) {
-        /* Short times, so the timeout, the warn time and the periods are all reached. */
+        /* Short times, so the timeouts, the warn time and the periods are all reached. */
         uint32_t to = 1000u + (uint32_t)in_u16(in) * 8u;
         uint32_t bp = 1000u + (uint32_t)in_u16(in) % 24001u;
         uint32_t sp = 10000u + (uint32_t)in_u16(in) * 15u;
+        uint16_t warn = in_u16(in);
         w->cfg.timeout_us = to;
-        w->cfg.warn_us = 1u + (uint32_t)in_u16(in) % (to - 1u);
         w->cfg.release_packets = 1u + in_u8(in) % 8u;
+        /* Flag 4, a two-stage stop (protocol version 3): the slow time anywhere up to the
+         * timeout, any slow level. Without it S = T (version 2). */
+        w->cfg.slow_us = to;
+        if (flags & 4u) {
+            w->cfg.slow_us = 1u + (uint32_t)in_u16(in) % to;
+            w->cfg.slow_level = (uint8_t)(1u + in_u8(in) % 99u);
+        }
+        w->cfg.warn_us = 1u + (uint32_t)warn % w->cfg.slow_us;
         w->cfg.brake_period_us = bp;
         w->cfg.status_period_us = sp < bp ? bp : sp;
     }

@@ -5,8 +5,9 @@ from __future__ import annotations
 from estop.core import Config, Step, Watchdog
 from estop.protocol import tcp, udp
 
-STOPPED, ARMED = 0, 1
-NONE, BOOT, TCP_STOP, UDP_TIMEOUT, FAULT = range(5)
+STOPPED, ARMED, SLOWING = 0, 1, 2
+NONE, BOOT, TCP_STOP, UDP_TIMEOUT, FAULT, LIFT = range(6)
+LIFT_ID = 3
 STOP_ID = 0xE570E570
 BRAKE_ID, STATUS_ID = 0x050, 0x051
 MS = 1000

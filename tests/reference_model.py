@@ -26,10 +26,11 @@ from dataclasses import dataclass, field
 
 from estop.protocol.crc import crc32, e2e_crc8
 
-STOPPED, ARMED = 0, 1
-NONE, BOOT, TCP_STOP, UDP_TIMEOUT, FAULT = range(5)
+STOPPED, ARMED, SLOWING = 0, 1, 2
+NONE, BOOT, TCP_STOP, UDP_TIMEOUT, FAULT, LIFT = range(6)
 ACK, NAK = 0x80, 0x81
-STATUS_ID, RELEASE_ID = 1, 2
+STATUS_ID, RELEASE_ID, LIFT_ID = 1, 2, 3
+REARM_PACKETS = 3  # valid packets since SLOWING began that end it (section 3)
 NAK_UNKNOWN, NAK_NO_LINK, NAK_NOT_NEUTRAL, NAK_NOT_AUTH = 1, 2, 3, 4
 MAX_STEP_US = 0x7FFFFFFF
 REQUEST_MAGIC = b"ESQ2"
@@ -48,6 +49,8 @@ def tag_of(key: bytes, message: bytes) -> bytes:
 class ModelConfig:
     timeout_us: int = 200_000
     warn_us: int = 100_000
+    slow_us: int | None = None  # None: the timeout (never SLOWING)
+    slow_level: int = 30
     stop_id: int = 0xE570E570
     brake_can_id: int = 0x050
     status_can_id: int = 0x051
@@ -103,7 +106,10 @@ class Model:
         self.window_invalid = 0
         self.window_auth_failed = 0
         self.bad_crc = 0
-        self.stops = 0
+        self.window_stops = 0
+        self.window_slowdowns = 0
+        self.slow_run = 0
+        self.slowdowns = 0
         self.valid = 0
         self.invalid = 0
         self.udp_stops = 0
@@ -114,6 +120,10 @@ class Model:
         self.auth_failures: dict[str, int] = {}
 
     # -- derived ------------------------------------------------------------------------
+    @property
+    def slow_us(self) -> int:
+        return self.cfg.timeout_us if self.cfg.slow_us is None else self.cfg.slow_us
+
     def link_age(self) -> int | None:
         if self.last_valid is None or self.now - self.last_valid >= self.cfg.timeout_us:
             return None
@@ -121,7 +131,7 @@ class Model:
 
     def flags(self) -> int:
         age = self.link_age()
-        return int(self.state == ARMED and age is not None and age >= self.cfg.warn_us)
+        return int(self.state != STOPPED and age is not None and age >= self.cfg.warn_us)
 
     def link_live(self) -> bool:
         return self.link_age() is not None and self.valid_run >= self.cfg.release_packets
@@ -132,9 +142,9 @@ class Model:
         step.frames.append((can_id, payload + bytes([e2e_crc8(data_id, payload)])))
 
     def _brake(self, step: ModelStep) -> None:
-        stopped = self.state == STOPPED
-        body = bytes([int(stopped), 100 if stopped else 0, self.state, self.reason,
-                      self.flags(), 0])
+        request, level = {STOPPED: (1, 100), ARMED: (0, 0),
+                          SLOWING: (2, self.cfg.slow_level)}[self.state]
+        body = bytes([request, level, self.state, self.reason, self.flags(), 0])
         self._frame(step, self.cfg.brake_can_id, self.cfg.brake_data_id, body,
                     self.brake_counter)
         self.brake_counter = (self.brake_counter + 1) % 15
@@ -144,11 +154,13 @@ class Model:
         age_ms = 0xFFFF if age is None else age // 1000
         body = bytes([min(self.window_valid, 255), min(self.window_invalid, 255),
                       min(self.window_auth_failed, 255),  # authentication failures
-                      min(self.stops, 255)]) + struct.pack("<H", age_ms)
+                      min(self.window_stops, 15) | min(self.window_slowdowns, 15) << 4,
+                      ]) + struct.pack("<H", age_ms)
         self._frame(step, self.cfg.status_can_id, self.cfg.status_data_id, body,
                     self.status_counter)
         self.status_counter = (self.status_counter + 1) % 15
         self.window_valid = self.window_invalid = self.window_auth_failed = 0
+        self.window_stops = self.window_slowdowns = 0
 
     def _change(self, step: ModelStep) -> None:
         step.changed = True
@@ -157,16 +169,26 @@ class Model:
 
     def _stop(self, reason: int, step: ModelStep) -> None:
         self.valid_run = 0
-        if self.state == ARMED:
+        if self.state != STOPPED:
             self.state, self.reason = STOPPED, reason
-            self.stops += 1
+            self.window_stops += 1
             self._change(step)
+
+    def _slow_down(self) -> None:
+        self.state = SLOWING  # the first stage: a controlled stop, not latched
+        self.slow_run = 0
+        self.slowdowns += 1
+        self.window_slowdowns += 1
 
     # -- time ---------------------------------------------------------------------------
     def _time(self, now: int, step: ModelStep) -> None:
         self.now = now
-        if self.state == ARMED and self.link_age() is None:
+        if self.state != STOPPED and self.link_age() is None:
             self._stop(UDP_TIMEOUT, step)
+        elif self.state == ARMED and self.last_valid is not None \
+                and now - self.last_valid >= self.slow_us:
+            self._slow_down()
+            self._change(step)
         if now >= self.brake_due:
             self._brake(step)
             nxt = self.brake_due + self.cfg.brake_period_us
@@ -186,9 +208,10 @@ class Model:
 
     def next_call(self) -> int:
         nxt = min(self.brake_due, self.status_due)
-        if self.state == ARMED:
+        if self.state != STOPPED:
             assert self.last_valid is not None
-            nxt = min(nxt, self.last_valid + self.cfg.timeout_us)
+            nxt = min(nxt, self.last_valid + (self.slow_us if self.state == ARMED
+                                              else self.cfg.timeout_us))
         return nxt
 
     # -- inputs -------------------------------------------------------------------------
@@ -197,10 +220,11 @@ class Model:
 
     def udp(self, data: bytes, now: int) -> ModelStep:
         step = self.begin(now)
-        if (len(data) == 48 and data[:4] == REQUEST_MAGIC
-                and struct.unpack_from("<I", data, 4)[0] == self.cfg.stop_id):
-            self.udp_stops += 1  # a stop datagram: anyone may stop, the tag is not read
-            self._stop(TCP_STOP, step)
+        reason = self._stop_reason(struct.unpack_from("<I", data, 4)[0]) \
+            if len(data) == 48 and data[:4] == REQUEST_MAGIC else None
+        if reason is not None:
+            self.udp_stops += 1  # a stop or lift datagram: anyone may stop, the tag is not read
+            self._stop(reason, step)
             return step
         ok, gas = self._control(data)
         if ok:
@@ -211,6 +235,11 @@ class Model:
             self.valid_run += 1
             self.last_valid = now
             self.last_gas = gas
+            if self.state == SLOWING:
+                self.slow_run += 1
+                if self.slow_run >= REARM_PACKETS:  # the link is back: the controlled stop ends
+                    self.state = ARMED
+                    self._change(step)
         else:
             self.invalid += 1
             self.window_invalid += 1
@@ -286,11 +315,16 @@ class Model:
                 break
         return step
 
+    def _stop_reason(self, msg_id: int) -> int | None:
+        """The reason a stop request stops with (STOP or LIFT); None for any other msg_id."""
+        return {self.cfg.stop_id: TCP_STOP, LIFT_ID: LIFT}.get(msg_id)
+
     def _message(self, msg_id: int, release_authenticated: bool, step: ModelStep) -> int:
         """What a frame of either form asks for; returns the NAK code."""
         nak = 0
-        if msg_id == self.cfg.stop_id:
-            self._stop(TCP_STOP, step)
+        reason = self._stop_reason(msg_id)
+        if reason is not None:
+            self._stop(reason, step)
         elif msg_id == RELEASE_ID:
             if not release_authenticated:
                 nak = NAK_NOT_AUTH
@@ -301,6 +335,8 @@ class Model:
                     nak = NAK_NOT_NEUTRAL
                 else:
                     self.state, self.reason = ARMED, NONE
+                    if self.last_valid is not None and self.now - self.last_valid >= self.slow_us:
+                        self._slow_down()  # its deadline has passed: no frame releases first
                     self._change(step)
         elif msg_id != STATUS_ID:
             nak = NAK_UNKNOWN

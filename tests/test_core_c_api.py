@@ -56,10 +56,17 @@ BAD_CONFIGS = [
     ({"timeout_us": 999}, "bad_timeout"),
     ({"timeout_us": 60_000_001}, "bad_timeout"),
     ({"warn_us": 0}, "bad_warn_time"),
-    ({"warn_us": 200_000}, "bad_warn_time"),
+    ({"warn_us": 200_001}, "bad_warn_time"),  # above the slow time (= the timeout)
+    ({"slow_us": 100_000, "warn_us": 100_001}, "bad_warn_time"),
+    ({"slow_us": 0, "warn_us": 1}, "bad_slow_time"),
+    ({"slow_us": 200_001}, "bad_slow_time"),  # above the timeout
+    ({"slow_level": 0}, "bad_slow_level"),
+    ({"slow_level": 100}, "bad_slow_level"),
+    ({"slow_level": 255}, "bad_slow_level"),
     ({"stop_id": 0}, "bad_stop_id"),
     ({"stop_id": 1}, "bad_stop_id"),
     ({"stop_id": 2}, "bad_stop_id"),
+    ({"stop_id": 3}, "bad_stop_id"),  # LIFT
     ({"stop_id": 0x32515345}, "bad_stop_id"),  # "ESQ2": a plain STOP would read as a magic
     ({"brake_can_id": 0x800}, "bad_can_id"),
     ({"status_can_id": 0x800}, "bad_can_id"),
@@ -107,6 +114,10 @@ def test_failed_init_leaves_an_unusable_core() -> None:
 
 def test_boundary_configurations_are_accepted() -> None:
     for cfg in (Config(timeout_us=1000, warn_us=999), Config(timeout_us=60_000_000),
+                Config(timeout_us=1000, slow_us=1000, warn_us=1000),  # W = S = T
+                Config(timeout_us=1000, slow_us=1, warn_us=1),  # the smallest times
+                Config(timeout_us=60_000_000, slow_us=60_000_000, warn_us=60_000_000),
+                Config(slow_level=1), Config(slow_level=99),
                 Config(brake_period_us=1000, status_period_us=10_000),
                 Config(brake_period_us=25_000, status_period_us=1_000_000),
                 Config(release_packets=1, brake_can_id=0x7FF, status_can_id=0)):
@@ -159,9 +170,12 @@ def test_names() -> None:
     assert ffi.string(lib.estop_err_name(lib.ESTOP_ERR_SLOT_CLOSED)) == b"slot_closed"
     assert ffi.string(lib.estop_err_name(-99)) == b"unknown_error"
     assert ffi.string(lib.estop_err_name(5)) == b"unknown_error"
-    assert [ffi.string(lib.estop_state_name(i)) for i in range(3)] == [b"STOPPED", b"ARMED", b"?"]
-    assert [ffi.string(lib.estop_reason_name(i)) for i in range(6)] == [
-        b"none", b"boot", b"tcp_stop", b"udp_timeout", b"fault", b"?"]
+    assert [ffi.string(lib.estop_state_name(i)) for i in range(4)] == [
+        b"STOPPED", b"ARMED", b"SLOWING", b"?"]
+    assert [ffi.string(lib.estop_reason_name(i)) for i in range(7)] == [
+        b"none", b"boot", b"tcp_stop", b"udp_timeout", b"fault", b"lift", b"?"]
+    assert ffi.string(lib.estop_err_name(lib.ESTOP_ERR_SLOW)) == b"bad_slow_time"
+    assert ffi.string(lib.estop_err_name(lib.ESTOP_ERR_SLOW_LEVEL)) == b"bad_slow_level"
 
 
 # -- the raw tick ---------------------------------------------------------------------------
@@ -261,7 +275,7 @@ def test_status_period_holds_when_the_tick_goes_back_while_armed() -> None:
 
 def test_err_name_of_any_int_is_safe() -> None:
     """-INT_MIN overflowed (UBSan reported it under the instrumented build)."""
-    for code in (-(2**31), 2**31 - 1, 1, -15, -10**6):
+    for code in (-(2**31), 2**31 - 1, 1, -17, -10**6):
         assert ffi.string(lib.estop_err_name(code)) == b"unknown_error"
     assert ffi.string(lib.estop_err_name(-12)) == b"slot_closed"
     assert ffi.string(lib.estop_err_name(-14)) == b"bad_session"

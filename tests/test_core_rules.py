@@ -339,7 +339,7 @@ def test_link_degraded_flag_is_never_set_while_stopped() -> None:
 def test_unknown_msg_id_is_answered_with_nak_1() -> None:
     u = Unit()
     u.arm()
-    for msg_id in (0, 3, 0x80, 0x81, 0xFFFFFFFF):
+    for msg_id in (0, 4, 0x80, 0x81, 0xFFFFFFFF):
         assert u.ask(msg_id, seq=msg_id)[0:2] + u.ask(msg_id)[5:] == (NAK, msg_id, 1)
     assert u.state == ARMED and u.wd.status().counters.tcp_unknown_id == 10
 

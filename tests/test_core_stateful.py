@@ -7,12 +7,16 @@ one, and plays the remotes that hold the key, an attacker that does not (a wrong
 tags, flipped bits), a recorder that replays genuine traffic later (also after a reboot, into a
 new session), stale and equal counters, several remote ids with their own counters, a crowd of
 new remote ids (a 9th gets no place), request frames on TCP cut at random points and mixed with
-plain frames, and stop datagrams with garbage tags. Messages are made with estop.protocol.auth;
-the model checks them with its own hashlib code.
+plain frames, and stop and lift datagrams with garbage tags. Messages are made with
+estop.protocol.auth; the model checks them with its own hashlib code. The unit's times are drawn
+too: the version 2 default (slow time = timeout) or a two-stage stop (slow time below the
+timeout, protocol version 3), with any slow level.
 
 Invariants checked on the C core's output at every step:
-- brake is requested whenever the unit is STOPPED (every ESTOP_BRAKE frame, and the latest one
-  always shows the current state);
+- brake is requested whenever the unit is STOPPED, at the slow level whenever it is SLOWING
+  (every ESTOP_BRAKE frame, and the latest one always shows the current state);
+- SLOWING is entered from ARMED, or from STOPPED only by an accepted RELEASE (of a link silent
+  for the slow time already);
 - no gap between ESTOP_BRAKE frames is longer than the period while the host calls on time, and
   the next call time is never later than one period after the latest ESTOP_BRAKE frame;
 - the alive counter is never 15 and every CRC (CAN and TCP) is good;
@@ -47,12 +51,20 @@ from estop.core import MAX_SLOTS, Config, Step, Watchdog
 from estop.protocol import auth
 from estop.protocol.crc import crc32, e2e_crc8
 from estop.protocol.udp import ControlPacket
-from reference_model import ACK, RELEASE_ID, STATUS_ID, Model, ModelConfig, ModelStep
+from reference_model import (
+    ACK,
+    LIFT_ID,
+    RELEASE_ID,
+    STATUS_ID,
+    Model,
+    ModelConfig,
+    ModelStep,
+)
 
 CFG = ModelConfig()
 BRAKE_ID, STATUS_CAN_ID = CFG.brake_can_id, CFG.status_can_id
 PERIOD = CFG.brake_period_us
-STOPPED, ARMED = 0, 1
+STOPPED, ARMED, SLOWING = 0, 1, 2
 NAK_NOT_AUTH = 4
 U64 = 2**64 - 1
 # The remote ids of the remotes that hold the key (edge values included).
@@ -88,8 +100,13 @@ invalid_packets = st.one_of(
     st.builds(lambda head, tail: head + tail, st.sampled_from([b"ESU1", b"ESQ2", b"\0\0\0\0"]),
               st.binary(min_size=56, max_size=56)),
 )
-stop_datagrams = st.builds(lambda tail: b"ESQ2" + struct.pack("<I", CFG.stop_id) + tail,
+stop_datagrams = st.builds(lambda msg_id, tail: b"ESQ2" + struct.pack("<I", msg_id) + tail,
+                           st.sampled_from([CFG.stop_id, LIFT_ID]),
                            st.binary(min_size=40, max_size=40))
+# (timeout, slow time, warn time): the version 2 default, and two-stage stops (version 3) with
+# the slow time well inside the drive gaps and host runs below, or at its smallest.
+TIMINGS = [(200_000, 200_000, 100_000), (200_000, 60_000, 30_000), (1_000_000, 200_000, 100_000),
+           (150_000, 1_000, 1_000), (200_000, 199_999, 199_999)]
 small_dt = st.integers(0, 30_000)
 seeds = st.integers(0, 2**32 - 1)  # for random.Random: many cheap choices from one draw
 
@@ -107,9 +124,9 @@ BAD_BODIES = [ControlPacket(float("nan")), ControlPacket(1.5), ControlPacket(0.0
 
 AUTH_KINDS = ["genuine", "jump", "stale", "equal", "wrong_key", "garbage_tag", "flipped_bit",
               "wrong_session", "bad_body"]
-TCP_KINDS = ["stop", "status", "release", "unknown", "badcrc",  # plain 16-byte frames
+TCP_KINDS = ["stop", "lift", "status", "release", "unknown", "badcrc",  # plain 16-byte frames
              "f_status", "f_release", "f_release_stale", "f_release_forged", "f_stop",
-             "f_unknown"]  # 48-byte request frames
+             "f_lift", "f_unknown"]  # 48-byte request frames
 
 
 @dataclass(frozen=True)
@@ -126,11 +143,16 @@ class Sent:
 class CoreVsModel(RuleBasedStateMachine):
     @initialize(start=st.integers(0, 2**32 - 1), keyed=st.booleans(),
                 key=st.binary(min_size=32, max_size=32), session=st.integers(1, U64),
-                wrong_key=st.binary(min_size=32, max_size=32), operator_first=st.booleans())
+                wrong_key=st.binary(min_size=32, max_size=32), operator_first=st.booleans(),
+                timing=st.sampled_from(TIMINGS), slow_level=st.integers(1, 99))
     def boot(self, start: int, keyed: bool, key: bytes, session: int, wrong_key: bytes,
-             operator_first: bool) -> None:
+             operator_first: bool, timing: tuple[int, int, int], slow_level: int) -> None:
         """Power on; maybe the operator arms the unit first (initialize rules are never switched
         off by hypothesis' swarm testing, so ARMED is reached in well over half the examples)."""
+        timeout, slow, warn = timing
+        self.cfg = dataclasses.replace(CFG, timeout_us=timeout, slow_us=slow, warn_us=warn,
+                                       slow_level=slow_level)
+        self.slowing_seen = False
         self.now = start
         self.keyed = keyed
         self.key: bytes | None = key if keyed else None
@@ -156,8 +178,11 @@ class CoreVsModel(RuleBasedStateMachine):
     def _boot_unit(self, session: int) -> None:
         """A fresh unit at self.now (power on, or a reboot): STOPPED, no connections."""
         self.session = session
-        self.core = Watchdog(Config(key=self.key, session=session), now_us=self.now)
-        self.model = Model(dataclasses.replace(CFG, key=self.key, session=session), self.now)
+        cfg = self.cfg
+        self.core = Watchdog(Config(key=self.key, session=session, timeout_us=cfg.timeout_us,
+                                    slow_us=cfg.slow_us, warn_us=cfg.warn_us,
+                                    slow_level=cfg.slow_level), now_us=self.now)
+        self.model = Model(dataclasses.replace(cfg, key=self.key, session=session), self.now)
         self.open_slots: set[int] = set()
         self.prev_state = STOPPED
         self.on_time = True
@@ -170,6 +195,8 @@ class CoreVsModel(RuleBasedStateMachine):
         kind = "keyed" if self.keyed else "keyless"
         event(f"{kind} unit")
         event(f"{kind} unit: {'reached ARMED' if self.armed_seen else 'never ARMED'}")
+        if self.cfg.slow_us is not None and self.cfg.slow_us < self.cfg.timeout_us:
+            event(f"two-stage unit: {'reached SLOWING' if self.slowing_seen else 'never SLOWING'}")
         self.auth_failures.update(self.model.auth_failures)
         for why in sorted(self.auth_failures):
             event(f"keyed unit: refused, {why}")
@@ -199,7 +226,8 @@ class CoreVsModel(RuleBasedStateMachine):
             data_id = CFG.brake_data_id if can_id == BRAKE_ID else CFG.status_data_id
             assert e2e_crc8(data_id, data[:7]) == data[7], "bad CRC-8"
             if can_id == BRAKE_ID:
-                assert (data[0], data[1]) == ((1, 100) if data[2] == 0 else (0, 0))
+                assert (data[0], data[1]) == {STOPPED: (1, 100), ARMED: (0, 0),
+                                              SLOWING: (2, self.cfg.slow_level)}[data[2]]
                 if self.last_brake is not None and self.on_time:
                     assert self.now - self.last_brake[0] <= PERIOD, "ESTOP_BRAKE gap over period"
                 self.last_brake = (self.now, data)
@@ -210,16 +238,24 @@ class CoreVsModel(RuleBasedStateMachine):
                 assert sent, "a reply to no request"
                 req = sent.pop(0)
                 self._check_reply(s.reply, req)
-            if state == STOPPED and s.state == ARMED:
+            if state == STOPPED and s.state != STOPPED:
+                # A RELEASE of a link silent for the slow time goes straight to SLOWING.
                 assert req is not None and s.reply is not None, \
                     "left STOPPED without an accepted RELEASE"
-                assert self._reply_ack_state(s.reply) == (True, ARMED)
+                assert self._reply_ack_state(s.reply) == (True, s.state)
                 assert req.may_release, "released by a RELEASE made without the key, or replayed"
-            if s.state == STOPPED and state == ARMED:
-                event(f"stopped, reason {s.reason}")
+                if s.state == SLOWING:
+                    event("released straight into SLOWING")
+            if s.state == STOPPED and state != STOPPED:
+                event(f"stopped from {'SLOWING' if state == SLOWING else 'ARMED'}, "
+                      f"reason {s.reason}")
+            if state == SLOWING and s.state == ARMED:
+                event("SLOWING back to ARMED")
             state = s.state
         if last.state == ARMED:
             self.armed_seen = True
+        if last.state == SLOWING:
+            self.slowing_seen = True
         self.prev_state = last.state
         self.on_time = True
         return replies
@@ -255,9 +291,9 @@ class CoreVsModel(RuleBasedStateMachine):
             assert self.last_brake[1][2] == status.state
             assert self.next_call - self.last_brake[0] <= PERIOD
             c = status.counters
-            assert (c.udp_valid, c.udp_invalid, c.udp_stops, status.link_live) == (
+            assert (c.udp_valid, c.udp_invalid, c.udp_stops, c.slowdowns, status.link_live) == (
                 self.model.valid, self.model.invalid, self.model.udp_stops,
-                self.model.link_live())
+                self.model.slowdowns, self.model.link_live())
 
     def _later(self, dt: int) -> int:
         # A host calls back no later than it was asked to; jumps are their own rule.
@@ -360,7 +396,7 @@ class CoreVsModel(RuleBasedStateMachine):
 
     @rule(data=stop_datagrams, dt=small_dt)
     def stop_datagram(self, data: bytes, dt: int) -> None:
-        """Anyone may stop: a request frame with the stop ID over UDP, any tag."""
+        """Anyone may stop: a request frame with the stop ID or LIFT over UDP, any tag."""
         self.run_host_until(self.now + dt)
         self._udp(data, forged=True)
 
@@ -514,8 +550,9 @@ class CoreVsModel(RuleBasedStateMachine):
         """One request of the given kind (TCP_KINDS)."""
         if not kind.startswith("f_"):  # a plain 16-byte frame
             self.seq += 1
-            msg_id = {"stop": CFG.stop_id, "status": STATUS_ID, "release": RELEASE_ID,
-                      "unknown": data.draw(st.integers(3, 2**32 - 1).filter(
+            msg_id = {"stop": CFG.stop_id, "lift": LIFT_ID, "status": STATUS_ID,
+                      "release": RELEASE_ID,
+                      "unknown": data.draw(st.integers(4, 2**32 - 1).filter(
                           lambda i: i not in (CFG.stop_id, 0x32515345))),
                       "badcrc": STATUS_ID}[kind]
             raw = request(msg_id, self.seq & 0xFFFFFFFF, good_crc=kind != "badcrc")
@@ -550,13 +587,13 @@ class CoreVsModel(RuleBasedStateMachine):
             return Sent(self._frame(STATUS_ID, rid, counter=counter,
                                     key=self.wrong_key if how == "wrong_key" else self.remote_key,
                                     session=0 if how == "session_0" else self.known_session))
-        frame = self._frame(CFG.stop_id, rid, key=self.remote_key, session=self.known_session,
-                            counter=counter)
-        if kind == "f_stop" and data.draw(st.booleans()):
+        frame = self._frame(LIFT_ID if kind == "f_lift" else CFG.stop_id, rid, key=self.remote_key,
+                            session=self.known_session, counter=counter)
+        if kind in ("f_stop", "f_lift") and data.draw(st.booleans()):
             return Sent(frame)  # a stop button that holds the key (keeps no counter either)
         if kind == "f_unknown":  # an unknown msg_id
             msg_id = data.draw(st.integers(0, 2**32 - 1).filter(
-                lambda i: i not in (CFG.stop_id, STATUS_ID, RELEASE_ID)))
+                lambda i: i not in (CFG.stop_id, STATUS_ID, RELEASE_ID, LIFT_ID)))
             frame = frame[:4] + struct.pack("<I", msg_id) + frame[8:]
         return Sent(frame[:32] + data.draw(st.binary(min_size=16, max_size=16)))  # garbage tag
 

@@ -11,7 +11,8 @@ from hypothesis import strategies as st
 from estop.protocol import can
 from estop.protocol.can import BrakeFrame, StatusFrame
 
-SPEC_CAN_BRAKE = ["01 64 00 01 00 00 00 9C", "00 00 01 00 00 00 07 18", "01 64 00 03 00 00 0E 1D"]
+SPEC_CAN_BRAKE = ["01 64 00 01 00 00 00 9C", "00 00 01 00 00 00 07 18", "01 64 00 03 00 00 0E 1D",
+                  "02 1E 02 00 01 00 05 3E", "01 64 00 05 00 00 09 27"]
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +34,8 @@ def brake_as_dbc(frame: BrakeFrame, data: bytes) -> dict[str, int]:
 def status_as_dbc(frame: StatusFrame, data: bytes) -> dict[str, int]:
     return {
         "valid_packets": frame.valid_packets, "invalid_packets": frame.invalid_packets,
-        "auth_failures": frame.auth_failures, "stops": frame.stops, "link_age": frame.link_age_ms,
+        "auth_failures": frame.auth_failures, "stops": frame.stops,
+        "slowdowns": frame.slowdowns, "link_age": frame.link_age_ms,
         "alive_counter": frame.counter, "counter_reserved": data[6] >> 4, "crc": data[7],
     }
 
@@ -58,6 +60,8 @@ def test_value_tables_use_the_project_names(db: Database) -> None:
         can.STATE_NAMES
     assert {int(k): str(v) for k, v in brake.get_signal_by_name("reason").choices.items()} == \
         can.REASON_NAMES
+    assert {int(k): str(v) for k, v in
+            brake.get_signal_by_name("brake_request").choices.items()} == can.BRAKE_REQUEST_NAMES
     status = db.get_message_by_name("ESTOP_STATUS")
     assert str(status.get_signal_by_name("link_age").choices[0xFFFF]) == "none"
 
@@ -71,7 +75,7 @@ def test_spec_examples(db: Database, text: str) -> None:
     named = db.decode_message("ESTOP_BRAKE", data)
     assert str(named["state"]) == can.state_name(frame.state)
     assert str(named["reason"]) == can.reason_name(frame.reason)
-    assert str(named["brake_request"]) == ("emergency_brake" if frame.brakes else "release")
+    assert str(named["brake_request"]) == can.brake_request_name(frame.brake_request)
     # and cantools encodes the same bytes back
     assert db.encode_message(can.BRAKE_ID, brake_as_dbc(frame, data)) == data
 
@@ -90,8 +94,10 @@ def test_random_brake_bytes(db: Database, data: bytes) -> None:
                              scaling=False) == brake_as_dbc(frame, data)
 
 
-@given(st.sampled_from([BrakeFrame.for_state(0, r, 0, c) for r in range(1, 5) for c in range(15)]
-                       + [BrakeFrame.for_state(1, 0, f, c) for f in (0, 1) for c in range(15)]))
+@given(st.sampled_from([BrakeFrame.for_state(0, r, 0, c) for r in range(1, 6) for c in range(15)]
+                       + [BrakeFrame.for_state(s, 0, f, c, slow_level=level)
+                          for s in (1, 2) for f in (0, 1) for c in range(15)
+                          for level in (1, 30, 99)]))
 def test_random_valid_brake_frames(db: Database, frame: BrakeFrame) -> None:
     data = frame.encode()
     assert db.decode_message(can.BRAKE_ID, data, decode_choices=False) == \
@@ -100,7 +106,8 @@ def test_random_valid_brake_frames(db: Database, frame: BrakeFrame) -> None:
 
 
 @given(st.builds(StatusFrame, st.integers(0, 255), st.integers(0, 255), st.integers(0, 255),
-                 st.integers(0, 255), st.integers(0, 0xFFFF), st.integers(0, 14)))
+                 st.integers(0, 15), st.integers(0, 0xFFFF), st.integers(0, 14),
+                 st.integers(0, 15)))
 def test_random_status_frames(db: Database, frame: StatusFrame) -> None:
     data = frame.encode()
     assert db.decode_message(can.STATUS_ID, data, decode_choices=False) == \

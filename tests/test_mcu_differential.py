@@ -27,7 +27,10 @@ from core_util import (
     ARMED,
     BOOT,
     FAULT,
+    LIFT,
+    LIFT_ID,
     MS,
+    SLOWING,
     STOP_ID,
     STOPPED,
     TCP_STOP,
@@ -181,13 +184,17 @@ def fields(rep: bytes, req: bytes) -> tuple[int, int, int, int]:
 @pytest.mark.parametrize("keyed", [False, True], ids=["plain", "keyed"])
 def test_an_hour_of_driving_compressed(keyed: bool) -> None:
     """Each minute: the gap since the last one (one tick), heartbeats at 50 Hz, a RELEASE, a
-    second of driving with STATUS requests split across reads, then one of six endings. The
-    clock starts half an hour before its 32-bit wrap. Keyed: every packet and request is
-    authenticated, and the endings include a replay and forged tags. The stack every entry
-    point used is measured and must stay within the static bound of test_mcu_footprint.py."""
+    second of driving with STATUS requests split across reads (and a burst of lost packets
+    that slows the unit down until three packets bring it back), then one of eight endings.
+    The unit stops in two stages (S 100 ms, T 200 ms). The clock starts half an hour before
+    its 32-bit wrap. Keyed: every packet and request is authenticated, and the endings include
+    a replay and forged tags. The stack every entry point used is measured and must stay
+    within the static bound of test_mcu_footprint.py."""
     twin = Twin(measure_stack=True)
     start = (1 << 32) - 1_800_000_000
-    u = TwinUnit(twin, start, cfg=config_bytes(auth_key=K if keyed else None))
+    u = TwinUnit(twin, start, cfg=config_bytes(auth_key=K if keyed else None,
+                                               timeout_us=200 * MS, slow_us=100 * MS,
+                                               warn_us=50 * MS, slow_level=40))
     remote = Remote(keyed)
     u.open(0)
     u.open(1)
@@ -204,17 +211,19 @@ def test_an_hour_of_driving_compressed(keyed: bool) -> None:
         assert fields(rep, req)[:3] == (ACK, seq, ARMED), f"minute {minute}"
         last = b""
         for i in range(50):
-            u.wait(20 * MS)
+            u.wait((130 if i == 25 else 20) * MS)  # the 25th: after a burst of lost packets
             last = remote.packet(*drive_body(minute * 50 + i))
             u.udp(last)
+            assert u.state == (SLOWING if i in (25, 26) else ARMED), f"minute {minute}, {i}"
             if i % 10 == 5:
                 seq += 1
                 req = remote.request(STATUS, seq)
                 assert u.tcp(1, req[:5]) == []
                 u.wait(1 * MS)
                 (rep,) = u.tcp(1, req[5:])
-                assert fields(rep, req)[:3] == (ACK, seq, ARMED)
-        ending = ("tcp_stop", "silence", "fault", "bad_crc", "stale", "invalid")[minute % 6]
+                assert fields(rep, req)[:3] == (ACK, seq, u.state)
+        ending = ("tcp_stop", "silence", "fault", "bad_crc", "stale", "invalid", "lift",
+                  "lift_datagram")[minute % 8]
         endings[ending] += 1
         if ending == "tcp_stop":
             seq += 1
@@ -222,8 +231,20 @@ def test_an_hour_of_driving_compressed(keyed: bool) -> None:
             (rep,) = u.tcp(0, req)
             assert fields(rep, req)[2:4] == (STOPPED, TCP_STOP)
         elif ending == "silence":
-            u.wait(250 * MS)
+            u.wait(150 * MS)
+            assert u.state == SLOWING
+            u.wait(100 * MS)
             assert u.reason == UDP_TIMEOUT
+        elif ending == "lift":
+            seq += 1
+            req = remote.request(LIFT_ID, seq)
+            (rep,) = u.tcp(0, req)
+            assert fields(rep, req)[2:4] == (STOPPED, LIFT)
+        elif ending == "lift_datagram":
+            u.wait(120 * MS)  # from SLOWING: a lift datagram, whatever its tag
+            assert u.state == SLOWING
+            u.udp(b"ESQ2" + struct.pack("<I", LIFT_ID) + bytes(40))
+            assert u.reason == LIFT
         elif ending == "fault":
             u.fault()
             assert u.reason == FAULT
@@ -252,7 +273,7 @@ def test_an_hour_of_driving_compressed(keyed: bool) -> None:
         u.wait(300 * MS)
         assert u.state == STOPPED
     assert u.t > 1 << 32 and set(endings) == {"tcp_stop", "silence", "fault", "bad_crc",
-                                               "stale", "invalid"}
+                                               "stale", "invalid", "lift", "lift_datagram"}
     for v in twin.arms:
         bounds = mcubuild.stack_per_entry(v.variant)
         for (name, fn), used in twin.max_stack.items():
@@ -308,7 +329,11 @@ config_change = st.one_of(
     st.just({}),
     st.just({}),
     st.fixed_dictionaries({"timeout_us": st.integers(1000, 1_000_000)}).map(
-        lambda d: {**d, "warn_us": d["timeout_us"] // 2}),
+        lambda d: {**d, "slow_us": d["timeout_us"], "warn_us": d["timeout_us"] // 2}),
+    # a two-stage stop (protocol version 3): SLOWING from a quarter of the timeout
+    st.fixed_dictionaries({"timeout_us": st.integers(4000, 1_000_000),
+                           "slow_level": st.integers(1, 99)}).map(
+        lambda d: {**d, "slow_us": d["timeout_us"] // 4, "warn_us": d["timeout_us"] // 8}),
     st.lists(st.sampled_from(CONFIG_FIELDS).flatmap(field_values), max_size=2).map(dict),
 )
 
@@ -323,7 +348,7 @@ short = st.integers(0, 25_000)
 rid = st.one_of(st.just(RID), st.just(RID), st.integers(0, 10))
 counter_mode = st.sampled_from(["next", "next", "next", "same", "jump", "zero", "max"])
 session_mode = st.sampled_from(["N", "N", "N", "N", "zero", "other"])
-msg_id = st.one_of(st.sampled_from([RELEASE, STOP_ID, STATUS]), st.integers(0, U32))
+msg_id = st.one_of(st.sampled_from([RELEASE, STOP_ID, STATUS, LIFT_ID]), st.integers(0, U32))
 
 step = st.one_of(
     st.tuples(st.just("tick"), dt),

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import io
 import math
 import struct
@@ -111,13 +112,16 @@ def test_spec_log_line() -> None:
 def test_constants() -> None:
     assert (can.BRAKE_ID, can.STATUS_ID) == (0x050, 0x051)
     assert (can.BRAKE_DATA_ID, can.STATUS_DATA_ID) == (0x0E57, 0x0E58)
-    assert (tcp.STATUS, tcp.RELEASE, tcp.ACK, tcp.NAK) == (1, 2, 0x80, 0x81)
+    assert (tcp.STATUS, tcp.RELEASE, tcp.LIFT, tcp.ACK, tcp.NAK) == (1, 2, 3, 0x80, 0x81)
     assert tcp.DEFAULT_STOP_ID == 0xE570E570
     assert [int(c) for c in tcp.NakCode] == [0, 1, 2, 3, 4]
     assert (udp.DEFAULT_PORT, tcp.DEFAULT_PORT) == (5700, 5701)
-    assert can.STATE_NAMES == {0: "STOPPED", 1: "ARMED"}
+    assert can.STATE_NAMES == {0: "STOPPED", 1: "ARMED", 2: "SLOWING"}
     assert can.REASON_NAMES == {0: "none", 1: "boot", 2: "tcp_stop", 3: "udp_timeout",
-                                4: "fault"}
+                                4: "fault", 5: "lift"}
+    assert can.BRAKE_REQUEST_NAMES == {0: "release", 1: "emergency_brake",
+                                       2: "controlled_stop"}
+    assert can.brake_request_name(3) == "request?3"
     assert can.flag_names(1) == ["link_degraded"] and can.flag_names(0) == []
     assert can.state_name(7) == "state?7" and can.reason_name(9) == "reason?9"
 
@@ -331,9 +335,10 @@ def test_tcp_reply_layout() -> None:
 
 
 @pytest.mark.parametrize(("reply", "match"), [
-    (Reply(True, 1, 2, 0), "state"),
-    (Reply(True, 1, 0, 5), "reason"),
+    (Reply(True, 1, 3, 0), "state"),
+    (Reply(True, 1, 0, 6), "reason"),
     (Reply(True, 1, 1, 2), "while ARMED"),
+    (Reply(True, 1, 2, 5), "while SLOWING"),
     (Reply(True, 1, 0, 0), "none while STOPPED"),
     (Reply(True, 1, 1, 0, 2), "flags"),
     (Reply(True, 1, 0, 1, 1), "link_degraded"),
@@ -364,10 +369,10 @@ def test_tcp_wrong_length_and_bad_values() -> None:
         Request(2**32, 0).encode()
     with pytest.raises(ValueError, match="u32"):
         Request(1, -1).encode()
-    for bad in (0, 1, 2):
-        with pytest.raises(ValueError, match="0, 1, 2 or 0x32515345"):
+    for bad in (0, 1, 2, 3):
+        with pytest.raises(ValueError, match="0, 1, 2, 3 or 0x32515345"):
             tcp.stop_request(1, bad)
-    assert tcp.check_stop_id(3) == 3
+    assert tcp.check_stop_id(4) == 4
 
 
 def test_frame_assembler_example_split_everywhere() -> None:
@@ -452,9 +457,16 @@ def seal(payload7: bytes, data_id: int = can.BRAKE_DATA_ID) -> bytes:
     ("01 00 01 00 00 00 00", "bad_content", "brake_request 1 while ARMED"),
     ("01 32 00 01 00 00 00", "bad_content", "brake_level 50"),
     ("00 64 01 00 00 00 00", "bad_content", "brake_level 100"),
-    ("02 64 00 01 00 00 00", "bad_content", "brake_request 2"),
-    ("01 64 02 01 00 00 00", "bad_content", "state 2"),
-    ("01 64 00 05 00 00 00", "bad_content", "reason 5"),
+    ("02 64 00 01 00 00 00", "bad_content", "brake_request 2 while STOPPED"),
+    ("03 64 00 01 00 00 00", "bad_content", "brake_request 3"),
+    ("01 64 03 01 00 00 00", "bad_content", "state 3"),
+    ("01 64 00 06 00 00 00", "bad_content", "reason 6"),
+    ("01 64 02 00 00 00 00", "bad_content", "brake_request 1 while SLOWING"),
+    ("00 00 02 00 00 00 00", "bad_content", "brake_request 0 while SLOWING"),
+    ("02 00 02 00 00 00 00", "bad_content", "brake_level 0 while SLOWING"),
+    ("02 64 02 00 00 00 00", "bad_content", "brake_level 100 while SLOWING"),
+    ("02 1E 02 05 00 00 00", "bad_content", "while SLOWING"),
+    ("02 1E 01 00 00 00 00", "bad_content", "brake_request 2 while ARMED"),
     ("01 64 00 00 00 00 00", "bad_content", "none while STOPPED"),
     ("00 00 01 02 00 00 00", "bad_content", "while ARMED"),
     ("00 00 01 00 02 00 00", "bad_content", "flags"),
@@ -492,13 +504,14 @@ def test_can_encode_refuses_invalid_frames() -> None:
 
 
 status_frames = st.builds(StatusFrame, st.integers(0, 255), st.integers(0, 255),
-                          st.integers(0, 255), st.integers(0, 255), st.integers(0, 0xFFFF),
-                          st.integers(0, 14))
+                          st.integers(0, 255), st.integers(0, 15), st.integers(0, 0xFFFF),
+                          st.integers(0, 14), st.integers(0, 15))
 
 
 @given(status_frames)
 def test_can_status_roundtrip(frame: StatusFrame) -> None:
     data = frame.encode()
+    assert data[3] == frame.stops | frame.slowdowns << 4
     assert data[4:6] == struct.pack("<H", frame.link_age_ms)
     assert data[6] == frame.counter
     assert data[7] == crc.crc8_j1850(b"\x58\x0e" + data[:7])
@@ -604,3 +617,22 @@ def test_canlog_read_write_stream() -> None:
 def test_canlog_roundtrip(ts: int, iface: str, ext: bool, ident: int, data: bytes) -> None:
     rec = canlog.CanLogRecord(ts, iface, ident if ext else ident & 0x7FF, data, ext)
     assert canlog.parse_line(canlog.format_line(rec)) == rec
+
+
+@pytest.mark.parametrize(("request_value", "level", "share", "emergency"), [
+    (0, 0, 0.0, False), (1, 100, 1.0, True), (2, 30, 0.3, False), (2, 1, 0.01, False),
+    (3, 0, 1.0, True), (255, 0, 1.0, True)])
+def test_brake_request_grading(request_value: int, level: int, share: float,
+                               emergency: bool) -> None:
+    """Section 7: 2 decelerates at brake_level percent of the emergency deceleration; a value a
+    receiver does not know means an emergency brake."""
+    frame = BrakeFrame(request_value, level, 0, 1, 0, 0)
+    assert frame.deceleration_share == pytest.approx(share)
+    assert frame.emergency is emergency and frame.brakes is (request_value != 0)
+
+
+@pytest.mark.parametrize("field", ["stops", "slowdowns"])
+def test_can_status_nibbles_are_checked(field: str) -> None:
+    frame = dataclasses.replace(StatusFrame(0, 0, 0, 0, 0, 0), **{field: 16})
+    with pytest.raises(can.ContentError, match=f"{field} must be 0..15"):
+        frame.encode()

@@ -210,7 +210,7 @@ def test_lengths_and_magics() -> None:
 def test_reply_fields_are_checked() -> None:
     tag = V_STATUS[32:]
     good = dict(session=N, counter=5)
-    for bad, match in [(AuthReply(True, 1, 2, 0, **good), "state"),
+    for bad, match in [(AuthReply(True, 1, 3, 0, **good), "state"),
                        (AuthReply(True, 1, 0, 1, nak_code=4, **good), "ACK with nak"),
                        (AuthReply(False, 1, 0, 1, nak_code=5, **good), "nak code 5"),
                        (AuthReply(True, 1, 0, 1, session=0, counter=5), "session 0")]:

@@ -7,11 +7,23 @@ import hashlib
 
 import pytest
 
-from core_util import ARMED, BOOT, MS, STOPPED, TCP_STOP, UDP_TIMEOUT, Unit, reply_fields
+from core_util import (
+    ARMED,
+    BOOT,
+    LIFT,
+    MS,
+    SLOWING,
+    STOPPED,
+    TCP_STOP,
+    UDP_TIMEOUT,
+    Unit,
+    packet,
+    reply_fields,
+)
 from estop.core import Config
 from estop.protocol import auth
 from estop.protocol.can import BrakeFrame
-from estop.protocol.tcp import Reply, Request, release_request, stop_request
+from estop.protocol.tcp import Reply, Request, lift_request, release_request, stop_request
 from estop.protocol.udp import ControlPacket
 
 UDP_EXAMPLE = bytes.fromhex("9A 99 99 3E 00 00 80 BE 08 00 00 00 01 00 00 00 00 00 00 00")
@@ -20,6 +32,9 @@ RELEASE_EXAMPLE = bytes.fromhex("02 00 00 00 02 00 00 00 00 00 00 00 8D 5F CB D5
 BRAKE_BOOT_0 = bytes.fromhex("01 64 00 01 00 00 00 9C")
 BRAKE_ARMED_7 = bytes.fromhex("00 00 01 00 00 00 07 18")
 BRAKE_TIMEOUT_14 = bytes.fromhex("01 64 00 03 00 00 0E 1D")
+BRAKE_SLOWING_5 = bytes.fromhex("02 1E 02 00 01 00 05 3E")  # L = 30, link degraded (v3)
+BRAKE_LIFT_9 = bytes.fromhex("01 64 00 05 00 00 09 27")  # v3
+LIFT_EXAMPLE = bytes.fromhex("03 00 00 00 05 00 00 00 00 00 00 00 FB 1A AB 44")  # v3
 
 # Section 5.4: key 00..1F, session 0x0123456789ABCDEF, remote id 7.
 K = bytes(range(32))
@@ -41,6 +56,9 @@ AUTH_RELEASE_EXAMPLE = bytes.fromhex(
 AUTH_STOP_EXAMPLE = bytes.fromhex(
     "45 53 51 32 70 E5 70 E5 03 00 00 00 07 00 00 00 EF CD AB 89 67 45 23 01"
     "03 00 00 00 00 00 00 00 2D 87 7B 42 F3 EA AC D8 BB 0A 03 26 F1 8E D5 2A")
+AUTH_LIFT_EXAMPLE = bytes.fromhex(
+    "45 53 51 32 03 00 00 00 04 00 00 00 07 00 00 00 EF CD AB 89 67 45 23 01"
+    "04 00 00 00 00 00 00 00 8E C2 15 CD 4A AB 10 ED AC 0A F7 A5 91 91 C9 6C")
 
 
 # -- section 1 --------------------------------------------------------------------------------
@@ -72,6 +90,19 @@ def test_release_example_through_python_codec() -> None:
     assert Request.decode(RELEASE_EXAMPLE) == Request(2, 2, 0)
 
 
+def test_lift_example_through_python_codec() -> None:
+    assert lift_request(5).encode() == LIFT_EXAMPLE
+    request = Request.decode(LIFT_EXAMPLE)
+    assert request == Request(3, 5, 0) and request.kind() == "lift"
+
+
+def test_lift_example_through_core() -> None:
+    u = Unit()
+    u.arm()
+    (rep,) = [s.reply for s in u.send(LIFT_EXAMPLE) if s.reply]
+    assert reply_fields(rep) == (0x80, 5, STOPPED, LIFT, 0, 0)
+
+
 def test_stop_and_release_examples_through_core() -> None:
     u = Unit()
     u.arm()
@@ -89,6 +120,7 @@ def test_stop_and_release_examples_through_core() -> None:
     (BRAKE_BOOT_0, STOPPED, BOOT, 0),
     (BRAKE_ARMED_7, ARMED, 0, 7),
     (BRAKE_TIMEOUT_14, STOPPED, UDP_TIMEOUT, 14),
+    (BRAKE_LIFT_9, STOPPED, LIFT, 9),
 ])
 def test_brake_examples_through_python_codec(raw: bytes, state: int, reason: int,
                                              counter: int) -> None:
@@ -96,6 +128,14 @@ def test_brake_examples_through_python_codec(raw: bytes, state: int, reason: int
     frame = BrakeFrame.decode(raw)
     assert (frame.state, frame.reason, frame.counter, frame.brakes) == (
         state, reason, counter, state == STOPPED)
+
+
+def test_slowing_brake_example_through_python_codec() -> None:
+    assert BrakeFrame.for_state(SLOWING, 0, 1, 5, slow_level=30).encode() == BRAKE_SLOWING_5
+    frame = BrakeFrame.decode(BRAKE_SLOWING_5)
+    assert (frame.brake_request, frame.brake_level, frame.state, frame.flags, frame.counter) == (
+        2, 30, SLOWING, 1, 5)
+    assert frame.brakes and not frame.emergency and frame.deceleration_share == 0.3
 
 
 def brake_frames_of(u: Unit) -> list[bytes]:
@@ -120,6 +160,28 @@ def test_brake_examples_through_core() -> None:
         assert len(u.frames) < 10_000
 
 
+def test_slowing_and_lift_brake_examples_through_core() -> None:
+    """A two-stage unit (S 100 ms, W 50 ms, T 1 s, L 30 %) slows down whenever the link is
+    silent for S, with the link-degraded flag; a LIFT stops it. The counter runs until the
+    examples' counters come up (5 while SLOWING, 9 for the lift)."""
+    u = Unit(Config(timeout_us=1000 * MS, slow_us=100 * MS, warn_us=50 * MS, slow_level=30))
+    u.arm()
+    rounds = 0
+    while BRAKE_SLOWING_5 not in brake_frames_of(u):
+        rounds += 1  # silent past S: SLOWING, flagged; three packets bring it back
+        u.wait((101 + 7 * (rounds % 20)) * MS)
+        assert u.state == SLOWING
+        for _ in range(3):
+            u.wait(5 * MS)
+            u.udp(packet())
+        assert u.state == ARMED and len(u.frames) < 10_000
+    u.ask(3)  # LIFT
+    u.drive(5)
+    while BRAKE_LIFT_9 not in brake_frames_of(u):
+        u.wait(10 * MS)
+        assert len(u.frames) < 10_000
+
+
 # -- section 5.4 ------------------------------------------------------------------------------
 def spec_mac(message: bytes) -> bytes:
     """MAC(K, m) as section 5 defines it, straight from hashlib."""
@@ -128,7 +190,7 @@ def spec_mac(message: bytes) -> bytes:
 
 @pytest.mark.parametrize(("raw", "signed"), [
     (AUTH_CONTROL_EXAMPLE, 44), (AUTH_STATUS_EXAMPLE, 32), (AUTH_RELEASE_EXAMPLE, 32),
-    (AUTH_STOP_EXAMPLE, 32)])
+    (AUTH_STOP_EXAMPLE, 32), (AUTH_LIFT_EXAMPLE, 32)])
 def test_auth_example_tags_are_the_spec_mac(raw: bytes, signed: int) -> None:
     assert len(raw) == signed + 16
     assert raw[signed:] == spec_mac(raw[:signed])
@@ -153,6 +215,7 @@ def test_auth_control_example_through_python_codec() -> None:
     (AUTH_STATUS_EXAMPLE, (1, 1, 0, 0x1122334455667788)),
     (AUTH_RELEASE_EXAMPLE, (2, 2, N, 2)),
     (AUTH_STOP_EXAMPLE, (0xE570E570, 3, N, 3)),
+    (AUTH_LIFT_EXAMPLE, (3, 4, N, 4)),
 ])
 def test_auth_request_examples_through_python_codec(raw: bytes,
                                                      fields: tuple[int, int, int, int]) -> None:
@@ -214,3 +277,28 @@ def test_auth_stop_example_as_a_stop_datagram_through_core() -> None:
     u.udp(AUTH_STOP_EXAMPLE)
     assert (u.state, u.reason) == (STOPPED, TCP_STOP)
     assert u.wd.status().counters.udp_stops == 1
+
+
+@pytest.mark.parametrize("channel", ["tcp", "udp"])
+def test_auth_lift_example_through_core(channel: str) -> None:
+    """Section 5.4's LIFT, as a request on TCP (answered with a tagged reply) and as a lift
+    datagram on UDP (no reply): either stops an armed unit with reason lift, and changes no
+    counter."""
+    u = keyed_unit()
+    for counter in range(1, 6):
+        u.wait(20 * MS)
+        u.udp(auth.AuthControlPacket(RID, N, counter, ControlPacket()).encode(K))
+    assert only_reply(u, auth.AuthRequest(2, 9, RID, N, 1).encode(K))[12] == ARMED
+    if channel == "tcp":
+        rep = auth.AuthReply.decode(only_reply(u, AUTH_LIFT_EXAMPLE), K,
+                                    auth.request_tag(AUTH_LIFT_EXAMPLE))
+        assert (rep.ack, rep.seq, rep.state, rep.reason, rep.counter) == (True, 4, STOPPED, LIFT, 4)
+    else:
+        u.udp(AUTH_LIFT_EXAMPLE)
+        assert u.wd.status().counters.udp_stops == 1
+    assert (u.state, u.reason) == (STOPPED, LIFT)
+    # No counter moved: a RELEASE with counter 2 (above the 1 kept) is still authenticated.
+    for counter in range(6, 11):
+        u.wait(20 * MS)
+        u.udp(auth.AuthControlPacket(RID, N, counter, ControlPacket()).encode(K))
+    assert only_reply(u, auth.AuthRequest(2, 10, RID, N, 2).encode(K))[12] == ARMED

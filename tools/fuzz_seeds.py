@@ -22,7 +22,7 @@ HEX_LINE = re.compile(r"^`((?:[0-9A-F]{2} )+[0-9A-F]{2})`$")
 # Opcodes of fuzz_core.c (the op byte is taken modulo 16).
 OP_TICK_NEXT, OP_UDP_RAW, OP_OPEN, OP_TCP_RAW = 1, 2, 6, 8
 OP_REQUEST, OP_FAULT, OP_DRIVE = 10, 11, 14
-KEY_FLAG, SHORT_TIMES_FLAG = 1, 2
+KEY_FLAG, SHORT_TIMES_FLAG, TWO_STAGE_FLAG = 1, 2, 4
 SOON = 100  # time selector: most of the way to the core's next call time
 
 
@@ -106,6 +106,13 @@ def core_seeds(vectors: list[bytes]) -> dict[str, bytes]:
     short = header(KEY_FLAG | SHORT_TIMES_FLAG) + struct.pack("<HHHH", 200, 500, 10, 700) + b"\x02"
     seeds["scenario-key-short"] = (short + open_slot() + drive(3) + release_request()
                                    + bytes([OP_TICK_NEXT, 31, OP_TICK_NEXT, 31]))
+    # Two stages (version 3): the slow time a third of the timeout, slow level 30.
+    two_stage = (header(KEY_FLAG | SHORT_TIMES_FLAG | TWO_STAGE_FLAG)
+                 + struct.pack("<HHHH", 200, 500, 10, 700) + b"\x02"
+                 + struct.pack("<H", 600) + bytes([29]))
+    seeds["scenario-key-two-stage"] = (two_stage + open_slot() + drive(3) + release_request()
+                                       + bytes([OP_TICK_NEXT, 31]) + drive(3)
+                                       + bytes([OP_TICK_NEXT, 31, OP_TICK_NEXT, 31]))
     return seeds
 
 

@@ -16,9 +16,9 @@
 #define FLOAT_ONE_BITS 0x3F800000u  /* IEEE-754 single 1.0f */
 #define FLOAT_ABS_MASK 0x7FFFFFFFu
 #define FLOAT_SIGN_BIT 0x80000000u
-#define BRAKE_LEVEL_FULL 100u
 #define COUNTER_MODULO 15u        /* alive counter runs 0..14; 15 is never sent */
 #define SAT8_MAX 255u
+#define SAT4_MAX 15u               /* the two nibbles of ESTOP_STATUS byte 3 */
 #define LINK_AGE_NONE_MS 0xFFFFu
 #define PLAIN_FRAME_LEN ESTOP_TCP_FRAME_LEN
 #define MAGIC_LEN 4u               /* the first bytes of a frame decide its form */
@@ -100,11 +100,6 @@ static uint32_t log2_floor(uint32_t v)
 #endif
 }
 
-static uint8_t sat8_of(uint32_t v)
-{
-    return (v < SAT8_MAX) ? (uint8_t)v : (uint8_t)SAT8_MAX;
-}
-
 /* A float32 (as raw bits) is finite and within -1.0 .. 1.0. NaN and infinities have a
  * magnitude above 1.0's bit pattern, so one comparison covers all three; no FPU needed. */
 static int unit_range_bits(uint32_t bits)
@@ -143,7 +138,9 @@ void estop_config_default(estop_config_t *cfg)
     if (cfg != NULL) {
         uint32_t i;
         cfg->timeout_us = ESTOP_DEFAULT_TIMEOUT_US;
+        cfg->slow_us = ESTOP_DEFAULT_TIMEOUT_US; /* S = T: never SLOWING (version 2) */
         cfg->warn_us = ESTOP_DEFAULT_TIMEOUT_US / 2u;
+        cfg->slow_level = (uint8_t)ESTOP_DEFAULT_SLOW_LEVEL;
         cfg->stop_id = ESTOP_DEFAULT_STOP_ID;
         cfg->brake_can_id = ESTOP_DEFAULT_BRAKE_CAN_ID;
         cfg->status_can_id = ESTOP_DEFAULT_STATUS_CAN_ID;
@@ -168,10 +165,16 @@ estop_err_t estop_config_check(const estop_config_t *cfg)
     } else if ((cfg->timeout_us < ESTOP_TIMEOUT_MIN_US) ||
                (cfg->timeout_us > ESTOP_TIMEOUT_MAX_US)) {
         err = ESTOP_ERR_TIMEOUT;
-    } else if ((cfg->warn_us == 0u) || (cfg->warn_us >= cfg->timeout_us)) {
+    } else if ((cfg->slow_us == 0u) || (cfg->slow_us > cfg->timeout_us)) {
+        err = ESTOP_ERR_SLOW;
+    } else if ((cfg->warn_us == 0u) || (cfg->warn_us > cfg->slow_us)) {
         err = ESTOP_ERR_WARN;
+    } else if ((cfg->slow_level < ESTOP_SLOW_LEVEL_MIN) ||
+               (cfg->slow_level > ESTOP_SLOW_LEVEL_MAX)) {
+        err = ESTOP_ERR_SLOW_LEVEL;
     } else if ((cfg->stop_id == 0u) || (cfg->stop_id == ESTOP_MSG_STATUS) ||
-               (cfg->stop_id == ESTOP_MSG_RELEASE) || (cfg->stop_id == ESTOP_MAGIC_REQUEST)) {
+               (cfg->stop_id == ESTOP_MSG_RELEASE) || (cfg->stop_id == ESTOP_MSG_LIFT) ||
+               (cfg->stop_id == ESTOP_MAGIC_REQUEST)) {
         err = ESTOP_ERR_STOP_ID;
     } else if ((cfg->brake_can_id > ESTOP_CAN_ID_MAX) || (cfg->status_can_id > ESTOP_CAN_ID_MAX) ||
                (cfg->brake_can_id == cfg->status_can_id)) {
@@ -233,10 +236,16 @@ static uint32_t link_age(const estop_core_t *core)
     return (uint32_t)(core->now_us - core->last_valid_us);
 }
 
+/* ARMED or SLOWING: the brake is not latched and the watchdog runs. */
+static int moving(const estop_core_t *core)
+{
+    return core->state != ESTOP_STATE_STOPPED;
+}
+
 static uint8_t current_flags(const estop_core_t *core)
 {
     uint8_t flags = 0u;
-    if ((core->state == ESTOP_STATE_ARMED) && (link_age(core) >= core->cfg.warn_us)) {
+    if ((moving(core) != 0) && (link_age(core) >= core->cfg.warn_us)) {
         flags = (uint8_t)ESTOP_FLAG_LINK_DEGRADED;
     }
     return flags;
@@ -273,9 +282,16 @@ static void push_frame(estop_out_t *out, uint32_t id, uint16_t data_id, const ui
 static void send_brake(estop_core_t *core, estop_out_t *out)
 {
     uint8_t p[6];
-    const uint8_t stopped = (core->state == ESTOP_STATE_STOPPED) ? 1u : 0u;
-    p[0] = stopped;
-    p[1] = (stopped != 0u) ? (uint8_t)BRAKE_LEVEL_FULL : 0u;
+    if (core->state == ESTOP_STATE_ARMED) {
+        p[0] = (uint8_t)ESTOP_BRAKE_RELEASE;
+        p[1] = 0u;
+    } else if (core->state == ESTOP_STATE_SLOWING) {
+        p[0] = (uint8_t)ESTOP_BRAKE_CONTROLLED;
+        p[1] = core->cfg.slow_level;
+    } else {
+        p[0] = (uint8_t)ESTOP_BRAKE_EMERGENCY; /* STOPPED, and any state it does not know */
+        p[1] = (uint8_t)ESTOP_BRAKE_LEVEL_FULL;
+    }
     p[2] = core->state;
     p[3] = core->reason;
     p[4] = current_flags(core);
@@ -286,9 +302,6 @@ static void send_brake(estop_core_t *core, estop_out_t *out)
 static void send_status(estop_core_t *core, estop_out_t *out)
 {
     uint8_t p[6];
-    uint32_t stops = core->counters.stops[ESTOP_REASON_TCP_STOP] +
-                     core->counters.stops[ESTOP_REASON_UDP_TIMEOUT] +
-                     core->counters.stops[ESTOP_REASON_FAULT];
     uint32_t age_ms = LINK_AGE_NONE_MS;
     if (core->link_fresh != 0u) {
         age_ms = link_age(core) / 1000u; /* below the 60 s timeout limit, so fits in 16 bits */
@@ -296,13 +309,15 @@ static void send_status(estop_core_t *core, estop_out_t *out)
     p[0] = core->status_valid;
     p[1] = core->status_invalid;
     p[2] = core->status_auth_failed;
-    p[3] = sat8_of(stops);
+    p[3] = (uint8_t)(core->status_stops | (uint8_t)(core->status_slowdowns << 4));
     p[4] = (uint8_t)(age_ms & 0xFFu);
     p[5] = (uint8_t)((age_ms >> 8) & 0xFFu);
     push_frame(out, core->cfg.status_can_id, core->cfg.status_data_id, p, &core->status_counter);
     core->status_valid = 0u;
     core->status_invalid = 0u;
     core->status_auth_failed = 0u;
+    core->status_stops = 0u;
+    core->status_slowdowns = 0u;
 }
 
 /* ---- transitions -------------------------------------------------------------------------- */
@@ -315,22 +330,44 @@ static void state_changed(estop_core_t *core, estop_out_t *out)
     core->brake_due_us = core->now_us + core->cfg.brake_period_us;
 }
 
+static uint8_t sat4_inc(uint8_t v)
+{
+    return (v < SAT4_MAX) ? (uint8_t)(v + 1u) : v;
+}
+
 /* Every stop request restarts the release count; only the first one sets the reason. */
 static void stop(estop_core_t *core, uint8_t reason, estop_out_t *out)
 {
     core->valid_run = 0u;
-    if (core->state == ESTOP_STATE_ARMED) {
+    if (moving(core) != 0) {
         core->state = (uint8_t)ESTOP_STATE_STOPPED;
         core->reason = reason;
         core->counters.stops[reason]++;
+        core->status_stops = sat4_inc(core->status_stops);
         state_changed(core, out);
     }
 }
 
+/* SLOWING at the slow time: a controlled stop that the link's return ends. The caller sends
+ * the state change. */
+static void enter_slowing(estop_core_t *core)
+{
+    core->state = (uint8_t)ESTOP_STATE_SLOWING;
+    core->slow_run = 0u;
+    core->counters.slowdowns++;
+    core->status_slowdowns = sat4_inc(core->status_slowdowns);
+}
+
+/* An accepted RELEASE. The link is younger than the timeout but may be older than the slow
+ * time (S < T): then the slow-down is already due, and the unit goes straight to SLOWING, so
+ * that no frame ever releases the brake for a link that has been silent for S. */
 static void arm(estop_core_t *core, estop_out_t *out)
 {
     core->state = (uint8_t)ESTOP_STATE_ARMED;
     core->reason = (uint8_t)ESTOP_REASON_NONE;
+    if (link_age(core) >= core->cfg.slow_us) {
+        enter_slowing(core);
+    }
     state_changed(core, out);
 }
 
@@ -360,8 +397,13 @@ static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
         core->link_fresh = 0u; /* latched: a wrapped tick can never make this link young again */
         core->valid_run = 0u;  /* a RELEASE needs its packets from after the silence */
     }
-    if ((core->state == ESTOP_STATE_ARMED) && (core->link_fresh == 0u)) {
+    if ((moving(core) != 0) && (core->link_fresh == 0u)) {
         stop(core, (uint8_t)ESTOP_REASON_UDP_TIMEOUT, out);
+    } else if ((core->state == ESTOP_STATE_ARMED) && (link_age(core) >= core->cfg.slow_us)) {
+        enter_slowing(core); /* ARMED implies a fresh link, so the age is meaningful */
+        state_changed(core, out);
+    } else {
+        /* nothing is due: the state stays */
     }
     if (out->state_changed != 0u) {
         out->changed_by_clock = 1u;
@@ -439,7 +481,11 @@ static void finish(const estop_core_t *core, estop_out_t *out)
 {
     uint32_t next = earliest(core->now_us, core->brake_due_us, core->status_due_us);
     if (core->state == ESTOP_STATE_ARMED) {
+        next = earliest(core->now_us, next, core->last_valid_us + core->cfg.slow_us);
+    } else if (core->state == ESTOP_STATE_SLOWING) {
         next = earliest(core->now_us, next, core->last_valid_us + core->cfg.timeout_us);
+    } else {
+        /* STOPPED: only the periodic frames are due */
     }
     out->next_call_us = next;
     out->state = core->state;
@@ -576,12 +622,41 @@ static void record_gap(estop_core_t *core, uint32_t now_us)
     core->gap_known = 1u;
 }
 
-/* Section 1: a request frame with the stop ID. Anyone may stop, so its tag, session and counter
- * are never looked at. */
-static int stop_datagram(const estop_core_t *core, const uint8_t *d, size_t len)
+/* The reason a stop request of this msg_id stops the unit with: a STOP or a LIFT; 0 (none) for
+ * any other msg_id. */
+static uint8_t stop_reason(const estop_core_t *core, uint32_t msg_id)
 {
-    return (d != NULL) && (len == ESTOP_REQ_FRAME_LEN) && (rd_u32le(d) == ESTOP_MAGIC_REQUEST) &&
-           (rd_u32le(&d[4]) == core->cfg.stop_id);
+    uint8_t reason = (uint8_t)ESTOP_REASON_NONE;
+    if (msg_id == core->cfg.stop_id) {
+        reason = (uint8_t)ESTOP_REASON_TCP_STOP;
+    } else if (msg_id == ESTOP_MSG_LIFT) {
+        reason = (uint8_t)ESTOP_REASON_LIFT;
+    } else {
+        /* not a stop request */
+    }
+    return reason;
+}
+
+/* Section 1: a request frame with the stop ID or LIFT; returns its stop reason, or 0. Anyone may
+ * stop, so its tag, session and counter are never looked at. */
+static uint8_t stop_datagram(const estop_core_t *core, const uint8_t *d, size_t len)
+{
+    uint8_t reason = (uint8_t)ESTOP_REASON_NONE;
+    if ((d != NULL) && (len == ESTOP_REQ_FRAME_LEN) && (rd_u32le(d) == ESTOP_MAGIC_REQUEST)) {
+        reason = stop_reason(core, rd_u32le(&d[4]));
+    }
+    return reason;
+}
+
+/* Section 3: a valid packet while SLOWING counts toward the way back to ARMED. */
+static void count_rearm(estop_core_t *core, estop_out_t *out)
+{
+    core->slow_run++;
+    if (core->slow_run >= ESTOP_REARM_PACKETS) {
+        core->counters.rearms++;
+        core->state = (uint8_t)ESTOP_STATE_ARMED;
+        state_changed(core, out);
+    }
 }
 
 estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
@@ -590,9 +665,10 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
     estop_err_t err = begin(core, now_us, out);
     if (err == ESTOP_OK) {
         const uint8_t *body = NULL;
-        if (stop_datagram(core, data, len) != 0) {
+        const uint8_t reason = stop_datagram(core, data, len);
+        if (reason != ESTOP_REASON_NONE) {
             core->counters.udp_stops++;
-            stop(core, (uint8_t)ESTOP_REASON_TCP_STOP, out);
+            stop(core, reason, out);
         } else {
             body = valid_body(core, data, len);
             if (body != NULL) {
@@ -603,6 +679,9 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
                 core->last_valid_us = now_us;
                 core->link_fresh = 1u;
                 core->last_neutral = non_positive_bits(rd_u32le(body)) ? 1u : 0u;
+                if (core->state == ESTOP_STATE_SLOWING) {
+                    count_rearm(core, out);
+                }
             } else {
                 core->counters.udp_invalid++;
                 core->status_invalid = sat8_inc(core->status_invalid);
@@ -717,14 +796,14 @@ static uint8_t release(estop_core_t *core, int authenticated, estop_out_t *out)
             arm(core, out);
         }
     } else {
-        nak = (uint8_t)ESTOP_NAK_NONE; /* already ARMED: acknowledged, nothing changes */
+        nak = (uint8_t)ESTOP_NAK_NONE; /* ARMED or SLOWING: acknowledged, nothing changes */
     }
     if ((nak == ESTOP_NAK_NONE) && (out->state_changed != 0u)) {
         core->counters.releases_accepted++;
     } else if (nak != ESTOP_NAK_NONE) {
         core->counters.releases_refused++;
     } else {
-        /* acknowledged while already ARMED: neither accepted nor refused */
+        /* acknowledged while ARMED or SLOWING: neither accepted nor refused */
     }
     return nak;
 }
@@ -734,9 +813,10 @@ static uint8_t handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
                           estop_out_t *out)
 {
     uint8_t nak = (uint8_t)ESTOP_NAK_NONE;
+    const uint8_t reason = stop_reason(core, msg_id);
     core->counters.tcp_frames++;
-    if (msg_id == core->cfg.stop_id) {
-        stop(core, (uint8_t)ESTOP_REASON_TCP_STOP, out);
+    if (reason != ESTOP_REASON_NONE) {
+        stop(core, reason, out);
     } else if (msg_id == ESTOP_MSG_RELEASE) {
         nak = release(core, release_authenticated, out);
     } else if (msg_id != ESTOP_MSG_STATUS) {
@@ -764,8 +844,8 @@ static void handle_plain(estop_core_t *core, estop_slot_t *slot, estop_out_t *ou
     }
 }
 
-/* Section 5.2: one whole 48-byte request frame. Only a RELEASE needs authentication; a STOP is
- * honoured and a STATUS answered whatever the tag says. */
+/* Section 5.2: one whole 48-byte request frame. Only a RELEASE needs authentication; a STOP or
+ * LIFT is honoured and a STATUS answered whatever the tag says. */
 static void handle_request(estop_core_t *core, const estop_slot_t *slot, estop_out_t *out)
 {
     const uint8_t *f = slot->buf;
@@ -883,6 +963,8 @@ estop_err_t estop_get_link_stats(const estop_core_t *core, estop_link_stats_t *s
         uint32_t i;
         stats->valid = core->counters.udp_valid;
         stats->silences = core->silences;
+        stats->slowdowns = core->counters.slowdowns;
+        stats->timeouts = core->counters.stops[ESTOP_REASON_UDP_TIMEOUT];
         for (i = 0u; i < ESTOP_GAP_BINS; i++) {
             stats->gaps[i] = core->gaps[i];
         }
@@ -898,7 +980,8 @@ const char *estop_err_name(estop_err_t err)
         "ok",           "null_arg",         "bad_timeout",  "bad_warn_time",
         "bad_stop_id",  "bad_can_id",       "bad_data_id",  "bad_release_count",
         "bad_brake_period", "bad_status_period", "not_initialised", "bad_slot",
-        "slot_closed",  "bad_key",          "bad_session"};
+        "slot_closed",  "bad_key",          "bad_session",  "bad_slow_time",
+        "bad_slow_level"};
     const char *name = "unknown_error";
     const size_t n = sizeof(names) / sizeof(names[0]);
     const int count = (int)n;
@@ -911,12 +994,13 @@ const char *estop_err_name(estop_err_t err)
 
 const char *estop_state_name(uint32_t state)
 {
-    static const char *const names[] = {"STOPPED", "ARMED"};
-    return (state < 2u) ? names[state] : "?";
+    static const char *const names[] = {"STOPPED", "ARMED", "SLOWING"};
+    return (state < ESTOP_STATE_COUNT) ? names[state] : "?";
 }
 
 const char *estop_reason_name(uint32_t reason)
 {
-    static const char *const names[] = {"none", "boot", "tcp_stop", "udp_timeout", "fault"};
+    static const char *const names[] = {"none",  "boot", "tcp_stop", "udp_timeout",
+                                        "fault", "lift"};
     return (reason < ESTOP_REASON_COUNT) ? names[reason] : "?";
 }

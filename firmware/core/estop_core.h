@@ -20,8 +20,13 @@
  *    (answered by a 48-byte reply), anything else a 16-byte plain frame (16-byte reply).
  *  - With a key (cfg.key_len 32), only authenticated control packets (60 bytes) keep the unit
  *    alive and only an authenticated RELEASE (48-byte request frame) releases it; anyone may
- *    stop (plain STOP, request frame, stop datagram, whatever its tag). Without a key, plain
- *    control packets keep it alive and RELEASE is plain; a request-frame RELEASE gets NAK 4.
+ *    stop (plain STOP or LIFT, request frame, stop or lift datagram, whatever its tag).
+ *    Without a key, plain control packets keep it alive and RELEASE is plain; a
+ *    request-frame RELEASE gets NAK 4.
+ *  - Silence is answered in two stages (PROTOCOL.md 3): SLOWING at the slow time S (left
+ *    again after ESTOP_REARM_PACKETS valid packets), STOPPED at the timeout T. Each happens
+ *    at its deadline: next_call_us names it. A call that comes late past both goes straight
+ *    to STOPPED.
  */
 #ifndef ESTOP_CORE_H
 #define ESTOP_CORE_H
@@ -35,7 +40,7 @@
 extern "C" {
 #endif
 
-#define ESTOP_VERSION_MAJOR 2u
+#define ESTOP_VERSION_MAJOR 3u
 #define ESTOP_VERSION_MINOR 0u
 
 /* Wire sizes (PROTOCOL.md 1, 2, 4). */
@@ -60,6 +65,7 @@ extern "C" {
 /* TCP message ids and reply codes (PROTOCOL.md 2). */
 #define ESTOP_MSG_STATUS 0x00000001u
 #define ESTOP_MSG_RELEASE 0x00000002u
+#define ESTOP_MSG_LIFT 0x00000003u     /* the operator let go of the dead-man switch: a stop */
 #define ESTOP_MSG_ACK 0x00000080u
 #define ESTOP_MSG_NAK 0x00000081u
 #define ESTOP_NAK_NONE 0u
@@ -71,13 +77,24 @@ extern "C" {
 /* States, reasons, flags (PROTOCOL.md 3). */
 #define ESTOP_STATE_STOPPED 0u
 #define ESTOP_STATE_ARMED 1u
+#define ESTOP_STATE_SLOWING 2u        /* controlled stop while the link is silent; not latched */
+#define ESTOP_STATE_COUNT 3u
 #define ESTOP_REASON_NONE 0u
 #define ESTOP_REASON_BOOT 1u
 #define ESTOP_REASON_TCP_STOP 2u
 #define ESTOP_REASON_UDP_TIMEOUT 3u
 #define ESTOP_REASON_FAULT 4u
-#define ESTOP_REASON_COUNT 5u
+#define ESTOP_REASON_LIFT 5u
+#define ESTOP_REASON_COUNT 6u
 #define ESTOP_FLAG_LINK_DEGRADED 0x01u
+
+/* ESTOP_BRAKE byte 0, brake_request (PROTOCOL.md 4). */
+#define ESTOP_BRAKE_RELEASE 0u        /* ARMED */
+#define ESTOP_BRAKE_EMERGENCY 1u      /* STOPPED */
+#define ESTOP_BRAKE_CONTROLLED 2u     /* SLOWING, at the slow level */
+#define ESTOP_BRAKE_LEVEL_FULL 100u
+/* Valid control packets since SLOWING began that bring the unit back to ARMED. */
+#define ESTOP_REARM_PACKETS 3u
 
 /* Longest gap between two calls; longer gaps must be fed in steps. */
 #define ESTOP_MAX_STEP_US 0x7FFFFFFFu
@@ -89,6 +106,7 @@ extern "C" {
 
 /* Defaults (PROTOCOL.md). */
 #define ESTOP_DEFAULT_TIMEOUT_US 200000u
+#define ESTOP_DEFAULT_SLOW_LEVEL 30u   /* percent of the emergency deceleration */
 #define ESTOP_DEFAULT_STOP_ID 0xE570E570u
 #define ESTOP_DEFAULT_BRAKE_CAN_ID 0x050u
 #define ESTOP_DEFAULT_STATUS_CAN_ID 0x051u
@@ -106,13 +124,15 @@ extern "C" {
 #define ESTOP_STATUS_PERIOD_MIN_US 10000u
 #define ESTOP_STATUS_PERIOD_MAX_US 1000000u
 #define ESTOP_CAN_ID_MAX 0x7FFu
+#define ESTOP_SLOW_LEVEL_MIN 1u
+#define ESTOP_SLOW_LEVEL_MAX 99u
 
 typedef enum {
     ESTOP_OK = 0,
     ESTOP_ERR_NULL_ARG = -1,
     ESTOP_ERR_TIMEOUT = -2,        /* timeout_us outside its range */
-    ESTOP_ERR_WARN = -3,           /* warn_us not in 1 .. timeout_us-1 */
-    ESTOP_ERR_STOP_ID = -4,        /* stop_id is 0, 1, 2 or ESTOP_MAGIC_REQUEST */
+    ESTOP_ERR_WARN = -3,           /* warn_us not in 1 .. slow_us */
+    ESTOP_ERR_STOP_ID = -4,        /* stop_id is 0, 1, 2, 3 or ESTOP_MAGIC_REQUEST */
     ESTOP_ERR_CAN_ID = -5,         /* CAN id over 11 bits, or both ids equal */
     ESTOP_ERR_DATA_ID = -6,        /* both data ids equal */
     ESTOP_ERR_RELEASE_COUNT = -7,  /* release_packets is 0 */
@@ -122,12 +142,17 @@ typedef enum {
     ESTOP_ERR_SLOT = -11,          /* slot index out of range */
     ESTOP_ERR_SLOT_CLOSED = -12,   /* bytes for a slot that is not open */
     ESTOP_ERR_KEY = -13,           /* key_len is neither 0 (no key) nor ESTOP_KEY_LEN */
-    ESTOP_ERR_SESSION = -14        /* session is 0 */
+    ESTOP_ERR_SESSION = -14,       /* session is 0 */
+    ESTOP_ERR_SLOW = -15,          /* slow_us not in 1 .. timeout_us */
+    ESTOP_ERR_SLOW_LEVEL = -16     /* slow_level not in 1 .. 99 */
 } estop_err_t;
 
 typedef struct {
-    uint32_t timeout_us;       /* UDP silence that stops the unit */
-    uint32_t warn_us;          /* silence that raises the link-degraded flag */
+    uint32_t timeout_us;       /* T: UDP silence that stops the unit (latched) */
+    uint32_t slow_us;          /* S: UDP silence that starts a controlled stop (SLOWING, not
+                                  latched); S = T: never */
+    uint32_t warn_us;          /* W: silence that raises the link-degraded flag;
+                                  0 < W <= S <= T */
     uint32_t stop_id;          /* the vehicle's TCP stop message id */
     uint32_t brake_can_id;     /* ESTOP_BRAKE */
     uint32_t status_can_id;    /* ESTOP_STATUS */
@@ -138,6 +163,7 @@ typedef struct {
     uint32_t status_period_us;
     uint64_t session;          /* N: drawn by the host from a cryptographic source at every
                                   boot; never 0 (a unit without a key has one too) */
+    uint8_t slow_level;        /* L: brake_level while SLOWING, percent 1..99 */
     uint8_t key_len;           /* 0: no key; ESTOP_KEY_LEN: key holds the key */
     uint8_t key[ESTOP_KEY_LEN];
 } estop_config_t;
@@ -151,13 +177,15 @@ typedef struct {
 typedef struct {
     uint32_t udp_valid;
     uint32_t udp_invalid;
-    uint32_t udp_stops;       /* stop datagrams (PROTOCOL.md 1), whatever their tag */
+    uint32_t udp_stops;       /* stop and lift datagrams (PROTOCOL.md 1), whatever their tag */
     uint32_t tcp_frames;      /* frames with a good crc */
     uint32_t tcp_bad_crc;     /* frames with a bad crc (connection closed) */
     uint32_t tcp_unknown_id;  /* good crc, unknown msg_id (NAK 1) */
     uint32_t releases_accepted;
     uint32_t releases_refused;
     uint32_t stops[ESTOP_REASON_COUNT]; /* transitions into STOPPED, by reason; [1] counts boot */
+    uint32_t slowdowns;       /* transitions ARMED -> SLOWING */
+    uint32_t rearms;          /* transitions SLOWING -> ARMED (the link came back) */
     uint32_t faults;          /* faults reported by the host, in any state */
     /* Messages that needed authentication (control packets and RELEASE on a unit with a key)
      * and failed it, by the first check that failed (PROTOCOL.md 5). */
@@ -178,8 +206,9 @@ typedef struct {
     uint8_t reply[ESTOP_REPLY_MAX];
     uint8_t close_slot;                  /* the host must close the input's slot (bad crc) */
     uint8_t state_changed;               /* the state changed during this call */
-    uint8_t changed_by_clock;            /* ... and the change came from the clock (timeout or a
-                                            tick that went backwards), not from the input */
+    uint8_t changed_by_clock;            /* ... and the change came from the clock (slow time,
+                                            timeout or a tick that went backwards), not from
+                                            the input */
     uint8_t state;                       /* state and reason after the call */
     uint8_t reason;
     uint8_t flags;
@@ -212,6 +241,7 @@ typedef struct {
     uint32_t last_valid_us;    /* tick of the latest valid packet (meaningful while link_fresh) */
     uint32_t valid_run;        /* valid packets since boot, the latest stop or the latest silence
                                   of the timeout, whichever is latest (saturating) */
+    uint8_t slow_run;          /* valid packets since SLOWING began (up to ESTOP_REARM_PACKETS) */
     uint32_t brake_due_us;
     uint32_t status_due_us;
     uint8_t brake_counter;
@@ -219,6 +249,8 @@ typedef struct {
     uint8_t status_valid;      /* valid packets since the last status frame, saturating */
     uint8_t status_invalid;    /* invalid packets since the last status frame, saturating */
     uint8_t status_auth_failed; /* authentication failures since the last status frame, sat. */
+    uint8_t status_stops;      /* stops (boot not counted) since the last status frame, sat. */
+    uint8_t status_slowdowns;  /* slow-downs since the last status frame, saturating */
     uint8_t gap_known;         /* a valid packet arrived before, and the gap since is measurable */
     uint32_t silences;         /* gaps between valid packets of at least the warn time */
     uint32_t gaps[ESTOP_GAP_BINS]; /* saturating counts of gaps between valid packets */
@@ -243,21 +275,26 @@ typedef struct {
 typedef struct {
     uint32_t valid;                  /* valid control packets (= counters.udp_valid) */
     uint32_t silences;               /* gaps of at least the warn time between them */
+    uint32_t slowdowns;              /* silences that reached the slow time (= counters.slowdowns) */
+    uint32_t timeouts;               /* silences that reached the timeout while ARMED or
+                                        SLOWING (= counters.stops[udp timeout]) */
     uint32_t gaps[ESTOP_GAP_BINS];   /* the gap histogram (saturating counts) */
 } estop_link_stats_t;
 
-/* Fills cfg with the defaults of PROTOCOL.md (warn time = half the timeout, no key). The
- * session is left 0: the host must draw one (estop_init refuses 0). */
+/* Fills cfg with the defaults of PROTOCOL.md (slow time = timeout, warn time = half of it,
+ * slow level 30 %, no key). The session is left 0: the host must draw one (estop_init
+ * refuses 0). */
 void estop_config_default(estop_config_t *cfg);
 /* Checks a configuration; returns ESTOP_OK or the first error found. */
 estop_err_t estop_config_check(const estop_config_t *cfg);
 /* Boots the unit STOPPED (reason boot) at now_us. On error the core stays unusable. */
 estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t now_us);
 
-/* Advances time: timeout stop, link-degraded flag, periodic frames. */
+/* Advances time: slow-down, timeout stop, link-degraded flag, periodic frames. */
 estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 /* One UDP datagram of any length (data may be NULL when len is 0): a control packet, or a stop
- * datagram (a request frame whose msg_id is the stop ID: it stops the unit whatever its tag). */
+ * or lift datagram (a request frame whose msg_id is the stop ID or LIFT: it stops the unit,
+ * with the reason of its msg_id, whatever its tag). */
 estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
                          estop_out_t *out);
 /* A TCP connection was accepted into slot (0 .. ESTOP_MAX_SLOTS-1). */

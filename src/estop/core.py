@@ -38,13 +38,25 @@ class CoreError(Exception):
         super().__init__(f"{action}: {self.name} ({code})")
 
 
+def default_warn_us(slow_us: int) -> int:
+    """The warn time W when none is given (PROTOCOL.md 3): half the slow time, rounded down to
+    a whole millisecond. Where that is 0 (a slow time under 2 ms) W would break 0 < W, so it
+    is 1 ms, or the slow time itself when that is shorter (the closest valid reading)."""
+    half_ms = (slow_us // 2) // 1000 * 1000
+    return half_ms if half_ms > 0 else min(1000, slow_us)
+
+
 @dataclass(frozen=True)
 class Config:
-    """Core configuration; ``warn_us`` of None means half the timeout. ``key`` None: a unit
-    without a key (plain packets); 32 bytes: a unit with a key (PROTOCOL.md 5)."""
+    """Core configuration. ``slow_us`` of None means the timeout (never SLOWING, as in
+    protocol version 2); ``warn_us`` of None means half the slow time, rounded down to a whole
+    millisecond (``default_warn_us``). ``key`` None: a unit without a key (plain packets);
+    32 bytes: a unit with a key (PROTOCOL.md 5)."""
 
     timeout_us: int = lib.ESTOP_DEFAULT_TIMEOUT_US
     warn_us: int | None = None
+    slow_us: int | None = None
+    slow_level: int = lib.ESTOP_DEFAULT_SLOW_LEVEL
     stop_id: int = lib.ESTOP_DEFAULT_STOP_ID
     brake_can_id: int = lib.ESTOP_DEFAULT_BRAKE_CAN_ID
     status_can_id: int = lib.ESTOP_DEFAULT_STATUS_CAN_ID
@@ -57,16 +69,22 @@ class Config:
     key: bytes | None = None
 
     @property
+    def effective_slow_us(self) -> int:
+        return self.timeout_us if self.slow_us is None else self.slow_us
+
+    @property
     def effective_warn_us(self) -> int:
-        return self.timeout_us // 2 if self.warn_us is None else self.warn_us
+        return default_warn_us(self.effective_slow_us) if self.warn_us is None else self.warn_us
 
     def to_c(self) -> Any:
         cfg = ffi.new("estop_config_t *")
         for name in (
             "timeout_us", "stop_id", "brake_can_id", "status_can_id", "brake_data_id",
             "status_data_id", "release_packets", "brake_period_us", "status_period_us",
+            "slow_level",
         ):
             setattr(cfg, name, getattr(self, name))
+        cfg.slow_us = self.effective_slow_us
         cfg.warn_us = self.effective_warn_us
         cfg.session = self.session
         if self.key is not None:
@@ -108,6 +126,8 @@ class Counters:
     releases_accepted: int
     releases_refused: int
     stops: tuple[int, ...]
+    slowdowns: int
+    rearms: int
     faults: int
     auth_bad_tag: int
     auth_bad_session: int
@@ -117,10 +137,13 @@ class Counters:
 
 @dataclass(frozen=True)
 class LinkStats:
-    """The link's record: valid packets, silences of at least the warn time, gap histogram."""
+    """The link's record: valid packets, silences of at least the warn time, those that reached
+    the slow time (slow-downs) and the timeout, gap histogram."""
 
     valid: int
     silences: int
+    slowdowns: int
+    timeouts: int
     gaps: tuple[int, ...]
 
 
@@ -269,7 +292,8 @@ class Watchdog:
             tcp_frames=c.tcp_frames,
             tcp_bad_crc=c.tcp_bad_crc, tcp_unknown_id=c.tcp_unknown_id,
             releases_accepted=c.releases_accepted, releases_refused=c.releases_refused,
-            stops=tuple(c.stops[i] for i in range(lib.ESTOP_REASON_COUNT)), faults=c.faults,
+            stops=tuple(c.stops[i] for i in range(lib.ESTOP_REASON_COUNT)),
+            slowdowns=c.slowdowns, rearms=c.rearms, faults=c.faults,
             auth_bad_tag=c.auth_bad_tag, auth_bad_session=c.auth_bad_session,
             auth_old_counter=c.auth_old_counter, auth_table_full=c.auth_table_full,
         )
@@ -285,5 +309,6 @@ class Watchdog:
         err = lib.estop_get_link_stats(self._core, ls)
         if err != lib.ESTOP_OK:
             raise CoreError(err, "estop_get_link_stats")
-        return LinkStats(valid=ls.valid, silences=ls.silences,
+        return LinkStats(valid=ls.valid, silences=ls.silences, slowdowns=ls.slowdowns,
+                         timeouts=ls.timeouts,
                          gaps=tuple(ls.gaps[i] for i in range(lib.ESTOP_GAP_BINS)))

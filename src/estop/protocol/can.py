@@ -20,7 +20,9 @@ __all__ = [
     "BRAKE_ID",
     "BRAKE_LEVEL_ARMED",
     "BRAKE_LEVEL_STOPPED",
+    "BRAKE_REQUEST_NAMES",
     "COUNTER_MODULO",
+    "DEFAULT_SLOW_LEVEL",
     "DLC",
     "FLAG_LINK_DEGRADED",
     "FLAG_NAMES",
@@ -30,6 +32,7 @@ __all__ = [
     "STATUS_DATA_ID",
     "STATUS_ID",
     "BrakeFrame",
+    "BrakeRequest",
     "ContentError",
     "CounterChecker",
     "CounterError",
@@ -44,6 +47,7 @@ __all__ = [
     "check_status_fields",
     "dbc_path",
     "dbc_text",
+    "brake_request_name",
     "flag_names",
     "reason_name",
     "state_name",
@@ -57,9 +61,12 @@ DLC = 8
 COUNTER_MODULO = 15  # counter runs 0..14 then back to 0
 BRAKE_LEVEL_STOPPED = 100
 BRAKE_LEVEL_ARMED = 0
+DEFAULT_SLOW_LEVEL = 30  # L: brake_level while SLOWING, percent 1..99 (set on the unit)
+SLOW_LEVEL_MIN, SLOW_LEVEL_MAX = 1, 99
 FLAG_LINK_DEGRADED = 0x01
 _FLAGS_DEFINED = FLAG_LINK_DEGRADED
 LINK_AGE_NONE = 0xFFFF
+NIBBLE_MAX = 15  # ESTOP_STATUS byte 3: stops (bits 0-3) and slow-downs (bits 4-7) per window
 
 
 def dbc_path() -> Path:
@@ -75,6 +82,7 @@ def dbc_text() -> str:
 class State(IntEnum):
     STOPPED = 0
     ARMED = 1
+    SLOWING = 2  # controlled stop while the link is silent; not latched (v3)
 
 
 class Reason(IntEnum):
@@ -83,27 +91,56 @@ class Reason(IntEnum):
     TCP_STOP = 2
     UDP_TIMEOUT = 3
     FAULT = 4
+    LIFT = 5  # the remote's dead-man switch was let go (v3)
 
 
-STATE_NAMES: dict[int, str] = {State.STOPPED: "STOPPED", State.ARMED: "ARMED"}
+class BrakeRequest(IntEnum):
+    """ESTOP_BRAKE byte 0. A receiver treats any other value as EMERGENCY (spec section 7)."""
+
+    RELEASE = 0
+    EMERGENCY = 1
+    CONTROLLED = 2
+
+
+STATE_NAMES: dict[int, str] = {State.STOPPED: "STOPPED", State.ARMED: "ARMED",
+                               State.SLOWING: "SLOWING"}
 REASON_NAMES: dict[int, str] = {
     Reason.NONE: "none",
     Reason.BOOT: "boot",
     Reason.TCP_STOP: "tcp_stop",
     Reason.UDP_TIMEOUT: "udp_timeout",
     Reason.FAULT: "fault",
+    Reason.LIFT: "lift",
+}
+BRAKE_REQUEST_NAMES: dict[int, str] = {
+    BrakeRequest.RELEASE: "release",
+    BrakeRequest.EMERGENCY: "emergency_brake",
+    BrakeRequest.CONTROLLED: "controlled_stop",
+}
+# The brake_request each state sends.
+_STATE_REQUEST: dict[int, BrakeRequest] = {
+    State.STOPPED: BrakeRequest.EMERGENCY,
+    State.ARMED: BrakeRequest.RELEASE,
+    State.SLOWING: BrakeRequest.CONTROLLED,
 }
 FLAG_NAMES: dict[int, str] = {FLAG_LINK_DEGRADED: "link_degraded"}
 
 
 def state_name(state: int) -> str:
-    """``STOPPED`` / ``ARMED``, or ``state?<n>`` for a value the spec does not define."""
+    """``STOPPED`` / ``ARMED`` / ``SLOWING``, or ``state?<n>`` for a value the spec does not
+    define."""
     return STATE_NAMES.get(state, f"state?{state}")
 
 
 def reason_name(reason: int) -> str:
-    """``none``, ``boot``, ``tcp_stop``, ``udp_timeout``, ``fault``, or ``reason?<n>``."""
+    """``none``, ``boot``, ``tcp_stop``, ``udp_timeout``, ``fault``, ``lift``, or
+    ``reason?<n>``."""
     return REASON_NAMES.get(reason, f"reason?{reason}")
+
+
+def brake_request_name(request: int) -> str:
+    """``release``, ``emergency_brake``, ``controlled_stop``, or ``request?<n>``."""
+    return BRAKE_REQUEST_NAMES.get(request, f"request?{request}")
 
 
 def flag_names(flags: int) -> list[str]:
@@ -139,19 +176,20 @@ class ContentError(FrameError):
 
 def check_status_fields(state: int, reason: int, flags: int) -> None:
     """Raise :class:`ContentError` unless state/reason/flags are a combination spec section 3
-    allows: a known state and reason, reason 0 exactly while ARMED, flags only bit 0 and only
-    while ARMED."""
+    allows: a known state and reason, reason 0 exactly while ARMED or SLOWING, flags only bit 0
+    and only while ARMED or SLOWING."""
     if state not in STATE_NAMES:
-        raise ContentError(f"state {state} unknown (0 STOPPED, 1 ARMED)")
+        raise ContentError(f"state {state} unknown (0 STOPPED, 1 ARMED, 2 SLOWING)")
     if reason not in REASON_NAMES:
-        raise ContentError(f"reason {reason} unknown (0..4)")
-    if state == State.ARMED and reason != Reason.NONE:
-        raise ContentError(f"reason {reason_name(reason)} while ARMED (must be none)")
+        raise ContentError(f"reason {reason} unknown (0..5)")
+    if state != State.STOPPED and reason != Reason.NONE:
+        raise ContentError(f"reason {reason_name(reason)} while {state_name(state)} "
+                           "(must be none)")
     if state == State.STOPPED and reason == Reason.NONE:
         raise ContentError("reason none while STOPPED")
     if flags & ~_FLAGS_DEFINED & 0xFF or not 0 <= flags <= 0xFF:
         raise ContentError(f"flags {flags:#04x} has undefined bits set")
-    if flags & FLAG_LINK_DEGRADED and state != State.ARMED:
+    if flags & FLAG_LINK_DEGRADED and state == State.STOPPED:
         raise ContentError("link_degraded flag while STOPPED")
 
 
@@ -200,15 +238,34 @@ class BrakeFrame:
     CAN_ID = BRAKE_ID
 
     @classmethod
-    def for_state(cls, state: int, reason: int, flags: int = 0, counter: int = 0) -> BrakeFrame:
-        stopped = state == State.STOPPED
-        return cls(int(stopped), BRAKE_LEVEL_STOPPED if stopped else BRAKE_LEVEL_ARMED,
-                   state, reason, flags, counter)
+    def for_state(cls, state: int, reason: int, flags: int = 0, counter: int = 0,
+                  slow_level: int = DEFAULT_SLOW_LEVEL) -> BrakeFrame:
+        request = _STATE_REQUEST.get(state, BrakeRequest.EMERGENCY)
+        level = {BrakeRequest.RELEASE: BRAKE_LEVEL_ARMED,
+                 BrakeRequest.CONTROLLED: slow_level}.get(request, BRAKE_LEVEL_STOPPED)
+        return cls(int(request), level, state, reason, flags, counter)
 
     @property
     def brakes(self) -> bool:
-        """True when this frame asks for the emergency brake."""
-        return self.brake_request != 0
+        """True when this frame asks for any braking (emergency or controlled)."""
+        return self.brake_request != BrakeRequest.RELEASE
+
+    @property
+    def emergency(self) -> bool:
+        """True when a receiver must brake at full force: brake_request 1, or any value it does
+        not know (spec section 7)."""
+        return self.brake_request not in (BrakeRequest.RELEASE, BrakeRequest.CONTROLLED)
+
+    @property
+    def deceleration_share(self) -> float:
+        """The share of the emergency deceleration this frame asks for (spec section 7): 0 on
+        release, brake_level/100 on a controlled stop, 1 on an emergency brake and on any
+        brake_request a receiver does not know."""
+        if self.brake_request == BrakeRequest.RELEASE:
+            return 0.0
+        if self.brake_request == BrakeRequest.CONTROLLED:
+            return min(self.brake_level, 100) / 100.0
+        return 1.0
 
     def validate(self) -> None:
         """Raise :class:`ContentError` / :class:`CounterError` unless the spec allows the frame."""
@@ -218,13 +275,18 @@ class BrakeFrame:
         check_status_fields(self.state, self.reason, self.flags)
         if self.reserved != 0:
             raise ContentError(f"byte 5 is {self.reserved:#04x}, must be 0")
-        if self.brake_request not in (0, 1):
-            raise ContentError(f"brake_request {self.brake_request} (must be 0 or 1)")
-        stopped = self.state == State.STOPPED
-        if self.brake_request != int(stopped):
+        if self.brake_request not in BRAKE_REQUEST_NAMES:
+            raise ContentError(f"brake_request {self.brake_request} (must be 0, 1 or 2)")
+        want_request = _STATE_REQUEST[self.state]
+        if self.brake_request != want_request:
             raise ContentError(f"brake_request {self.brake_request} while "
                                f"{state_name(self.state)}")
-        want_level = BRAKE_LEVEL_STOPPED if stopped else BRAKE_LEVEL_ARMED
+        if want_request == BrakeRequest.CONTROLLED:
+            if not SLOW_LEVEL_MIN <= self.brake_level <= SLOW_LEVEL_MAX:
+                raise ContentError(f"brake_level {self.brake_level} while SLOWING (must be "
+                                   f"{SLOW_LEVEL_MIN}..{SLOW_LEVEL_MAX})")
+            return
+        want_level = BRAKE_LEVEL_STOPPED if self.state == State.STOPPED else BRAKE_LEVEL_ARMED
         if self.brake_level != want_level:
             raise ContentError(f"brake_level {self.brake_level} while "
                                f"{state_name(self.state)} (must be {want_level})")
@@ -276,14 +338,17 @@ class BrakeFrame:
 
 @dataclass(frozen=True, slots=True)
 class StatusFrame:
-    """ESTOP_STATUS (0x051), layout in docs/DESIGN.md. Counts saturate at 255."""
+    """ESTOP_STATUS (0x051), layout in docs/DESIGN.md. Every count is per window (since the
+    previous ESTOP_STATUS frame); bytes 0-2 saturate at 255, the two nibbles of byte 3 (stops,
+    slow-downs) at 15."""
 
     valid_packets: int
     invalid_packets: int
     auth_failures: int
-    stops: int
+    stops: int  # transitions into STOPPED (boot not counted), byte 3 bits 0-3
     link_age_ms: int  # 0xFFFF (LINK_AGE_NONE): no valid packet younger than the timeout
     counter: int
+    slowdowns: int = 0  # transitions into SLOWING, byte 3 bits 4-7
 
     DATA_ID = STATUS_DATA_ID
     CAN_ID = STATUS_ID
@@ -294,15 +359,20 @@ class StatusFrame:
         return None if self.link_age_ms == LINK_AGE_NONE else self.link_age_ms
 
     def validate(self) -> None:
-        for name in ("valid_packets", "invalid_packets", "auth_failures", "stops"):
+        for name in ("valid_packets", "invalid_packets", "auth_failures"):
             _check_u8(name, getattr(self, name))
+        for name in ("stops", "slowdowns"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or not 0 <= value <= NIBBLE_MAX:
+                raise ContentError(f"{name} must be 0..{NIBBLE_MAX}, got {value!r}")
         if not isinstance(self.link_age_ms, int) or not 0 <= self.link_age_ms <= 0xFFFF:
             raise ContentError(f"link_age_ms must be 0..65535, got {self.link_age_ms!r}")
         _check_counter_value(self.counter)
 
     def payload(self) -> bytes:
         return struct.pack("<BBBBHB", self.valid_packets, self.invalid_packets,
-                           self.auth_failures, self.stops, self.link_age_ms, self.counter)
+                           self.auth_failures, self.stops | self.slowdowns << 4,
+                           self.link_age_ms, self.counter)
 
     def encode(self, *, validate: bool = True) -> bytes:
         if validate:
@@ -314,8 +384,9 @@ class StatusFrame:
         raw = bytes(data)
         if len(raw) != DLC:
             raise LengthError(f"DLC {len(raw)}, must be {DLC}")
-        valid, invalid, auth_failures, stops, age, ctr = struct.unpack("<BBBBHB", raw[:7])
-        return cls(valid, invalid, auth_failures, stops, age, ctr & 0x0F)
+        valid, invalid, auth_failures, counts, age, ctr = struct.unpack("<BBBBHB", raw[:7])
+        return cls(valid, invalid, auth_failures, counts & NIBBLE_MAX, age, ctr & 0x0F,
+                   counts >> 4)
 
     @classmethod
     def check(cls, data: bytes | bytearray | memoryview) -> list[FrameError]:

@@ -24,6 +24,7 @@ __all__ = [
     "DEFAULT_PORT",
     "DEFAULT_STOP_ID",
     "FRAME_SIZE",
+    "LIFT",
     "NAK",
     "NAK_NAMES",
     "RELEASE",
@@ -40,6 +41,7 @@ __all__ = [
     "Request",
     "RequestAssembler",
     "check_stop_id",
+    "lift_request",
     "release_request",
     "status_request",
     "stop_request",
@@ -50,9 +52,10 @@ FRAME_SIZE = 16
 DEFAULT_STOP_ID = 0xE570E570
 STATUS = 0x00000001
 RELEASE = 0x00000002
+LIFT = 0x00000003  # the dead-man switch was let go: a stop request with its own reason (v3)
 ACK = 0x00000080
 NAK = 0x00000081
-RESERVED_MSG_IDS = frozenset((0, STATUS, RELEASE))
+RESERVED_MSG_IDS = frozenset((0, STATUS, RELEASE, LIFT))
 REQUEST_MAGIC = b"ESQ2"  # first 4 bytes of a 48-byte request frame (section 5.2)
 REQUEST_MAGIC_ID = 0x32515345  # the same 4 bytes read as a u32 msg_id: never a stop ID
 V2_FRAME_SIZE = 48  # request and reply frames of sections 5.2 and 5.3
@@ -95,11 +98,11 @@ def _u32(name: str, value: int) -> int:
 
 
 def check_stop_id(stop_id: int) -> int:
-    """Return ``stop_id`` if it may be a vehicle's stop ID: a u32 other than 0, 1, 2 and
+    """Return ``stop_id`` if it may be a vehicle's stop ID: a u32 other than 0, 1, 2, 3 and
     0x32515345 (that one would read as the magic of a 48-byte request frame)."""
     _u32("stop ID", stop_id)
     if stop_id in RESERVED_MSG_IDS or stop_id == REQUEST_MAGIC_ID:
-        raise ValueError(f"stop ID may not be 0, 1, 2 or 0x32515345, got {stop_id:#x}")
+        raise ValueError(f"stop ID may not be 0, 1, 2, 3 or 0x32515345, got {stop_id:#x}")
     return stop_id
 
 
@@ -141,9 +144,12 @@ class Request:
         return cls(msg_id, seq, arg)
 
     def kind(self, stop_id: int = DEFAULT_STOP_ID) -> str:
-        """``"stop"``, ``"status"``, ``"release"`` or ``"unknown"`` for a unit with ``stop_id``."""
+        """``"stop"``, ``"lift"``, ``"status"``, ``"release"`` or ``"unknown"`` for a unit with
+        ``stop_id``."""
         if self.msg_id == stop_id and self.msg_id not in RESERVED_MSG_IDS:
             return "stop"
+        if self.msg_id == LIFT:
+            return "lift"
         if self.msg_id == STATUS:
             return "status"
         if self.msg_id == RELEASE:
@@ -153,6 +159,10 @@ class Request:
 
 def stop_request(seq: int, stop_id: int = DEFAULT_STOP_ID) -> Request:
     return Request(check_stop_id(stop_id), seq)
+
+
+def lift_request(seq: int) -> Request:
+    return Request(LIFT, seq)
 
 
 def status_request(seq: int) -> Request:

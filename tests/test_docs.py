@@ -46,7 +46,7 @@ def test_every_example_of_the_contract_is_in_docs_protocol() -> None:
     assert sorted(ours) == sorted(theirs)
 
 
-def test_docs_protocol_is_version_2() -> None:
+def test_docs_protocol_is_version_3() -> None:
     text = (ROOT / "docs" / "PROTOCOL.md").read_text()
-    assert text.startswith("# The estop protocol, version 2")
-    assert len(examples(text)) >= 11
+    assert text.startswith("# The estop protocol, version 3")
+    assert len(examples(text)) >= 15

@@ -5,7 +5,9 @@ Builds bench/core_instructions.c with the core at -O2, runs it under
 collected instruction count by the number of calls. Counts are exact and repeatable (they do
 not depend on machine load), so they suit a comparison across commits. Targets: an
 authenticated control packet costs at most 2,000 instructions in all (issue 8); the link's
-gap histogram costs the plain packet at most 30 more than before it (133, issue 12).
+gap histogram costs the plain packet at most 30 more than before it (133, issue 12); with
+protocol version 3 (LIFT, SLOWING) the plain packet costs at most 230 in all (issue 15).
+``--strict`` exits 1 when a row is over its budget (tests/test_core_budget.py runs it).
 """
 
 from __future__ import annotations
@@ -33,6 +35,8 @@ ROWS = [
     ("tick every 20 ms (2 ESTOP_BRAKE due)", "tick"),
     ("BLAKE2s MAC, 44-byte message", "mac44"),
 ]
+# Instructions per call each row may cost at most (issues 8 and 15).
+BUDGETS = {"plain_udp": 230, "auth_udp": 2000}
 
 
 def build(workdir: Path) -> Path:
@@ -61,21 +65,38 @@ def count(exe: Path, fn: str, calls: int, workdir: Path) -> int:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--calls", type=int, default=10000)
+    parser.add_argument("--only", default="",
+                        help="comma-separated functions to count (default: every row)")
+    parser.add_argument("--strict", action="store_true",
+                        help="exit 1 when a row is over its budget")
     args = parser.parse_args()
+    wanted = {f for f in args.only.split(",") if f}
+    unknown = wanted - {fn for _, fn in ROWS}
+    if unknown:
+        print(f"core_instructions: error: unknown --only {','.join(sorted(unknown))}",
+              file=sys.stderr)
+        return 2
     if shutil.which("valgrind") is None:
         print("core_instructions: error: valgrind is not installed", file=sys.stderr)
         return 1
     with tempfile.TemporaryDirectory() as tmp:
         work = Path(tmp)
         exe = build(work)
-        rows = [(label, count(exe, fn, args.calls, work) / args.calls)
-                for label, fn in ROWS]
+        rows = [(label, fn, count(exe, fn, args.calls, work) / args.calls)
+                for label, fn in ROWS if not wanted or fn in wanted]
     print(f"core instructions per call (callgrind, -O2, {args.calls} calls each)")
-    print("| entry point | per call |")
-    print("| --- | ---: |")
-    for label, per_call in rows:
-        print(f"| {label} | {per_call:.1f} |")
-    return 0
+    print("| entry point | per call | budget |")
+    print("| --- | ---: | ---: |")
+    over = []
+    for label, fn, per_call in rows:
+        budget = BUDGETS.get(fn)
+        mark = "" if budget is None else f"{budget}" + (" OVER" if per_call > budget else "")
+        print(f"| {label} | {per_call:.1f} | {mark} |")
+        if budget is not None and per_call > budget:
+            over.append(fn)
+    if over:
+        print(f"over budget: {', '.join(over)}")
+    return 1 if over and args.strict else 0
 
 
 if __name__ == "__main__":

@@ -24,12 +24,18 @@ CHECKS = [
     "silence: STOPPED, udp timeout",
     "timeout stop at the deadline, by SysTick",
     "brake frame 01 64 00 03 00 00 0E 1D",
+    "init a two-stage unit",
+    "silence: SLOWING, controlled stop at the slow level",
+    "slow-down at its deadline, by SysTick",
+    "3 valid packets: ARMED again",
+    "LIFT example: STOPPED, lift",
     "init with the key of 5.4",
     "5.4 STATUS reply, byte for byte",
     "5.4 control packet authenticated",
     "heartbeats tagged on the device authenticated",
     "5.4 RELEASE: ACK, ARMED",
-    "5.4 STOP: STOPPED, tcp stop",
+    "5.4 LIFT as a lift datagram: STOPPED, lift",
+    "5.4 STOP: acknowledged, the first reason kept",
 ]
 
 

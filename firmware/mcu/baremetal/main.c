@@ -1,7 +1,8 @@
 /*
  * A bare-metal unit on QEMU's mps2-an385: SysTick counts milliseconds and is the core's only
  * clock; a host loop calls estop_tick whenever the core asks (out.next_call_us). The program
- * runs the examples of PROTOCOL.md through the core (sections 1, 2, 4 and the 5.4 vectors),
+ * runs the examples of PROTOCOL.md through the core (sections 1, 2, 4 and the 5.4 vectors, and
+ * version 3's two-stage stop and LIFT),
  * prints one line per check over semihosting and exits with status 0 when every check passed.
  * No libc: the few byte copies are loops.
  */
@@ -193,11 +194,17 @@ static void tcp(const uint8_t *data, size_t len)
     }
 }
 
-static void boot(const uint8_t *key)
+/* slow_us 0: the default times (S = T); else a two-stage unit with S = slow_us, T = 3 S. */
+static void boot(const uint8_t *key, uint32_t slow_us)
 {
     uint32_t i, t;
     estop_config_default(&cfg);
     cfg.session = 0x0123456789ABCDEFull;
+    if (slow_us != 0u) {
+        cfg.slow_us = slow_us;
+        cfg.timeout_us = 3u * slow_us;
+        cfg.warn_us = slow_us / 2u;
+    }
     if (key != NULL) {
         cfg.key_len = (uint8_t)ESTOP_KEY_LEN;
         for (i = 0u; i < ESTOP_KEY_LEN; i++) {
@@ -206,7 +213,8 @@ static void boot(const uint8_t *key)
     }
     t = now_us();
     check(estop_init(&core, &cfg, t) == ESTOP_OK,
-          (key != NULL) ? "init with the key of 5.4" : "init without a key");
+          (key != NULL) ? "init with the key of 5.4"
+                        : ((slow_us != 0u) ? "init a two-stage unit" : "init without a key"));
     took(estop_tick(&core, t, &out), t);
     took(estop_tcp_open(&core, 0u, t, &out), t);
 }
@@ -228,6 +236,8 @@ static const uint8_t release_example[16] = {0x02, 0x00, 0x00, 0x00, 0x02, 0x00, 
                                             0x00, 0x00, 0x00, 0x00, 0x8D, 0x5F, 0xCB, 0xD5};
 static const uint8_t brake_boot_0[8] = {0x01, 0x64, 0x00, 0x01, 0x00, 0x00, 0x00, 0x9C};
 static const uint8_t brake_timeout_14[8] = {0x01, 0x64, 0x00, 0x03, 0x00, 0x00, 0x0E, 0x1D};
+static const uint8_t lift_example[16] = {0x03, 0x00, 0x00, 0x00, 0x05, 0x00, 0x00, 0x00,
+                                         0x00, 0x00, 0x00, 0x00, 0xFB, 0x1A, 0xAB, 0x44};
 
 /* Section 5.4: key 00 01 .. 1F, session 0x0123456789ABCDEF, remote id 7. */
 static const uint8_t v_control[60] = {
@@ -247,6 +257,10 @@ static const uint8_t v_release[48] = {
     0x45, 0x53, 0x51, 0x32, 0x02, 0x00, 0x00, 0x00, 0x02, 0x00, 0x00, 0x00, 0x07, 0x00, 0x00, 0x00,
     0xEF, 0xCD, 0xAB, 0x89, 0x67, 0x45, 0x23, 0x01, 0x02, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00,
     0x15, 0x42, 0xBA, 0x83, 0xA0, 0xCE, 0x93, 0x39, 0xAA, 0x34, 0x55, 0xA8, 0x66, 0xEF, 0x4D, 0xE5};
+static const uint8_t v_lift[48] = {
+    0x45, 0x53, 0x51, 0x32, 0x03, 0x00, 0x00, 0x00, 0x04, 0x00, 0x00, 0x00, 0x07, 0x00, 0x00, 0x00,
+    0xEF, 0xCD, 0xAB, 0x89, 0x67, 0x45, 0x23, 0x01, 0x04, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00,
+    0x8E, 0xC2, 0x15, 0xCD, 0x4A, 0xAB, 0x10, 0xED, 0xAC, 0x0A, 0xF7, 0xA5, 0x91, 0x91, 0xC9, 0x6C};
 static const uint8_t v_stop[48] = {
     0x45, 0x53, 0x51, 0x32, 0x70, 0xE5, 0x70, 0xE5, 0x03, 0x00, 0x00, 0x00, 0x07, 0x00, 0x00, 0x00,
     0xEF, 0xCD, 0xAB, 0x89, 0x67, 0x45, 0x23, 0x01, 0x03, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00,
@@ -298,7 +312,7 @@ int main(void)
     put("estop on mps2-an385: the core's clock is SysTick\n");
 
     /* Plain unit: sections 1, 2 and 4. */
-    boot(NULL);
+    boot(NULL, 0u);
     check(same(last_brake, brake_boot_0, 8u), "boot brake frame 01 64 00 01 00 00 00 9C");
     drive(udp_example, 5u);
     check(udp_valid() == 5u, "UDP example is a valid packet");
@@ -324,11 +338,30 @@ int main(void)
     }
     check(same(last_brake, brake_timeout_14, 8u), "brake frame 01 64 00 03 00 00 0E 1D");
 
+    /* A two-stage unit (version 3): S 100 ms, T 300 ms, L 30 %; then the LIFT example. */
+    boot(NULL, 100u * MS);
+    drive(neutral, 5u);
+    tcp(release_example, sizeof(release_example));
+    stopped_at_us = 0u;
+    run_until(ticks_ms + 150u);
+    check((out.state == ESTOP_STATE_SLOWING) && (last_brake[0] == ESTOP_BRAKE_CONTROLLED) &&
+              (last_brake[1] == cfg.slow_level),
+          "silence: SLOWING, controlled stop at the slow level");
+    late = (uint32_t)(stopped_at_us - last_packet_us) - cfg.slow_us;
+    check((stopped_at_us != 0u) && (late <= 2u * MS), "slow-down at its deadline, by SysTick");
+    for (i = 0u; i < 3u; i++) {
+        udp(neutral, ESTOP_UDP_LEN);
+    }
+    check(out.state == ESTOP_STATE_ARMED, "3 valid packets: ARMED again");
+    tcp(lift_example, sizeof(lift_example));
+    check(plain_reply(ESTOP_MSG_ACK, 5u, 0u, 5u, 0u) && (last_brake[0] == ESTOP_BRAKE_EMERGENCY),
+          "LIFT example: STOPPED, lift");
+
     /* Unit with the key of section 5.4. */
     for (i = 0u; i < ESTOP_KEY_LEN; i++) {
         key[i] = (uint8_t)i;
     }
-    boot(key);
+    boot(key, 0u);
     tcp(v_status, sizeof(v_status));
     check((reply_len == 48u) && same(reply, v_status_reply, 48u),
           "5.4 STATUS reply, byte for byte");
@@ -342,10 +375,14 @@ int main(void)
     tcp(v_release, sizeof(v_release));
     check((reply_len == 48u) && (reply[4] == ESTOP_MSG_ACK) && (reply[12] == ESTOP_STATE_ARMED),
           "5.4 RELEASE: ACK, ARMED");
+    udp(v_lift, sizeof(v_lift));
+    check((out.state == ESTOP_STATE_STOPPED) && (out.reason == ESTOP_REASON_LIFT) &&
+              (last_brake[0] == ESTOP_BRAKE_EMERGENCY) && (last_brake[3] == ESTOP_REASON_LIFT),
+          "5.4 LIFT as a lift datagram: STOPPED, lift");
     tcp(v_stop, sizeof(v_stop));
     check((reply_len == 48u) && (reply[12] == ESTOP_STATE_STOPPED) &&
-              (reply[13] == ESTOP_REASON_TCP_STOP),
-          "5.4 STOP: STOPPED, tcp stop");
+              (reply[13] == ESTOP_REASON_LIFT),
+          "5.4 STOP: acknowledged, the first reason kept");
 
     put("systick: ");
     put_u32(ticks_ms);

@@ -387,3 +387,13 @@ def test_release_of_a_link_older_than_the_slow_time_goes_straight_to_slowing() -
     for _ in range(3):
         u.udp(packet())
     assert u.state == ARMED
+
+
+@pytest.mark.parametrize(("age", "state"), [(S - 1, ARMED), (S, SLOWING)])
+def test_release_at_the_edge_of_the_slow_time(age: int, state: int) -> None:
+    """A link exactly S old has been silent for the slow time: the RELEASE arms into SLOWING;
+    a microsecond younger, into ARMED."""
+    u = Unit(TWO_STAGE)
+    u.drive(5)
+    u.wait(age)
+    assert u.ask(RELEASE)[2] == state

@@ -20,7 +20,7 @@ import dpkt
 import numpy as np
 import pytest
 
-from estop import cli
+from estop import cli, linkfit
 from estop import linkstats as L
 from estop.linkmodel import WIFI, LinkConfig, LinkModel
 
@@ -300,9 +300,9 @@ def test_binned_likelihood_on_exact_cells_is_the_closed_form() -> None:
     closed = L.fit(g, RATE)
     assert g.exact
     mask = g.k_lo >= 1
-    r = L._argmax_r(g.k_lo[mask], g.k_hi[mask], g.counts[mask])
+    r = linkfit._argmax_r(g.k_lo[mask], g.k_hi[mask], g.counts[mask])
     assert r == pytest.approx(closed.p_bg, rel=1e-6)
-    assert L._se_numeric(r, g.k_lo[mask], g.k_hi[mask], g.counts[mask]) == \
+    assert linkfit._se_numeric(r, g.k_lo[mask], g.k_hi[mask], g.counts[mask]) == \
         pytest.approx(closed.p_bg_se, rel=1e-3)
 
 

@@ -17,11 +17,12 @@ __all__ = ["Fit", "choose_tail", "false_stops_per_hour", "fit", "lost_in_row"]
 Z95 = 1.959963984540054
 
 
-def lost_in_row(timeout_ms: int | float, rate_hz: float) -> int:
+def lost_in_row(timeout_ms: int | float | Fraction, rate_hz: float) -> int:
     """Packets lost in a row that trip a timeout of ``timeout_ms`` at ``rate_hz``: the number
-    of packets due strictly before the deadline, ceil(D/T) - 1 (the stop comes at the deadline,
-    so a packet due exactly then is too late). Exact rational arithmetic: 200 ms at 50 Hz is 9,
-    not 10 through a rounding error."""
+    of packets due strictly before the deadline, ceil(D/P) - 1 for send period P (the stop
+    comes at the deadline, so a packet due exactly then is too late). Exact rational
+    arithmetic: 200 ms at 50 Hz is 9, not 10 through a rounding error. The same rule gives the
+    slow time S its n."""
     periods = Fraction(timeout_ms) / 1000 * Fraction(rate_hz)
     return max(0, math.ceil(periods) - 1)
 

@@ -16,8 +16,8 @@ import numpy.typing as npt
 
 from estop.cliutil import UsageError
 
-__all__ = ["F64", "I64", "U32_MAX", "Gaps", "Histogram", "LinkInputError", "check_rate",
-           "gaps_from_histogram", "gaps_from_times"]
+__all__ = ["F64", "I64", "U32_MAX", "Gaps", "Histogram", "LinkInputError", "UnitRecord",
+           "check_rate", "gaps_from_histogram", "gaps_from_times"]
 
 U32_MAX = 0xFFFFFFFF
 I64 = npt.NDArray[np.int64]
@@ -26,6 +26,22 @@ F64 = npt.NDArray[np.float64]
 
 class LinkInputError(UsageError):
     """Bad input file or option: one line, exit 2."""
+
+
+@dataclass(frozen=True)
+class UnitRecord:
+    """What a version 3 unit counted itself (the ``link_histogram`` keys ``slowdowns``,
+    ``timeouts``, ``slow_us``, ``timeout_us``), summed over runs that all ran with the same S
+    and T. The unit counts only while it moves (ARMED or SLOWING): ``moving_s`` is that time,
+    from the log's ``state`` events, or None when the log does not show every run from its
+    ``start`` event (then the unit may have moved before the first line)."""
+
+    slowdowns: int  # transitions ARMED -> SLOWING
+    timeouts: int  # stops by UDP timeout
+    slow_us: int  # S
+    timeout_us: int  # T
+    moving_s: float | None
+    notes: tuple[str, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -42,6 +58,7 @@ class Gaps:
     hours_measured: float | None = None  # time covered by the gaps, when measured (not binned)
     notes: tuple[str, ...] = ()
     extra: dict[str, Any] = field(default_factory=dict)
+    unit: UnitRecord | None = None  # a version 3 daemon's own counts, when its log has them
 
     @property
     def exact(self) -> bool:
@@ -65,8 +82,8 @@ def check_rate(rate_hz: float) -> None:
 
 def gaps_from_times(times: Sequence[float] | F64, rate_hz: float, max_gap: float = 5.0,
                     source: str = "arrival times") -> Gaps:
-    """Cells from arrival times (seconds, not decreasing): a gap g holds
-    k = round(g / T) - 1 lost packets (at least 0: early or bunched arrivals count as none).
+    """Cells from arrival times (seconds, not decreasing): a gap g holds k = round(g / P) - 1
+    lost packets, P the send period (at least 0: early or bunched arrivals count as none).
     Gaps of ``max_gap`` seconds or more (0: no limit) are sender pauses, left out."""
     check_rate(rate_hz)
     t = np.asarray(times, dtype=np.float64)
@@ -86,7 +103,7 @@ def gaps_from_times(times: Sequence[float] | F64, rate_hz: float, max_gap: float
     off_grid = float(np.mean(np.abs(periods - np.rint(periods)) > 0.25))
     notes: tuple[str, ...] = ()
     if off_grid > 0.05:
-        notes = (f"{off_grid * 100:.0f} % of gaps are more than T/4 off the send grid: arrival "
+        notes = (f"{off_grid * 100:.0f} % of gaps are more than P/4 off the send grid: arrival "
                  "jitter, so short gaps are misread as losses or as none",)
     return Gaps(ks.astype(np.int64), ks.astype(np.int64), counts.astype(np.int64),
                 int(pause.sum()), source, hours_measured=float(g.sum()) / 3600.0,
@@ -106,11 +123,13 @@ class Histogram:
     warn_us: int
     runs: int
     saturated: bool
+    unit: UnitRecord | None = None  # the runs' slow-downs and timeouts, when all have them
+    unit_note: str = ""  # why there is no unit record although some events have the keys
 
 
 def gaps_from_histogram(h: Histogram, rate_hz: float, max_gap: float = 5.0,
                         source: str = "estopd log") -> Gaps:
-    """Cells from the daemon's bins: bin [a, b) holds the k whose nominal gap (k+1) T lies in
+    """Cells from the daemon's bins: bin [a, b) holds the k whose nominal gap (k+1) P lies in
     it. A bin that holds no multiple of T (its gaps are jittered ones) is credited to the
     nearest multiple. Bins starting at ``max_gap`` or above are sender pauses."""
     check_rate(rate_hz)
@@ -164,10 +183,16 @@ def gaps_from_histogram(h: Histogram, rate_hz: float, max_gap: float = 5.0,
                      "the send period (jitter) and were credited to the nearest multiple")
     if h.saturated:
         notes.append("some histogram counts are saturated (u32): the rates are too low")
+    if h.unit_note:
+        notes.append(h.unit_note)
+    extra: dict[str, Any] = {"valid": h.valid, "invalid": h.invalid, "silences": h.silences,
+                             "warn_us": h.warn_us, "runs": h.runs}
+    if h.unit is not None:
+        extra.update(slowdowns=h.unit.slowdowns, timeouts=h.unit.timeouts,
+                     slow_us=h.unit.slow_us, timeout_us=h.unit.timeout_us)
     order = np.argsort(np.asarray(lo))
     return Gaps(np.asarray(lo, dtype=np.int64)[order], np.asarray(hi, dtype=np.int64)[order],
                 np.asarray(cnt, dtype=np.int64)[order], pauses, source, None, tuple(notes),
-                extra={"valid": h.valid, "invalid": h.invalid, "silences": h.silences,
-                       "warn_us": h.warn_us, "runs": h.runs})
+                extra=extra, unit=h.unit)
 
 

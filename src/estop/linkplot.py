@@ -1,5 +1,6 @@
-"""``estop link --plot``: false stops per hour against timeout, on a log scale (matplotlib,
-imported only here)."""
+"""``estop link --plot``: the model's silences per hour against time, on a log scale, with
+both targets: false emergency stops (read as the timeout T) and slow-downs (read as the slow
+time S). matplotlib is imported only here."""
 
 from __future__ import annotations
 
@@ -36,17 +37,23 @@ def write_plot(rep: Report, path: str) -> None:
     if seen:
         ax.plot([s[0] for s in seen], [s[1] for s in seen], "s", mfc="none",
                 label=f"seen in the recording ({rep.fit.hours:.3g} h)")
-    ax.axhline(rep.target, color="red", linestyle="--", label=f"target {rep.target:g}/h")
+    ax.axhline(rep.target, color="red", linestyle="--",
+               label=f"target {rep.target:g} false stops/h (T)")
+    ax.axhline(rep.slow_target, color="orange", linestyle="--",
+               label=f"slow target {rep.slow_target:g} slow-downs/h (S)")
     if rep.fit.hours > 0:
         ax.axhline(1.0 / rep.fit.hours, color="gray", linestyle=":",
                    label="one event in the recording")
     if rep.recommended_ms is not None:
         ax.axvline(rep.recommended_ms, color="green", linestyle="-.",
-                   label=f"recommended {rep.recommended_ms} ms")
+                   label=f"recommended T {rep.recommended_ms} ms")
+    if rep.two_stage and rep.recommended_slow_ms is not None:
+        ax.axvline(rep.recommended_slow_ms, color="olive", linestyle=":",
+                   label=f"recommended S {rep.recommended_slow_ms} ms")
     ax.set_yscale("log")
     ax.set_ylim(bottom=bottom)
-    ax.set_xlabel("timeout (ms)")
-    ax.set_ylabel("false stops per hour")
+    ax.set_xlabel("time after the last packet (ms): S or T")
+    ax.set_ylabel("silences per hour: slow-downs at S, false stops at T")
     ax.set_title(f"estop link: {rep.gaps.source}, loss {rep.fit.loss * 100:.3g} %, "
                  f"mean burst {rep.fit.mean_burst or 0:.3g}")
     ax.grid(True, which="both", alpha=0.3)

@@ -1,10 +1,10 @@
-"""The inputs of ``estop link``: estopd's ``--log-json`` log (its ``link_histogram`` events),
-a file of arrival times, or a pcap of the control port, each read into gap cells
-(:mod:`estop.linkgaps`). Bad input is a :class:`LinkInputError`: one line, exit 2."""
+"""The inputs of ``estop link``: a file of arrival times or a pcap of the control port, and the
+choice between them and estopd's ``--log-json`` log (read by :mod:`estop.linklog`), each read
+into gap cells (:mod:`estop.linkgaps`). Bad input is a :class:`LinkInputError`: one line,
+exit 2."""
 
 from __future__ import annotations
 
-import json
 import math
 import os
 import struct
@@ -12,24 +12,17 @@ from typing import Any
 
 import numpy as np
 
-from estop.linkgaps import (
-    F64,
-    U32_MAX,
-    Gaps,
-    Histogram,
-    LinkInputError,
-    gaps_from_histogram,
-    gaps_from_times,
-)
+from estop.linkgaps import F64, Gaps, LinkInputError, gaps_from_histogram, gaps_from_times
+from estop.linklog import open_text, read_histogram_log
 
-__all__ = ["detect_format", "load", "read_histogram_log", "read_pcap_times", "read_times"]
+__all__ = ["detect_format", "load", "read_pcap_times", "read_times"]
 
 CONTROL_LENGTHS = frozenset({20, 16, 60})
 
 
 def read_times(path: str) -> F64:
     """Arrival times, one float in seconds per line (blank lines and # comments skipped)."""
-    with _open_text(path) as f:
+    with open_text(path) as f:
         try:
             text = f.read()
         except UnicodeDecodeError:
@@ -64,89 +57,6 @@ def _read_times_slow(path: str, text: str) -> F64:
         prev = v
         values.append(v)
     return np.asarray(values, dtype=np.float64)
-
-
-def _open_text(path: str) -> Any:
-    try:
-        return open(path, encoding="utf-8", errors="strict")
-    except OSError as exc:
-        raise LinkInputError(f"cannot open {path}: {exc.strerror}") from None
-
-
-def _int_field(ev: dict[str, Any], key: str, where: str) -> int:
-    v = ev.get(key)
-    if not isinstance(v, int) or isinstance(v, bool) or v < 0:
-        raise LinkInputError(f"{where}: link_histogram field {key!r} is not a count: {v!r}")
-    return v
-
-
-def read_histogram_log(path: str) -> Histogram:
-    """Sum the last ``link_histogram`` event of every run in estopd's --log-json log. A run
-    starts at a ``start`` event (or where the counts go down); other events are ignored."""
-    runs: list[tuple[dict[str, Any], str]] = []
-    current: tuple[dict[str, Any], str] | None = None
-    edges: list[int] | None = None
-    try:
-        with _open_text(path) as f:
-            for no, raw in enumerate(f, 1):
-                line = raw.strip()
-                if not line.startswith("{"):
-                    continue
-                try:
-                    ev = json.loads(line)
-                except ValueError:
-                    continue
-                if not isinstance(ev, dict):
-                    continue
-                kind = ev.get("event")
-                if kind == "start":
-                    if current is not None:
-                        runs.append(current)
-                    current = None
-                    continue
-                if kind != "link_histogram":
-                    continue
-                where = f"{path}:{no}"
-                e = ev.get("edges_us")
-                c = ev.get("counts")
-                if not (isinstance(e, list) and isinstance(c, list) and len(e) >= 2
-                        and len(c) == len(e)
-                        and all(isinstance(x, int) and not isinstance(x, bool) for x in e + c)
-                        and e[0] == 0 and all(b > a for a, b in zip(e, e[1:], strict=False))
-                        and all(x >= 0 for x in c)):
-                    raise LinkInputError(f"{where}: malformed link_histogram event (edges_us "
-                                         "and counts must be equal-length integer lists, "
-                                         "edges rising from 0)")
-                if edges is None:
-                    edges = e
-                elif e != edges:
-                    raise LinkInputError(f"{where}: link_histogram bins differ from earlier "
-                                         "events (logs of different daemons mixed?)")
-                for key in ("valid", "invalid", "silences", "warn_us"):
-                    _int_field(ev, key, where)
-                if current is not None and any(
-                        b < a for a, b in zip(current[0]["counts"], c, strict=True)):
-                    runs.append(current)  # counts went down: a restart without `start`
-                current = (ev, where)
-    except UnicodeDecodeError:
-        raise LinkInputError(f"{path}: not a text file (use --format pcap for captures)") \
-            from None
-    if current is not None:
-        runs.append(current)
-    if not runs or edges is None:
-        raise LinkInputError(f"{path}: no link_histogram event (is it estopd's --log-json log?)")
-    total = [0] * len(edges)
-    valid = invalid = silences = 0
-    saturated = False
-    for ev, _ in runs:
-        for i, x in enumerate(ev["counts"]):
-            total[i] += x
-            saturated |= x >= U32_MAX
-        valid += ev["valid"]
-        invalid += ev["invalid"]
-        silences += ev["silences"]
-    return Histogram(tuple(edges), tuple(total), valid, invalid, silences,
-                     runs[-1][0]["warn_us"], len(runs), saturated)
 
 
 def read_pcap_times(path: str, udp_port: int = 5700) -> tuple[F64, int]:

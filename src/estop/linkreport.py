@@ -1,22 +1,33 @@
-"""The report of ``estop link``: per candidate timeout, the gaps the recording holds and the
-fitted model's rate (:mod:`estop.linkfit`), with Poisson bounds, and the recommendation."""
+"""The report of ``estop link``: per candidate time, the gaps the recording holds and the
+fitted model's rate (:mod:`estop.linkfit`) of silences reaching it, with Poisson bounds, and
+the recommended pair of times (PROTOCOL.md 3, version 3).
+
+The same rate reads two ways. As the timeout T it counts latched emergency stops for nothing
+(false stops); as the slow time S it counts brief slow-downs, each ended by the link's return.
+So T is the shortest time whose rate is below ``target`` (false stops per hour), and S the
+shortest one, longer than a send period and not above T, whose rate is below ``slow_target``
+(slow-downs per hour)."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any
 
 from estop.linkfit import Fit, fit, lost_in_row
 from estop.linkgaps import Gaps
+from estop.linkpoisson import poisson_lower95, poisson_upper95
+from estop.linkunit import UnitCheck, check_unit
 
-__all__ = ["ENOUGH", "TIMEOUTS_MS", "Report", "Row", "poisson_lower95", "poisson_upper95",
-           "report"]
+__all__ = ["DEFAULT_SLOW_TARGET", "DEFAULT_TARGET", "ENOUGH", "TIMEOUTS_MS", "Report", "Row",
+           "recommend_slow", "report"]
 
 TIMEOUTS_MS: tuple[int, ...] = (*range(50, 201, 10), 250, 300, 350, 400, 450, 500, 600, 700,
                                 800, 900, 1000, 1200, 1500, 2000)
 ENOUGH = 10  # gaps at least this many before the recording "can say" a rate (Poisson +-30 %)
+DEFAULT_TARGET = 0.01  # false emergency stops per hour
+# brief slow-downs per hour: one every 3.6 s on average (docs/LINK.md says why)
+DEFAULT_SLOW_TARGET = 1000.0
 
 
 @dataclass(frozen=True)
@@ -65,59 +76,35 @@ class Report:
     fit: Fit
     rows: tuple[Row, ...]
     target: float
-    recommended_ms: int | None
-    recommended_conservative_ms: int | None
+    recommended_ms: int | None  # T
+    recommended_conservative_ms: int | None  # T by the model's 95 % upper bound
+    slow_target: float = DEFAULT_SLOW_TARGET
+    recommended_slow_ms: int | None = None  # S
+    unit: UnitCheck | None = None  # the unit's own counts against the model
+
+    def row(self, time_ms: int) -> Row:
+        return next(r for r in self.rows if r.timeout_ms == time_ms)
+
+    @property
+    def two_stage(self) -> bool:
+        """S < T recommended: the link gains from a controlled stop before the emergency one."""
+        return (self.recommended_slow_ms is not None and self.recommended_ms is not None
+                and self.recommended_slow_ms < self.recommended_ms)
 
 
-def _poisson_cdf(k: int, mu: float) -> float:
-    """P(X <= k) for X ~ Poisson(mu)."""
-    if k < 0:
-        return 0.0
-    term = math.exp(-mu)
-    total = term
-    for i in range(1, k + 1):
-        term *= mu / i
-        total += term
-    return min(total, 1.0)
+def recommend_slow(rows: Iterable[Row], slow_target: float, timeout_ms: int | None) -> int | None:
+    """S: the shortest time longer than one send period (at one period every packet would be
+    due at the deadline) and not above T whose slow-downs meet ``slow_target``. When none
+    shorter than T does, S = T: one stage. Without T, the shortest on the whole grid."""
+    cands = [r for r in rows if r.lost_in_row >= 1
+             and (timeout_ms is None or r.timeout_ms <= timeout_ms)]
+    slow = next((r.timeout_ms for r in cands if r.meets(slow_target)), None)
+    return timeout_ms if slow is None else slow
 
 
-def _solve_mu(f: Any, a: float, b: float) -> float:
-    """Bisection for the mu between a and b where the monotonic f(mu) crosses 0.05
-    (f(a) > 0.05 >= f(b))."""
-    for _ in range(100):
-        mid = (a + b) / 2.0
-        if f(mid) > 0.05:
-            a = mid
-        else:
-            b = mid
-    return (a + b) / 2.0
-
-
-Z95_ONE_SIDED = 1.6448536269514722
-
-
-def poisson_upper95(k: int) -> float:
-    """One-sided 95 % upper limit of a Poisson mean after seeing k events (exact up to 100
-    events, then the Wilson-Hilferty approximation, good to a fraction of a percent)."""
-    if k > 100:
-        m = k + 1
-        return m * (1.0 - 1.0 / (9.0 * m) + Z95_ONE_SIDED / (3.0 * math.sqrt(m))) ** 3
-    return _solve_mu(lambda mu: _poisson_cdf(k, mu), float(k),
-                     float(k) + 10.0 * math.sqrt(k) + 10.0)
-
-
-def poisson_lower95(k: int) -> float:
-    """One-sided 95 % lower limit of a Poisson mean after seeing k events (exact; 0 for 0)."""
-    if k == 0:
-        return 0.0
-    if k > 100:
-        return k * (1.0 - 1.0 / (9.0 * k) - Z95_ONE_SIDED / (3.0 * math.sqrt(k))) ** 3
-    # P(X >= k) grows with mu: above 0.05 at mu = k, below it at mu = 0
-    return _solve_mu(lambda mu: 1.0 - _poisson_cdf(k - 1, mu), float(k), 0.0)
-
-
-def report(gaps: Gaps, rate_hz: float, target: float = 0.01,
-           timeouts_ms: Iterable[int] = TIMEOUTS_MS, tail_from: int | None = None) -> Report:
+def report(gaps: Gaps, rate_hz: float, target: float = DEFAULT_TARGET,
+           timeouts_ms: Iterable[int] = TIMEOUTS_MS, tail_from: int | None = None,
+           slow_target: float = DEFAULT_SLOW_TARGET) -> Report:
     f = fit(gaps, rate_hz, tail_from)
     rows = []
     for d in timeouts_ms:
@@ -128,6 +115,8 @@ def report(gaps: Gaps, rate_hz: float, target: float = 0.01,
     rec = next((r.timeout_ms for r in rows if r.meets(target)), None) if f.bursts else None
     cons = next((r.timeout_ms for r in rows if r.meets(target) and r.model_high < target),
                 None) if f.bursts else None
-    return Report(gaps, f, tuple(rows), target, rec, cons)
+    slow = recommend_slow(rows, slow_target, rec) if f.bursts else None
+    return Report(gaps, f, tuple(rows), target, rec, cons, slow_target, slow,
+                  check_unit(gaps, f))
 
 

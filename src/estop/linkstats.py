@@ -2,9 +2,12 @@
 turned into false stops per hour per timeout.
 
 This module is the public face of the analysis; the work is done in small modules with
-one-way dependencies: :mod:`estop.linkgaps` (gap cells) <- :mod:`estop.linkread` (the input
-files) and :mod:`estop.linkfit` (the stop rule and the fit) <- :mod:`estop.linkreport` (rows
-and recommendation) <- :mod:`estop.linkformat` (text, JSON) and :mod:`estop.linkplot`.
+one-way dependencies: :mod:`estop.linkgaps` (gap cells) <- :mod:`estop.linklog` (estopd's
+log) <- :mod:`estop.linkread` (the other input files, the choice of reader);
+:mod:`estop.linkgaps` <- :mod:`estop.linkfit` (the stop rule and the fit) <-
+:mod:`estop.linkunit` (the unit's own counts against the model, with :mod:`estop.linkpoisson`)
+<- :mod:`estop.linkreport` (rows, the recommended S and T) <- :mod:`estop.linkformat` (text,
+JSON) and :mod:`estop.linkplot`.
 
 Inputs (one file; the kind is recognised from its first bytes, or named with ``--format``):
 
@@ -20,9 +23,9 @@ is either received (good state) or lost (bad state); ``p_gb`` = P(good -> bad), 
 P(bad -> good). A gap between two received packets of (k+1) send periods means k lost in a row.
 Loss = p_gb / (p_gb + p_bg), mean burst = 1 / p_bg.
 
-A stop comes at the deadline: with send period T and timeout D, after a packet at t0 the next
-ones are due at t0 + T, t0 + 2T, ...; only those due strictly before t0 + D can keep the unit
-alive, and there are n = ceil(D / T) - 1 of them. The unit stops when those n are all lost
+A stop comes at the deadline: with send period P and timeout D, after a packet at t0 the next
+ones are due at t0 + P, t0 + 2P, ...; only those due strictly before t0 + D can keep the unit
+alive, and there are n = ceil(D / P) - 1 of them. The unit stops when those n are all lost
 (50 Hz, 200 ms: packets due at 20 .. 180 ms, n = 9; the 10th is due at the deadline itself,
 when the stop has already come). False stops per hour = bursts of n or more losses per hour =
 packets per hour x (1 - loss) x p_gb x (1 - p_bg)^(n - 1).
@@ -32,21 +35,35 @@ from __future__ import annotations
 
 from estop.linkfit import Fit, false_stops_per_hour, fit, lost_in_row
 from estop.linkformat import format_report, report_json
-from estop.linkgaps import Gaps, Histogram, LinkInputError, gaps_from_histogram, gaps_from_times
+from estop.linkgaps import (
+    Gaps,
+    Histogram,
+    LinkInputError,
+    UnitRecord,
+    gaps_from_histogram,
+    gaps_from_times,
+)
+from estop.linklog import read_histogram_log
 from estop.linkplot import write_plot
-from estop.linkread import detect_format, load, read_histogram_log, read_pcap_times, read_times
+from estop.linkpoisson import poisson_lower95, poisson_upper95
+from estop.linkread import detect_format, load, read_pcap_times, read_times
 from estop.linkreport import (
+    DEFAULT_SLOW_TARGET,
+    DEFAULT_TARGET,
     ENOUGH,
     TIMEOUTS_MS,
     Report,
     Row,
-    poisson_lower95,
-    poisson_upper95,
+    recommend_slow,
     report,
 )
+from estop.linkunit import Check, UnitCheck, check_unit
 
 __all__ = [
+    "DEFAULT_SLOW_TARGET",
+    "DEFAULT_TARGET",
     "ENOUGH",
+    "Check",
     "Fit",
     "Gaps",
     "Histogram",
@@ -54,6 +71,9 @@ __all__ = [
     "Report",
     "Row",
     "TIMEOUTS_MS",
+    "UnitCheck",
+    "UnitRecord",
+    "check_unit",
     "detect_format",
     "false_stops_per_hour",
     "fit",
@@ -67,6 +87,7 @@ __all__ = [
     "read_histogram_log",
     "read_pcap_times",
     "read_times",
+    "recommend_slow",
     "report",
     "report_json",
     "write_plot",

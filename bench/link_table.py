@@ -6,13 +6,16 @@ packets. The tool fits its Gilbert model to the arrival times (or, with ``--binn
 daemon's half-octave histogram of the same gaps) and its false stops per hour for 100 ms .. 1 s
 are printed beside the closed form at the true parameters
 (packets per hour x (1 - p) x q x (1 - r)^(n-1), r = 1/burst, q = p r / (1 - p)) and the
-stops the trace itself holds. Prints a Markdown table; takes about 10 s.
+stops the trace itself holds. Prints a Markdown table; takes about 10 s. ``--save DIR`` also
+writes each trace's arrival times (DIR/burst-1.5.txt, burst-3.txt, burst-5.txt) for
+``estop link`` itself (docs/LINK.md's example).
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -63,11 +66,16 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=12)
     ap.add_argument("--binned", action="store_true",
                     help="fit the daemon's binned histogram instead of the arrival times")
+    ap.add_argument("--save", metavar="DIR", type=Path,
+                    help="write each trace's arrival times to DIR/burst-<b>.txt")
     args = ap.parse_args()
     t0 = time.perf_counter()
     reports = []
     for i, burst in enumerate(BURSTS):
         t = trace(burst, args.hours, args.seed + i)
+        if args.save:
+            args.save.mkdir(parents=True, exist_ok=True)
+            np.savetxt(args.save / f"burst-{burst:g}.txt", t, fmt="%.6f")
         gaps = binned(t) if args.binned else L.gaps_from_times(t, RATE)
         reports.append(L.report(gaps, RATE, timeouts_ms=TIMEOUTS))
     form = "binned daemon histogram" if args.binned else "arrival times"

@@ -1,10 +1,11 @@
 """``estop link`` against known answers.
 
-Synthetic Gilbert traces (a seeded numpy generator written here, independent of the tool and of
-``estop.linkmodel``) have known loss and mean burst; the tool must recover them from arrival
-times, from the daemon's binned histogram (made here with an independent implementation of the
-daemon's bin function) and from a pcap written here with dpkt. Its false-stop rates must agree
-with the issue's closed form and with a count of stops made by the deadline rule itself.
+Synthetic Gilbert traces (a seeded numpy generator in tests/link_util.py, independent of the
+tool and of ``estop.linkmodel``) have known loss and mean burst; the tool must recover them from
+arrival times, from the daemon's binned histogram (made there with an independent
+implementation of the daemon's bin function) and from a pcap written here with dpkt. Its
+false-stop rates must agree with the issue's closed form and with a count of stops made by the
+deadline rule itself.
 """
 
 from __future__ import annotations
@@ -20,78 +21,25 @@ import dpkt
 import numpy as np
 import pytest
 
-from estop import cli
+from estop import cli, linkfit
 from estop import linkstats as L
 from estop.linkmodel import WIFI, LinkConfig, LinkModel
+from link_util import (
+    EDGES_US,
+    HOURS10,
+    RATE,
+    arrivals_us,
+    daemon_bin,
+    daemon_bin_one,
+    gilbert_lost,
+    histogram_log,
+    loss_runs,
+)
 
 pytestmark = pytest.mark.timeout(120)
 
-RATE = 50.0
-PERIOD_US = 20_000
-HOURS10 = 10 * 3600 * 50  # packets sent in 10 hours at 50 Hz: 1.8 M
-
 
 # --------------------------------------------------------------------------- generators
-
-
-def gilbert_lost(n: int, loss: float, burst: float, seed: int) -> np.ndarray:
-    """Lost-mask of n packets through a Gilbert channel (good: received, bad: lost) with
-    P(bad->good) r = 1/burst and P(good->bad) q = loss r / (1 - loss), starting good. Built
-    from alternating geometric run lengths, so 1.8 M packets take milliseconds."""
-    rng = np.random.default_rng(seed)
-    r = 1.0 / burst
-    q = loss * r / (1.0 - loss)
-    m = int(n * q * 1.2) + 1000  # runs of each kind: enough with a wide margin
-    runs = np.empty(2 * m, dtype=np.int64)
-    runs[0::2] = rng.geometric(q, m)  # good runs: 1 + packets before the next loss
-    runs[1::2] = rng.geometric(r, m)  # bad runs: packets lost in a row
-    ends = np.cumsum(runs)
-    assert ends[-1] > n, "generator margin too small"
-    starts, stops = ends[0::2], np.minimum(ends[1::2], n)
-    keep = starts < n
-    edge = np.zeros(n + 1, dtype=np.int64)
-    np.add.at(edge, starts[keep], 1)
-    np.add.at(edge, stops[keep], -1)
-    return np.cumsum(edge[:n]) > 0
-
-
-def loss_runs(lost: np.ndarray) -> np.ndarray:
-    """Lengths of the runs of lost packets (those closed by a received packet)."""
-    x = np.concatenate(([0], lost.astype(np.int8), [0]))
-    d = np.diff(x)
-    starts, ends = np.flatnonzero(d == 1), np.flatnonzero(d == -1)
-    runs = ends - starts
-    if lost[-1]:
-        runs = runs[:-1]  # a run still open at the end is not a gap between packets
-    if lost[0]:
-        runs = runs[1:]  # nor one before the first received packet
-    return runs
-
-
-def arrivals_us(lost: np.ndarray) -> np.ndarray:
-    """Arrival times in integer microseconds of the received packets (no jitter)."""
-    return np.flatnonzero(~lost).astype(np.int64) * PERIOD_US
-
-
-def daemon_bin(g_us: np.ndarray) -> np.ndarray:
-    """The daemon's bin of a gap, written here from the event's definition: 0 below 1024 us;
-    else e = floor(log2 g), h = bit e-1 of g, bin 1 + 2 (e - 10) + h, at most 31."""
-    g = np.asarray(g_us, dtype=np.int64)
-    e = np.frexp(g.astype(np.float64))[1].astype(np.int64) - 1  # floor(log2 g), exact < 2^53
-    h = (g >> np.maximum(e - 1, 0)) & 1
-    return np.where(g < 1024, 0, np.minimum(1 + 2 * (e - 10) + h, 31))
-
-
-def daemon_bin_one(g: int) -> int:
-    """The same, one gap at a time with Python integers (a check on the vectorised one)."""
-    if g < 1024:
-        return 0
-    e = g.bit_length() - 1
-    return min(1 + 2 * (e - 10) + ((g >> (e - 1)) & 1), 31)
-
-
-EDGES_US = [0] + [(1 << (10 + (b - 1) // 2)) + ((b - 1) % 2) * (1 << (9 + (b - 1) // 2))
-                  for b in range(1, 32)]
 
 
 def test_daemon_bin_reference_itself() -> None:
@@ -130,36 +78,6 @@ def trace10h(request: pytest.FixtureRequest) -> Trace:
     burst = float(request.param)
     lost = gilbert_lost(HOURS10, 0.09, burst, TRACE_PARAMS[burst])
     return Trace(0.09, burst, lost, arrivals_us(lost))
-
-
-def histogram_log(runs: list[np.ndarray], every_s: float = 10.0, warn_us: int = 100_000,
-                  noise: bool = True) -> str:
-    """estopd --log-json text for runs of arrival times (us): per run a `start` event, a
-    cumulative `link_histogram` every ``every_s`` and at the end, and other events between."""
-    lines: list[str] = []
-    t0 = 0.0
-    for t_us in runs:
-        lines.append(json.dumps({"t_mono": t0, "event": "start", "udp_port": 5700}))
-        g = np.diff(t_us)
-        bins = daemon_bin(g)
-        window = ((t_us[1:] - t_us[0]) // int(every_s * 1e6)).astype(np.int64)
-        nwin = int(window[-1]) + 1
-        per = np.zeros((nwin, 32), dtype=np.int64)
-        np.add.at(per, (window, bins), 1)
-        cum = np.cumsum(per, axis=0)
-        silences = np.cumsum(np.bincount(window, weights=(g > warn_us), minlength=nwin))
-        for w in range(nwin):
-            t = t0 + (w + 1) * every_s
-            if noise and w % 7 == 3:
-                lines.append(json.dumps({"t_mono": t - 1, "event": "state", "from": "ARMED",
-                                         "to": "STOPPED", "reason": "udp_timeout", "src": "-"}))
-            lines.append(json.dumps({
-                "t_mono": t, "event": "link_histogram", "valid": int(cum[w].sum()) + 1,
-                "invalid": w, "silences": int(silences[w]), "warn_us": warn_us,
-                "edges_us": EDGES_US, "counts": [int(c) for c in cum[w]]}))
-        t0 += nwin * every_s + 5.0
-        lines.append(json.dumps({"t_mono": t0 - 4.0, "event": "exit", "signal": "TERM"}))
-    return "\n".join(lines) + "\n"
 
 
 # --------------------------------------------------------------------------- the stop rule
@@ -300,9 +218,9 @@ def test_binned_likelihood_on_exact_cells_is_the_closed_form() -> None:
     closed = L.fit(g, RATE)
     assert g.exact
     mask = g.k_lo >= 1
-    r = L._argmax_r(g.k_lo[mask], g.k_hi[mask], g.counts[mask])
+    r = linkfit._argmax_r(g.k_lo[mask], g.k_hi[mask], g.counts[mask])
     assert r == pytest.approx(closed.p_bg, rel=1e-6)
-    assert L._se_numeric(r, g.k_lo[mask], g.k_hi[mask], g.counts[mask]) == \
+    assert linkfit._se_numeric(r, g.k_lo[mask], g.k_hi[mask], g.counts[mask]) == \
         pytest.approx(closed.p_bg_se, rel=1e-3)
 
 
@@ -386,7 +304,7 @@ def test_remote_link_model_is_the_fitted_gilbert_model() -> None:
 
 
 def test_remote_link_model_with_delay_and_small_jitter() -> None:
-    cfg = LinkConfig(loss=0.09, burst=5.0, delay=0.1, jitter=0.004)  # jitter < T/4
+    cfg = LinkConfig(loss=0.09, burst=5.0, delay=0.1, jitter=0.004)  # jitter < P/4
     model = LinkModel(cfg, seed=4)
     arrivals = [model.transmit(i / RATE) for i in range(300_000)]
     t = np.asarray([a for a in arrivals if a is not None])
@@ -537,7 +455,7 @@ def test_cli_table_json_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert code == 0 and err == ""
     for d in (100, 200, 300, 400, 500, 600, 700, 800, 900, 1000):
         assert any(line.split()[:2] == [str(d), "ms"] for line in text.splitlines()), d
-    assert "ceil(D/T) - 1" in text and "recommendation:" in text
+    assert "ceil(D/P) - 1" in text and "recommendation:" in text
 
     png = tmp_path / "link.png"
     code, text, err = run_cli([str(times), "--json", "--plot", str(png)], capsys)
@@ -667,6 +585,6 @@ def test_poisson_bounds() -> None:
 
 def test_help_mentions_the_stop_rule(capsys: pytest.CaptureFixture[str]) -> None:
     assert cli.main(["link", "--help"]) == 0
-    assert "ceil(D/T) - 1" in capsys.readouterr().out.replace("\n", " ")
+    assert "ceil(D/P) - 1" in capsys.readouterr().out.replace("\n", " ")
 
 

@@ -1,11 +1,13 @@
-"""``estop link``: how often would each timeout stop the car for nothing on this link?
+"""``estop link``: which slow time S and timeout T fit this link?
 
 Reads a recording of the control link (estopd's ``--log-json`` log, a file of arrival times,
 or a pcap of the control port), fits a two-state Gilbert loss model at the known send rate and
-prints, for timeouts from 50 ms to 2 s, the gaps seen in the recording and the model's false
-stops per hour, and the shortest timeout that meets ``--target``. The analysis lives in
-:mod:`estop.linkstats` (imported only when the command runs: it needs numpy). Documentation:
-docs/LINK.md.
+prints, for times from 50 ms to 2 s, the gaps seen in the recording and the model's silences
+per hour that reach each time: read as the timeout T, false emergency stops; read as the slow
+time S (PROTOCOL.md 3, version 3), brief slow-downs. It recommends T, the shortest time that
+meets ``--target``, and S, the shortest not above T that meets ``--slow-target``. The analysis
+lives in :mod:`estop.linkstats` (imported only when the command runs: it needs numpy).
+Documentation: docs/LINK.md.
 """
 
 from __future__ import annotations
@@ -19,9 +21,11 @@ __all__ = ["DESCRIPTION", "EPILOG", "add_arguments", "run"]
 
 DESCRIPTION = ("Estimate the control link's loss and burst structure (two-state Gilbert model) "
                "from estopd's --log-json log, a file of arrival times or a pcap of the control "
-               "port, and report false stops per hour for timeouts from 50 ms to 2 s.")
-EPILOG = ("A stop comes at the deadline: with send period T and timeout D it takes "
-          "n = ceil(D/T) - 1 packets lost in a row (50 Hz, 200 ms: 9). "
+               "port, and report, for times from 50 ms to 2 s, false emergency stops per hour "
+               "(read as the timeout T) and brief slow-downs per hour (read as the slow time "
+               "S); recommend S and T.")
+EPILOG = ("A stop comes at the deadline: with send period P and a time D (the slow time S or "
+          "the timeout T) it takes n = ceil(D/P) - 1 packets lost in a row (50 Hz, 200 ms: 9). "
           "Exit codes: 0 report written, 2 bad input or usage.")
 
 # --------------------------------------------------------------------------- CLI
@@ -35,10 +39,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--rate-hz", type=positive_float, default=50.0,
                         help="the remote's send rate (default 50)")
     parser.add_argument("--target", type=positive_float, default=0.01,
-                        help="false stops per hour to stay below (default 0.01)")
+                        help="false emergency stops per hour to stay below: chooses the "
+                             "timeout T (default 0.01)")
+    # the defaults are linkreport.DEFAULT_TARGET and DEFAULT_SLOW_TARGET (that module needs numpy)
+    parser.add_argument("--slow-target", type=positive_float, default=1000.0,
+                        help="brief slow-downs per hour to stay below: chooses the slow time "
+                             "S <= T (default 1000, one every 3.6 s)")
     parser.add_argument("--port", type=port, default=5700,
                         help="pcap: UDP control port (default 5700)")
-    parser.add_argument("--max-gap", type=non_negative_float, default=5.0, metavar="S",
+    parser.add_argument("--max-gap", type=non_negative_float, default=5.0, metavar="SECONDS",
                         help="gaps of this many seconds or more are the sender pausing "
                              "(finger lifted), left out of the fit (default 5; 0: none)")
     parser.add_argument("--tail-from", type=int, default=None, metavar="K",
@@ -55,7 +64,8 @@ def run(args: argparse.Namespace) -> int:
     from estop.linkstats import format_report, load, report, report_json, write_plot
 
     gaps = load(args.file, args.format, args.rate_hz, args.max_gap, args.port)
-    rep = report(gaps, args.rate_hz, args.target, tail_from=args.tail_from)
+    rep = report(gaps, args.rate_hz, args.target, tail_from=args.tail_from,
+                 slow_target=args.slow_target)
     if args.plot:
         write_plot(rep, args.plot)
     if args.json:

@@ -129,6 +129,21 @@ def test_ready_then_watchdog_pings_then_stopping(tmp_path: Path,
     assert supervisor.messages[-1][1] == "STOPPING=1"
 
 
+def test_status_names_every_state_change(tmp_path: Path, supervisor: Supervisor) -> None:
+    """STATUS= (systemctl status) follows the state, SLOWING included, with the reason while
+    STOPPED."""
+    d = Daemon(tmp_path, "--slow-ms", "50", "--timeout-ms", "300")
+    d.env = {"NOTIFY_SOCKET": supervisor.env_value}
+    with d:
+        supervisor.wait_for("READY=1")
+        d.arm()
+        supervisor.wait_for("STATUS=watching: STOPPED (udp_timeout)")
+    status = [m for _, msg in supervisor.messages for m in msg.split("\n")
+              if m.startswith("STATUS=")]
+    assert status == ["STATUS=watching: STOPPED (boot)", "STATUS=watching: ARMED",
+                      "STATUS=watching: SLOWING", "STATUS=watching: STOPPED (udp_timeout)"]
+
+
 def test_abstract_notify_socket(tmp_path: Path) -> None:
     sup = Supervisor(tmp_path, abstract=True)
     try:
@@ -191,7 +206,7 @@ def test_make_install_puts_everything_in_place(installed: Path) -> None:
     assert "@" not in unit.replace("@system-service", "").replace("@memlock", "")
     res = subprocess.run([str(exe), "--version"], capture_output=True, text=True, timeout=10,
                          check=False)
-    assert res.returncode == 0 and res.stdout.startswith("estopd 2.")
+    assert res.returncode == 0 and res.stdout == "estopd 3.0\n"
 
 
 def test_installed_key_is_accepted_and_never_overwritten(installed: Path,

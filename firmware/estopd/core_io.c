@@ -23,13 +23,37 @@ void cio_emit(daemon_t *d, const estop_can_frame_t *f, uint64_t now)
     }
 }
 
-static void log_state(const daemon_t *d, const estop_out_t *out, uint64_t now,
+/* Why the state changed (the `cause` key, docs/DESIGN.md): a stop by its reason, told apart by
+ * the channel it came on; the other changes by where they lead from. what: the core call. */
+static const char *state_cause(uint8_t from, const estop_out_t *out, const char *what)
+{
+    int by_datagram = strcmp(what, "udp_rx") == 0;
+
+    if (out->state == ESTOP_STATE_STOPPED) {
+        switch (out->reason) {
+        case ESTOP_REASON_TCP_STOP: return by_datagram ? "stop_datagram" : "tcp_stop";
+        case ESTOP_REASON_LIFT: return by_datagram ? "lift_datagram" : "lift";
+        case ESTOP_REASON_FAULT:
+            /* Outside a reported fault, the clock's only way to a fault is a backwards tick. */
+            return (out->changed_by_clock && strcmp(what, "fault") != 0) ? "clock_backwards"
+                                                                          : "fault";
+        default: return log_reason_name(out->reason);
+        }
+    }
+    if (from == ESTOP_STATE_STOPPED) {
+        return "release"; /* to ARMED, or straight to SLOWING for a link silent for S */
+    }
+    return out->state == ESTOP_STATE_SLOWING ? "udp_silence" : "link_back";
+}
+
+static void log_state(const daemon_t *d, const estop_out_t *out, uint64_t now, const char *what,
                       const struct sockaddr_in *src)
 {
     char head[32];
     char addr[NET_ADDR_LEN];
     const char *from = log_state_name(d->state);
     const char *to = log_state_name(out->state);
+    const char *cause = state_cause(d->state, out, what);
 
     (void)snprintf(head, sizeof head, "%s->%s", from, to);
     /* A change the clock made (timeout) is nobody's input, whatever call carried it. */
@@ -44,9 +68,12 @@ static void log_state(const daemon_t *d, const estop_out_t *out, uint64_t now,
             KV_JSTR("to", to),
             KV_STR("reason", log_reason_name(out->reason)),
             KV_STR("src", addr),
+            KV_STR("cause", cause),
         };
-        log_event(now, "state", head, kv, 4u);
+        log_event(now, "state", head, kv, sizeof kv / sizeof kv[0]);
     }
+    notify_state(&d->notify, to, out->state == ESTOP_STATE_STOPPED
+                                     ? log_reason_name(out->reason) : NULL);
 }
 
 static void emit_all(daemon_t *d, const estop_out_t *out, uint64_t now)
@@ -67,7 +94,7 @@ unsigned cio_done(daemon_t *d, estop_err_t err, const char *what, const estop_ou
      * (frames, a state change) still goes out. Callers zero out before each call. */
     emit_all(d, out, now);
     if (out->state_changed) {
-        log_state(d, out, now, src);
+        log_state(d, out, now, what, src);
         d->state = out->state;
         d->reason = out->reason;
     }

@@ -57,6 +57,8 @@ typedef struct {
     uint64_t stats_last_us;   /* the latest periodic read-out (stats.c) */
     uint64_t stats_auth_reported; /* authentication failures already in the log */
     uint32_t stats_valid_reported; /* valid packets in the latest link_histogram */
+    uint32_t stats_slowdowns_reported; /* ... and slow-downs and timeouts */
+    uint32_t stats_timeouts_reported;
     notify_t notify;          /* the systemd notify protocol (no-op without NOTIFY_SOCKET) */
     int fatal;                /* an unrecoverable error: leave the loop */
     int stop_signal;          /* the signal that asks us to stop, 0 if none */

@@ -105,9 +105,9 @@ static const char *signal_name(int sig)
     }
 }
 
-/* One last ESTOP_BRAKE frame that says brake. ARMED: a fault makes the core itself send
- * the STOPPED frame (valid counter and CRC). Already STOPPED (or the core is broken): the
- * next frame of the sequence is built here. */
+/* One last ESTOP_BRAKE frame that says brake. ARMED or SLOWING (neither is latched): a fault
+ * makes the core itself send the STOPPED frame (valid counter and CRC). Already STOPPED (or
+ * the core is broken): the next frame of the sequence is built here. */
 static void last_frame(daemon_t *d)
 {
     uint32_t before = d->frames_out;
@@ -115,7 +115,7 @@ static void last_frame(daemon_t *d)
     estop_can_frame_t f;
     uint8_t reason;
 
-    if (!d->fatal && d->state == ESTOP_STATE_ARMED) {
+    if (!d->fatal && d->state != ESTOP_STATE_STOPPED) {
         cio_fault(d, now, "shutdown");
     }
     if (d->frames_out != before && d->last_frame.id == d->opt.cfg.brake_can_id &&

@@ -176,6 +176,8 @@ static void log_start_line(const daemon_t *d)
             KV_STR("can", d->opt.can_iface != NULL ? d->opt.can_iface : "-"),
             KV_STR("can_log", can_log),
             KV_MS("timeout_ms", d->opt.cfg.timeout_us),
+            KV_MS("slow_ms", d->opt.cfg.slow_us),
+            KV_NUM("slow_level", d->opt.cfg.slow_level),
             KV_MS("warn_ms", d->opt.cfg.warn_us),
             KV_STR("stop_id", stop_id),
             KV_STR("auth", d->opt.cfg.key_len != 0u ? "key" : "none"),

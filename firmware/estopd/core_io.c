@@ -7,6 +7,8 @@
 #include "clock.h"
 #include "log.h"
 #include "net.h"
+#include "rxtime.h"
+#include "udp.h"
 
 void cio_emit(daemon_t *d, const estop_can_frame_t *f, uint64_t now)
 {
@@ -169,18 +171,47 @@ int cio_boot(daemon_t *d)
     return d->fatal ? -1 : 0;
 }
 
-uint64_t cio_prepare(daemon_t *d)
+/* A gap longer than the core's step (suspend, a stalled host) goes in in steps. */
+static void catch_up(daemon_t *d, uint64_t t)
 {
-    uint64_t now = clock_mono_us();
-    const char *cause;
-
-    if (now < d->last_call_us) {
-        now = d->last_call_us; /* time handed to the core never goes backwards */
-    }
-    /* A gap longer than the core's step (suspend, a stalled host) goes in in steps. */
-    while (!d->fatal && now - d->last_call_us > ESTOP_MAX_STEP_US) {
+    while (!d->fatal && t > d->last_call_us && t - d->last_call_us > ESTOP_MAX_STEP_US) {
         cio_tick(d, d->last_call_us + ESTOP_MAX_STEP_US);
     }
+}
+
+void cio_udp(daemon_t *d, const uint8_t *data, size_t len, const struct sockaddr_in *src,
+             uint64_t rx_us)
+{
+    /* The core's clock never goes backwards: a datagram received before the latest call
+     * (read late behind other input) goes in at that call's time. */
+    uint64_t t = rxtime_feed_us(rx_us, d->last_call_us);
+    estop_out_t out;
+    estop_err_t err;
+
+    catch_up(d, t);
+    if (d->fatal) {
+        return;
+    }
+    memset(&out, 0, sizeof out);
+    err = estop_udp_rx(&d->core, data, len, (uint32_t)t, &out);
+    (void)cio_done(d, err, "udp_rx", &out, t, src, -1);
+}
+
+uint64_t cio_prepare(daemon_t *d)
+{
+    uint64_t t0 = clock_mono_us();
+    uint64_t now;
+    const char *cause;
+
+    if (t0 < d->last_call_us) {
+        t0 = d->last_call_us; /* time handed to the core never goes backwards */
+    }
+    /* Drain first: the unit looks at what it has received before it acts on a deadline. A
+     * drain cut short by its budget leaves the rest unread: the deadline is not delayed for
+     * packets not yet looked at (the car stops rather than waits). */
+    udp_drain(d, t0);
+    now = t0 > d->last_call_us ? t0 : d->last_call_us;
+    catch_up(d, now);
     if (!d->fatal && now >= d->deadline_us) {
         cio_tick(d, now);
     }

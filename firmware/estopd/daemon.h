@@ -36,6 +36,7 @@ typedef struct {
     int timerfd;
     int sigfd;
     int udp_fd;
+    uint32_t udp_budget;      /* datagrams the drain may still read this loop round */
     int tcp_fd;
     uint16_t udp_port;        /* bound ports (port 0 picks one) */
     uint16_t tcp_port;

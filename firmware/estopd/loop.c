@@ -83,7 +83,7 @@ static void dispatch(daemon_t *d, const struct epoll_event *ev)
     } else if (tag == TAG_SIGNAL) {
         on_signal(d);
     } else if (tag == TAG_UDP) {
-        udp_readable(d);
+        (void)cio_prepare(d); /* the drain reads the datagrams (udp.h) */
     } else if (tag == TAG_TCP) {
         clients_accept(d);
     } else if (tag == TAG_CAN) {
@@ -133,6 +133,7 @@ static int finish(daemon_t *d)
     int code = d->fatal ? 1 : 0;
 
     notify_send(&d->notify, "STOPPING=1");
+    udp_round(d);
     last_frame(d);
     if (d->can_on) {
         can_drain(&d->can, d->opt.cfg.brake_period_us); /* a refused last frame gets a period */
@@ -161,10 +162,12 @@ int loop_run(daemon_t *d)
     struct epoll_event evs[MAX_EVENTS];
 
     while (!d->fatal && d->stop_signal == 0) {
-        uint64_t now = cio_prepare(d); /* deadline work first, every round */
+        uint64_t now;
         int n;
         int i;
 
+        udp_round(d);
+        now = cio_prepare(d); /* deadline work first, every round */
         if (d->fatal) {
             break;
         }

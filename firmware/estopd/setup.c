@@ -18,6 +18,7 @@
 #include "core_io.h"
 #include "log.h"
 #include "net.h"
+#include "udp.h"
 
 static int fail(const char *what, char *err, size_t n)
 {
@@ -75,7 +76,7 @@ static int setup_fds(daemon_t *d, char *err, size_t n)
         return -1;
     }
     d->udp_fd = net_udp_open(d->opt.bind, d->opt.udp_port, &d->udp_port, err, n);
-    if (d->udp_fd < 0) {
+    if (d->udp_fd < 0 || udp_setup(d, err, n) != 0) {
         return -1;
     }
     d->tcp_fd = net_tcp_open(d->opt.bind, d->opt.tcp_port, &d->tcp_port, err, n);

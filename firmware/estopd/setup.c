@@ -183,6 +183,7 @@ static void log_start_line(const daemon_t *d)
             KV_STR("stop_id", stop_id),
             KV_STR("auth", d->opt.cfg.key_len != 0u ? "key" : "none"),
             KV_STR("session", session),
+            KV_NUM("udp_rcvbuf", d->udp_rcvbuf),
             KV_NUM("rt_prio", d->opt.rt_prio),
             KV_NUM("mlock", d->opt.mlock),
             KV_NUM("pid", getpid()),
@@ -190,6 +191,16 @@ static void log_start_line(const daemon_t *d)
             KV_NUM("version_minor", ESTOP_VERSION_MINOR),
         };
         log_event(clock_mono_us(), "start", NULL, kv, sizeof kv / sizeof kv[0]);
+    }
+    if (d->udp_rcvbuf < d->udp_rcvbuf_wanted) {
+        /* Without CAP_NET_ADMIN the buffer stops at net.core.rmem_max (README: receive
+         * buffer). */
+        log_kv_t kv[] = {
+            KV_NUM("bytes", d->udp_rcvbuf),
+            KV_NUM("wanted", d->udp_rcvbuf_wanted),
+            KV_STR("hint", "net.core.rmem_max"),
+        };
+        log_event(clock_mono_us(), "udp_rcvbuf_small", NULL, kv, 3u);
     }
 }
 

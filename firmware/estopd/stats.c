@@ -82,6 +82,20 @@ static void report_auth(daemon_t *d, uint64_t now, const estop_counters_t *c)
     }
 }
 
+/* udp_drops: datagrams the kernel dropped because the receive buffer was full (a flood, or a
+ * loop that could not keep up), since start and since the last report. */
+static void report_drops(daemon_t *d, uint64_t now)
+{
+    if (d->udp_drops != d->stats_drops_reported) {
+        log_kv_t kv[] = {
+            KV_NUM("dropped", (uint32_t)(d->udp_drops - d->stats_drops_reported)),
+            KV_NUM("total", d->udp_drops),
+        };
+        d->stats_drops_reported = d->udp_drops;
+        log_event(now, "udp_drops", NULL, kv, 2u);
+    }
+}
+
 static void report(daemon_t *d, uint64_t now)
 {
     estop_status_t st;
@@ -90,6 +104,7 @@ static void report(daemon_t *d, uint64_t now)
         report_auth(d, now, &st.counters);
         report_link(d, now, &st.counters);
     }
+    report_drops(d, now);
 }
 
 void stats_tick(daemon_t *d, uint64_t now_us)

@@ -37,7 +37,6 @@ static batch_t batch;
 int udp_setup(daemon_t *d, char *err, size_t errlen)
 {
     int one = 1;
-
     int size = UDP_RCVBUF;
     socklen_t len = sizeof d->udp_rcvbuf;
 
@@ -56,7 +55,7 @@ int udp_setup(daemon_t *d, char *err, size_t errlen)
         d->udp_rcvbuf = 0;
     }
     d->udp_rcvbuf_wanted = 2 * UDP_RCVBUF;
-    /* The kernel's count of datagrams it dropped for want of room, with every datagram. */
+    /* With every datagram, the kernel's count so far of those it dropped for want of room. */
     (void)setsockopt(d->udp_fd, SOL_SOCKET, SO_RXQ_OVFL, &one, sizeof one);
     udp_round(d);
     return 0;

@@ -34,10 +34,12 @@ ROOT = Path(__file__).resolve().parents[1]
 STOP_ID = 0xE570E570
 MSG_STATUS = 1
 MSG_RELEASE = 2
+MSG_LIFT = 3
 ACK = 0x80
 NAK = 0x81
-STOPPED, ARMED = 0, 1
-R_NONE, R_BOOT, R_TCP_STOP, R_UDP_TIMEOUT, R_FAULT = range(5)
+STOPPED, ARMED, SLOWING = 0, 1, 2
+R_NONE, R_BOOT, R_TCP_STOP, R_UDP_TIMEOUT, R_FAULT, R_LIFT = range(6)
+SLOW_LEVEL = 30  # the default slow level L (PROTOCOL.md 4)
 BRAKE_ID = 0x050
 STATUS_ID = 0x051
 BRAKE_DATA_ID = 0x0E57
@@ -105,8 +107,9 @@ def parse_canlog_line(line: str) -> Frame:
     return Frame(t, m["iface"], int(m["id"], 16), bytes.fromhex(m["data"]))
 
 
-def check_frames(frames: list[Frame]) -> None:
-    """Every frame: DLC 8, good CRC, alive counters 0..14 in sequence per ID, brake layout."""
+def check_frames(frames: list[Frame], slow_level: int = SLOW_LEVEL) -> None:
+    """Every frame: DLC 8, good CRC, alive counters 0..14 in sequence per ID, brake layout
+    (brake_request and brake_level by state: STOPPED 1/100, ARMED 0/0, SLOWING 2/L)."""
     last: dict[int, int] = {}
     for f in frames:
         assert f.can_id in (BRAKE_ID, STATUS_ID), f
@@ -117,8 +120,9 @@ def check_frames(frames: list[Frame]) -> None:
         last[f.can_id] = f.counter
         if f.is_brake():
             stopped = f.state == STOPPED
-            assert f.data[0] == (1 if stopped else 0), f
-            assert f.data[1] == (100 if stopped else 0), f
+            assert f.state in (STOPPED, ARMED, SLOWING), f
+            assert (f.data[0], f.data[1]) == {STOPPED: (1, 100), ARMED: (0, 0),
+                                              SLOWING: (2, slow_level)}[f.state], f
             assert f.data[5] == 0, f
             assert (f.reason == R_NONE) == (not stopped), f
 

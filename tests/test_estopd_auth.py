@@ -7,6 +7,9 @@ from __future__ import annotations
 import os
 import re
 import socket
+import subprocess
+import sys
+import threading
 import time
 from pathlib import Path
 
@@ -226,3 +229,65 @@ def test_control_packets_over_ipv4_from_any_port_count(tmp_path: Path) -> None:
                              ("127.0.0.1", d.udp_port))
         time.sleep(0.02)
         assert remote.request(MSG_RELEASE).state == ARMED
+
+
+# A flooder of its own (a process: the test's threads keep the GIL): one forged 60-byte control
+# packet, 80,000 a second in bursts of 800 every 10 ms, for the given seconds.
+FLOOD_PY = """
+import socket, sys, time
+port, secs, pkt = int(sys.argv[1]), float(sys.argv[2]), bytes.fromhex(sys.argv[3])
+s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+s.connect(('127.0.0.1', port))
+print('ready', flush=True)
+t0 = time.monotonic()
+sent = 0
+while (t := time.monotonic() - t0) < secs:
+    due = int(t * 80000)
+    while sent < due:
+        try:
+            s.send(pkt)
+        except OSError:
+            pass
+        sent += 1
+    time.sleep(0.01)
+print(sent, flush=True)
+"""
+
+
+def test_a_flood_of_forged_packets_neither_stops_the_unit_nor_delays_a_stop(
+        tmp_path: Path) -> None:
+    """80,000 forged authenticated packets a second (each costs a MAC): the key holder's 50 Hz
+    heartbeat still keeps the unit alive, and a STOP over TCP is answered at once."""
+    with Daemon(tmp_path, "--key-file", str(key_file(tmp_path))) as d:
+        remote = Remote(d)
+        remote.arm()
+        forged = auth.AuthControlPacket(RID, remote.session, 1 << 40,
+                                        ControlPacket()).encode(bytes(32))
+        stop = threading.Event()
+
+        def finger() -> None:
+            while not stop.wait(0.02):
+                remote.heartbeat()
+
+        th = threading.Thread(target=finger, daemon=True)
+        th.start()
+        flood = subprocess.Popen([sys.executable, "-c", FLOOD_PY, str(d.udp_port), "1.5",
+                                  forged.hex()], stdout=subprocess.PIPE, text=True)
+        try:
+            assert flood.stdout is not None and flood.stdout.readline().strip() == "ready"
+            time.sleep(1.0)
+            t0 = time.perf_counter()
+            reply = remote.request(STOP_ID)
+            latency = time.perf_counter() - t0
+            sent = int(flood.stdout.readline())
+        finally:
+            stop.set()
+            th.join(timeout=5)
+            flood.kill()
+            flood.wait(timeout=10)
+        assert (reply.ack, reply.state, reply.reason) == (True, STOPPED, R_TCP_STOP), reply
+        assert latency < 0.05, latency
+        assert d.signal() == 0  # the counters are written at exit
+    assert not any("ARMED->STOPPED reason=udp_timeout" in line for line in d.log())
+    fails = [line for line in d.log() if " auth_failures " in line]
+    assert sent > 80_000 and int(dict(re.findall(r"(\w+)=(\d+)", fails[-1]))["tag"]) > 80_000

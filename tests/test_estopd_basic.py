@@ -72,8 +72,10 @@ def test_log_json(tmp_path: Path) -> None:
 def test_help_and_version() -> None:
     res = run_estopd(["--help"])
     assert res.returncode == 0 and "--can-log" in res.stdout and res.stderr == ""
+    # The usage line of PROTOCOL.md 6 (version 3): the slow time and level, the warn time.
+    assert "[--timeout-ms 200] [--slow-ms T] [--slow-level 30] [--warn-ms S/2]" in res.stdout
     res = run_estopd(["--version"])
-    assert res.returncode == 0 and res.stdout.startswith("estopd 2.")  # protocol version 2
+    assert res.returncode == 0 and res.stdout == "estopd 3.0\n"  # protocol version 3
 
 
 @pytest.mark.parametrize("args", [
@@ -85,8 +87,19 @@ def test_help_and_version() -> None:
     ["--timeout-ms", "0"],
     ["--timeout-ms", "60001"],
     ["--timeout-ms", "99999999999999999999"],
-    ["--timeout-ms", "100", "--warn-ms", "100"],
+    ["--timeout-ms", "100", "--warn-ms", "101"],
     ["--warn-ms", "300"],
+    ["--slow-ms", "201"],
+    ["--slow-ms", "0"],
+    ["--slow-ms", "x"],
+    ["--timeout-ms", "100", "--slow-ms", "150"],
+    ["--slow-ms", "100", "--warn-ms", "101"],
+    ["--slow-level", "0"],
+    ["--slow-level", "100"],
+    ["--slow-level", "256"],
+    ["--slow-level", "-1"],
+    ["--slow-level", "3x"],
+    ["--stop-id", "3"],
     ["--stop-id", "1"],
     ["--stop-id", "2"],
     ["--stop-id", "0"],
@@ -117,6 +130,23 @@ def test_config_error_names_the_core_error() -> None:
     assert "bad_warn_time" in res.stderr and "--warn-ms" in res.stderr
 
 
+@pytest.mark.parametrize(("args", "error"), [
+    (["--slow-ms", "300"],  # above the default timeout
+     "invalid configuration (bad_slow_time): --slow-ms must be 1..--timeout-ms"),
+    (["--timeout-ms", "1000", "--slow-ms", "100", "--warn-ms", "101"],
+     "invalid configuration (bad_warn_time): --warn-ms must be 1..--slow-ms"),
+    (["--slow-level", "0"], "invalid configuration (bad_slow_level): --slow-level must be 1..99"),
+    (["--slow-level", "100"],
+     "invalid configuration (bad_slow_level): --slow-level must be 1..99"),
+    (["--stop-id", "3"],  # LIFT's msg_id
+     "invalid configuration (bad_stop_id): --stop-id may not be 0, 1, 2, 3 or 0x32515345"),
+])
+def test_v3_config_errors_name_the_option(args: list[str], error: str) -> None:
+    res = run_estopd(args)
+    assert res.returncode == 2
+    assert res.stderr == f"estopd: error: {error}\n" and res.stdout == ""
+
+
 def test_port_in_use_exits_1(tmp_path: Path) -> None:
     with Daemon(tmp_path) as d:
         res = run_estopd(["--bind", "127.0.0.1", "--tcp-port", str(d.tcp_port),
@@ -144,10 +174,31 @@ def test_stop_id_option(tmp_path: Path) -> None:
         assert reply.state == STOPPED
 
 
-def test_start_line_shows_sub_millisecond_warn_time(tmp_path: Path) -> None:
-    """--timeout-ms 1 gives a warn time of 500 us: the start line said warn_ms=0."""
-    with Daemon(tmp_path, "--timeout-ms", "1") as d:
-        assert " timeout_ms=1 " in d.start_line and " warn_ms=0.5 " in d.start_line
-    with Daemon(tmp_path, "--timeout-ms", "1", "--log-json") as d:
+@pytest.mark.parametrize(("args", "times"), [
+    ([], (200, 200, 30, 100)),  # S = T, W = S/2: version 2's behaviour
+    (["--timeout-ms", "1"], (1, 1, 30, 1)),  # S/2 = 0.5 ms rounds down to 0: W is 1 ms
+    (["--timeout-ms", "3"], (3, 3, 30, 1)),  # 1.5 ms rounds down to 1 ms
+    (["--timeout-ms", "1000", "--slow-ms", "101", "--slow-level", "55"], (1000, 101, 55, 50)),
+    (["--timeout-ms", "100", "--warn-ms", "100"], (100, 100, 30, 100)),  # W = S = T is valid
+    (["--timeout-ms", "100", "--slow-ms", "100", "--slow-level", "1"], (100, 100, 1, 50)),
+    (["--slow-ms", "20", "--slow-level", "99", "--warn-ms", "20"], (200, 20, 99, 20)),
+])
+def test_start_line_shows_the_times_and_the_slow_level(tmp_path: Path, args: list[str],
+                                                     times: tuple[int, int, int, int]) -> None:
+    """PROTOCOL.md 3: the slow time defaults to the timeout, the warn time to half the slow
+    time rounded down to a whole millisecond (1 ms where that is 0)."""
+    timeout, slow, level, warn = times
+    with Daemon(tmp_path, *args) as d:
+        keys = dict(kv.split("=", 1) for kv in d.start_line.split()[3:])
+        assert (keys["timeout_ms"], keys["slow_ms"], keys["slow_level"], keys["warn_ms"]) == \
+            (str(timeout), str(slow), str(level), str(warn))
+        assert (keys["version_major"], keys["version_minor"]) == ("3", "0")
+        # the order of the usage line
+        names = [kv.split("=", 1)[0] for kv in d.start_line.split()[3:]]
+        assert names.index("timeout_ms") < names.index("slow_ms") < names.index("slow_level") \
+            < names.index("warn_ms")
+    with Daemon(tmp_path, *args, "--log-json") as d:
         start = json.loads(d.start_line)
-        assert (start["timeout_ms"], start["warn_ms"]) == (1, 0.5)
+        assert (start["timeout_ms"], start["slow_ms"], start["slow_level"], start["warn_ms"]) == \
+            times
+        assert (start["version_major"], start["version_minor"]) == (3, 0)

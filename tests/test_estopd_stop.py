@@ -67,7 +67,8 @@ def test_release_then_timeout_stop_at_the_deadline(tmp_path: Path) -> None:
         d.wait_frame(lambda f: f.is_brake(), after=i + 1)
         frames = d.frames()
     check_frames(frames)
-    assert line.split()[2:] == ["state", "ARMED->STOPPED", "reason=udp_timeout", "src=-"]
+    assert line.split()[2:] == ["state", "ARMED->STOPPED", "reason=udp_timeout", "src=-",
+                                "cause=udp_timeout"]
     # The stop comes at the deadline itself (200 ms after the last packet), not much later.
     latency = stop.t - last_packet
     assert 0.19 <= latency <= 0.26, latency
@@ -89,6 +90,7 @@ def test_tcp_stop_while_armed(tmp_path: Path) -> None:
         assert stop.reason == R_TCP_STOP and stop.t - sent < 0.05
         line = d.wait_log(lambda s: "ARMED->STOPPED" in s)
         assert "reason=tcp_stop" in line and "src=127.0.0.1:" in line
+        assert line.endswith(" cause=tcp_stop")
         # Latched: packets keep flowing but the unit stays STOPPED; a second STOP keeps reason.
         time.sleep(0.05)
         assert d.request(STOP_ID, 43).reason == R_TCP_STOP
@@ -129,6 +131,7 @@ def test_release_refused_when_not_neutral(tmp_path: Path) -> None:
         assert (reply.msg, reply.state, reply.reason) == (ACK, ARMED, R_NONE)
         line = d.wait_log(lambda s: "STOPPED->ARMED" in s)
         assert "reason=none" in line and "src=127.0.0.1:" in line
+        assert line.endswith(" cause=release")
         # RELEASE while ARMED: acknowledged, nothing changes.
         reply = d.request(MSG_RELEASE, 7)
         assert (reply.msg, reply.state) == (ACK, ARMED)

@@ -2,7 +2,7 @@
 fake $NOTIFY_SOCKET, the unit file checked by systemd-analyze, and `make install`.
 
 A stalled loop is made with an LD_PRELOAD shim: a datagram "ESTOP-TEST-STALL" on the control
-port makes the daemon's recvfrom sleep 1.5 s in the loop's own thread, as a stuck call would.
+port makes the daemon's recvmmsg sleep 1.5 s in the loop's own thread, as a stuck call would.
 The output threads keep running meanwhile; no WATCHDOG=1 may come from them.
 """
 
@@ -30,19 +30,23 @@ STALL_SHIM_C = r"""
 #include <sys/socket.h>
 #include <unistd.h>
 
-typedef ssize_t (*recvfrom_fn)(int, void *, size_t, int, struct sockaddr *, socklen_t *);
+typedef int (*recvmmsg_fn)(int, struct mmsghdr *, unsigned int, int, struct timespec *);
 
-ssize_t recvfrom(int fd, void *buf, size_t len, int flags, struct sockaddr *src,
-                 socklen_t *slen)
+int recvmmsg(int fd, struct mmsghdr *msgs, unsigned int vlen, int flags,
+             struct timespec *timeout)
 {
-    static recvfrom_fn real;
-    ssize_t n;
+    static recvmmsg_fn real;
+    int n;
+    int i;
     if (real == NULL) {
-        real = (recvfrom_fn)dlsym(RTLD_NEXT, "recvfrom");
+        real = (recvmmsg_fn)dlsym(RTLD_NEXT, "recvmmsg");
     }
-    n = real(fd, buf, len, flags, src, slen);
-    if (n == 16 && memcmp(buf, "ESTOP-TEST-STALL", 16) == 0) {
-        usleep(1500000); /* the loop is stuck in a call, as a wedged driver would leave it */
+    n = real(fd, msgs, vlen, flags, timeout);
+    for (i = 0; i < n; i++) {
+        if (msgs[i].msg_len == 16 &&
+            memcmp(msgs[i].msg_hdr.msg_iov[0].iov_base, "ESTOP-TEST-STALL", 16) == 0) {
+            usleep(1500000); /* the loop is stuck in a call, as a wedged driver would leave it */
+        }
     }
     return n;
 }
@@ -129,6 +133,21 @@ def test_ready_then_watchdog_pings_then_stopping(tmp_path: Path,
     assert supervisor.messages[-1][1] == "STOPPING=1"
 
 
+def test_status_names_every_state_change(tmp_path: Path, supervisor: Supervisor) -> None:
+    """STATUS= (systemctl status) follows the state, SLOWING included, with the reason while
+    STOPPED."""
+    d = Daemon(tmp_path, "--slow-ms", "50", "--timeout-ms", "300")
+    d.env = {"NOTIFY_SOCKET": supervisor.env_value}
+    with d:
+        supervisor.wait_for("READY=1")
+        d.arm()
+        supervisor.wait_for("STATUS=watching: STOPPED (udp_timeout)")
+    status = [m for _, msg in supervisor.messages for m in msg.split("\n")
+              if m.startswith("STATUS=")]
+    assert status == ["STATUS=watching: STOPPED (boot)", "STATUS=watching: ARMED",
+                      "STATUS=watching: SLOWING", "STATUS=watching: STOPPED (udp_timeout)"]
+
+
 def test_abstract_notify_socket(tmp_path: Path) -> None:
     sup = Supervisor(tmp_path, abstract=True)
     try:
@@ -191,7 +210,7 @@ def test_make_install_puts_everything_in_place(installed: Path) -> None:
     assert "@" not in unit.replace("@system-service", "").replace("@memlock", "")
     res = subprocess.run([str(exe), "--version"], capture_output=True, text=True, timeout=10,
                          check=False)
-    assert res.returncode == 0 and res.stdout.startswith("estopd 2.")
+    assert res.returncode == 0 and res.stdout == "estopd 3.0\n"
 
 
 def test_installed_key_is_accepted_and_never_overwritten(installed: Path,

@@ -73,7 +73,7 @@ def test_unknown_id_is_nak_1_and_changes_nothing(tmp_path: Path) -> None:
     with Daemon(tmp_path) as d:
         d.arm()
         d.make_live()
-        for msg_id in (0, 3, 0x80, 0xE570E571, 0xFFFFFFFF):
+        for msg_id in (0, 4, 0x80, 0xE570E571, 0xFFFFFFFF):  # 3 is LIFT since version 3
             reply = d.request(msg_id, msg_id & 0xFFFF)
             assert (reply.msg, reply.nak, reply.state) == (NAK, 1, ARMED), hex(msg_id)
 

@@ -13,6 +13,15 @@ uint64_t clock_mono_us(void)
     return (uint64_t)ts.tv_sec * 1000000u + (uint64_t)ts.tv_nsec / 1000u;
 }
 
+void clock_pair(uint64_t *mono_us, struct timespec *real)
+{
+    *mono_us = clock_mono_us();
+    if (clock_gettime(CLOCK_REALTIME, real) != 0) {
+        real->tv_sec = -1; /* no wall clock: rxtime takes the read time */
+        real->tv_nsec = 0;
+    }
+}
+
 void clock_real(int64_t *sec, uint32_t *usec)
 {
     struct timespec ts;

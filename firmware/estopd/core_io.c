@@ -7,6 +7,8 @@
 #include "clock.h"
 #include "log.h"
 #include "net.h"
+#include "rxtime.h"
+#include "udp.h"
 
 void cio_emit(daemon_t *d, const estop_can_frame_t *f, uint64_t now)
 {
@@ -23,13 +25,37 @@ void cio_emit(daemon_t *d, const estop_can_frame_t *f, uint64_t now)
     }
 }
 
-static void log_state(const daemon_t *d, const estop_out_t *out, uint64_t now,
+/* Why the state changed (the `cause` key, docs/DESIGN.md): a stop by its reason, told apart by
+ * the channel it came on; the other changes by where they lead from. what: the core call. */
+static const char *state_cause(uint8_t from, const estop_out_t *out, const char *what)
+{
+    int by_datagram = strcmp(what, "udp_rx") == 0;
+
+    if (out->state == ESTOP_STATE_STOPPED) {
+        switch (out->reason) {
+        case ESTOP_REASON_TCP_STOP: return by_datagram ? "stop_datagram" : "tcp_stop";
+        case ESTOP_REASON_LIFT: return by_datagram ? "lift_datagram" : "lift";
+        case ESTOP_REASON_FAULT:
+            /* Outside a reported fault, the clock's only way to a fault is a backwards tick. */
+            return (out->changed_by_clock && strcmp(what, "fault") != 0) ? "clock_backwards"
+                                                                          : "fault";
+        default: return log_reason_name(out->reason);
+        }
+    }
+    if (from == ESTOP_STATE_STOPPED) {
+        return "release"; /* to ARMED, or straight to SLOWING for a link silent for S */
+    }
+    return out->state == ESTOP_STATE_SLOWING ? "udp_silence" : "link_back";
+}
+
+static void log_state(const daemon_t *d, const estop_out_t *out, uint64_t now, const char *what,
                       const struct sockaddr_in *src)
 {
     char head[32];
     char addr[NET_ADDR_LEN];
     const char *from = log_state_name(d->state);
     const char *to = log_state_name(out->state);
+    const char *cause = state_cause(d->state, out, what);
 
     (void)snprintf(head, sizeof head, "%s->%s", from, to);
     /* A change the clock made (timeout) is nobody's input, whatever call carried it. */
@@ -44,9 +70,12 @@ static void log_state(const daemon_t *d, const estop_out_t *out, uint64_t now,
             KV_JSTR("to", to),
             KV_STR("reason", log_reason_name(out->reason)),
             KV_STR("src", addr),
+            KV_STR("cause", cause),
         };
-        log_event(now, "state", head, kv, 4u);
+        log_event(now, "state", head, kv, sizeof kv / sizeof kv[0]);
     }
+    notify_state(&d->notify, to, out->state == ESTOP_STATE_STOPPED
+                                     ? log_reason_name(out->reason) : NULL);
 }
 
 static void emit_all(daemon_t *d, const estop_out_t *out, uint64_t now)
@@ -67,7 +96,7 @@ unsigned cio_done(daemon_t *d, estop_err_t err, const char *what, const estop_ou
      * (frames, a state change) still goes out. Callers zero out before each call. */
     emit_all(d, out, now);
     if (out->state_changed) {
-        log_state(d, out, now, src);
+        log_state(d, out, now, what, src);
         d->state = out->state;
         d->reason = out->reason;
     }
@@ -142,18 +171,47 @@ int cio_boot(daemon_t *d)
     return d->fatal ? -1 : 0;
 }
 
-uint64_t cio_prepare(daemon_t *d)
+/* A gap longer than the core's step (suspend, a stalled host) goes in in steps. */
+static void catch_up(daemon_t *d, uint64_t t)
 {
-    uint64_t now = clock_mono_us();
-    const char *cause;
-
-    if (now < d->last_call_us) {
-        now = d->last_call_us; /* time handed to the core never goes backwards */
-    }
-    /* A gap longer than the core's step (suspend, a stalled host) goes in in steps. */
-    while (!d->fatal && now - d->last_call_us > ESTOP_MAX_STEP_US) {
+    while (!d->fatal && t > d->last_call_us && t - d->last_call_us > ESTOP_MAX_STEP_US) {
         cio_tick(d, d->last_call_us + ESTOP_MAX_STEP_US);
     }
+}
+
+void cio_udp(daemon_t *d, const uint8_t *data, size_t len, const struct sockaddr_in *src,
+             uint64_t rx_us)
+{
+    /* The core's clock never goes backwards: a datagram received before the latest call
+     * (read late behind other input) goes in at that call's time. */
+    uint64_t t = rxtime_feed_us(rx_us, d->last_call_us);
+    estop_out_t out;
+    estop_err_t err;
+
+    catch_up(d, t);
+    if (d->fatal) {
+        return;
+    }
+    memset(&out, 0, sizeof out);
+    err = estop_udp_rx(&d->core, data, len, (uint32_t)t, &out);
+    (void)cio_done(d, err, "udp_rx", &out, t, src, -1);
+}
+
+uint64_t cio_prepare(daemon_t *d)
+{
+    uint64_t t0 = clock_mono_us();
+    uint64_t now;
+    const char *cause;
+
+    if (t0 < d->last_call_us) {
+        t0 = d->last_call_us; /* time handed to the core never goes backwards */
+    }
+    /* Drain first: the unit looks at what it has received before it acts on a deadline. A
+     * drain cut short by its budget leaves the rest unread: the deadline is not delayed for
+     * packets not yet looked at (the car stops rather than waits). */
+    udp_drain(d, t0);
+    now = t0 > d->last_call_us ? t0 : d->last_call_us;
+    catch_up(d, now);
     if (!d->fatal && now >= d->deadline_us) {
         cio_tick(d, now);
     }

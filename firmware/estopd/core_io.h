@@ -15,9 +15,14 @@
 
 /* Boots the core at the current time and sends the boot frames. Returns 0 or -1. */
 int cio_boot(daemon_t *d);
-/* Reads the clock, catches the core up (steps, due tick, CAN retries and faults) and
- * returns the time to hand to the next input call. Call it before every input. */
+/* Reads the clock, drains the UDP socket (every datagram received so far goes to the core at
+ * its receive time), then catches the core up (steps, due tick, CAN retries and faults) and
+ * returns the time to hand to the next input call. Call it before every input: no deadline
+ * is acted on before what was received before it has been looked at (PROTOCOL.md 6). */
 uint64_t cio_prepare(daemon_t *d);
+/* One datagram for the core, received at host time rx_us (the drain's; see udp.h). */
+void cio_udp(daemon_t *d, const uint8_t *data, size_t len, const struct sockaddr_in *src,
+             uint64_t rx_us);
 /* Handles the output of a core call made at host time now. src: who caused it (NULL for
  * the clock or the host). slot: the TCP slot of the input, or -1. Returns CIO_* bits. */
 unsigned cio_done(daemon_t *d, estop_err_t err, const char *what, const estop_out_t *out,

@@ -36,6 +36,10 @@ typedef struct {
     int timerfd;
     int sigfd;
     int udp_fd;
+    uint32_t udp_budget;      /* datagrams the drain may still read this loop round */
+    int udp_rcvbuf;           /* the receive buffer the kernel gave (bytes, as SO_RCVBUF says) */
+    int udp_rcvbuf_wanted;
+    uint32_t udp_drops;       /* the kernel's count of datagrams dropped for want of room */
     int tcp_fd;
     uint16_t udp_port;        /* bound ports (port 0 picks one) */
     uint16_t tcp_port;
@@ -57,6 +61,9 @@ typedef struct {
     uint64_t stats_last_us;   /* the latest periodic read-out (stats.c) */
     uint64_t stats_auth_reported; /* authentication failures already in the log */
     uint32_t stats_valid_reported; /* valid packets in the latest link_histogram */
+    uint32_t stats_slowdowns_reported; /* ... and slow-downs and timeouts */
+    uint32_t stats_timeouts_reported;
+    uint32_t stats_drops_reported; /* udp_drops in the latest udp_drops event */
     notify_t notify;          /* the systemd notify protocol (no-op without NOTIFY_SOCKET) */
     int fatal;                /* an unrecoverable error: leave the loop */
     int stop_signal;          /* the signal that asks us to stop, 0 if none */

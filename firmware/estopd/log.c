@@ -281,6 +281,7 @@ const char *log_state_name(uint32_t state)
     switch (state) {
     case ESTOP_STATE_STOPPED: return "STOPPED";
     case ESTOP_STATE_ARMED: return "ARMED";
+    case ESTOP_STATE_SLOWING: return "SLOWING";
     default: return "?";
     }
 }
@@ -293,6 +294,7 @@ const char *log_reason_name(uint32_t reason)
     case ESTOP_REASON_TCP_STOP: return "tcp_stop";
     case ESTOP_REASON_UDP_TIMEOUT: return "udp_timeout";
     case ESTOP_REASON_FAULT: return "fault";
+    case ESTOP_REASON_LIFT: return "lift";
     default: return "?";
     }
 }

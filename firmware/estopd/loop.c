@@ -83,7 +83,7 @@ static void dispatch(daemon_t *d, const struct epoll_event *ev)
     } else if (tag == TAG_SIGNAL) {
         on_signal(d);
     } else if (tag == TAG_UDP) {
-        udp_readable(d);
+        (void)cio_prepare(d); /* the drain reads the datagrams (udp.h) */
     } else if (tag == TAG_TCP) {
         clients_accept(d);
     } else if (tag == TAG_CAN) {
@@ -105,9 +105,9 @@ static const char *signal_name(int sig)
     }
 }
 
-/* One last ESTOP_BRAKE frame that says brake. ARMED: a fault makes the core itself send
- * the STOPPED frame (valid counter and CRC). Already STOPPED (or the core is broken): the
- * next frame of the sequence is built here. */
+/* One last ESTOP_BRAKE frame that says brake. ARMED or SLOWING (neither is latched): a fault
+ * makes the core itself send the STOPPED frame (valid counter and CRC). Already STOPPED (or
+ * the core is broken): the next frame of the sequence is built here. */
 static void last_frame(daemon_t *d)
 {
     uint32_t before = d->frames_out;
@@ -115,7 +115,7 @@ static void last_frame(daemon_t *d)
     estop_can_frame_t f;
     uint8_t reason;
 
-    if (!d->fatal && d->state == ESTOP_STATE_ARMED) {
+    if (!d->fatal && d->state != ESTOP_STATE_STOPPED) {
         cio_fault(d, now, "shutdown");
     }
     if (d->frames_out != before && d->last_frame.id == d->opt.cfg.brake_can_id &&
@@ -133,6 +133,7 @@ static int finish(daemon_t *d)
     int code = d->fatal ? 1 : 0;
 
     notify_send(&d->notify, "STOPPING=1");
+    udp_round(d);
     last_frame(d);
     if (d->can_on) {
         can_drain(&d->can, d->opt.cfg.brake_period_us); /* a refused last frame gets a period */
@@ -161,10 +162,12 @@ int loop_run(daemon_t *d)
     struct epoll_event evs[MAX_EVENTS];
 
     while (!d->fatal && d->stop_signal == 0) {
-        uint64_t now = cio_prepare(d); /* deadline work first, every round */
+        uint64_t now;
         int n;
         int i;
 
+        udp_round(d);
+        now = cio_prepare(d); /* deadline work first, every round */
         if (d->fatal) {
             break;
         }

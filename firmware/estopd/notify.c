@@ -74,6 +74,19 @@ void notify_send(const notify_t *n, const char *msg)
     }
 }
 
+void notify_state(const notify_t *n, const char *state, const char *reason)
+{
+    char msg[64];
+    if (n->fd >= 0) {
+        if (reason != NULL) {
+            (void)snprintf(msg, sizeof msg, "STATUS=watching: %s (%s)", state, reason);
+        } else {
+            (void)snprintf(msg, sizeof msg, "STATUS=watching: %s", state);
+        }
+        notify_send(n, msg);
+    }
+}
+
 void notify_loop(notify_t *n, uint64_t now_us, int fatal, uint32_t frames_out)
 {
     if (n->interval_us == 0u || now_us - n->last_ping_us < n->interval_us) {

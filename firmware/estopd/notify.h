@@ -1,6 +1,6 @@
 /* The systemd notify protocol (sd_notify(3)), spoken here without libsystemd: READY=1 once the
- * sockets are open and the core runs, WATCHDOG=1 from the loop while it is healthy, STOPPING=1
- * at shutdown. Without $NOTIFY_SOCKET everything here is a no-op. */
+ * sockets are open and the core runs, STATUS= at every state change, WATCHDOG=1 from the loop
+ * while it is healthy, STOPPING=1 at shutdown. Without $NOTIFY_SOCKET everything here is a no-op. */
 #ifndef ESTOPD_NOTIFY_H
 #define ESTOPD_NOTIFY_H
 
@@ -24,6 +24,8 @@ typedef struct {
 int notify_open(notify_t *n, char *err, size_t errlen);
 /* One message; never blocks (a full or vanished supervisor socket drops it). */
 void notify_send(const notify_t *n, const char *msg);
+/* STATUS= for systemctl status: the state, and the reason while STOPPED (reason NULL). */
+void notify_state(const notify_t *n, const char *state, const char *reason);
 /* From the loop, every iteration: WATCHDOG=1 once per interval, but only while healthy: the
  * loop is running (this call), the core took its latest call (not fatal) and has produced
  * ESTOP_BRAKE frames since the previous ping. */

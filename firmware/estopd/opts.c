@@ -15,6 +15,8 @@ enum {
     OPT_TCP_PORT,
     OPT_BIND,
     OPT_TIMEOUT_MS,
+    OPT_SLOW_MS,
+    OPT_SLOW_LEVEL,
     OPT_WARN_MS,
     OPT_STOP_ID,
     OPT_LOG_JSON,
@@ -31,6 +33,8 @@ static const struct option long_opts[] = {
     { "tcp-port", required_argument, NULL, OPT_TCP_PORT },
     { "bind", required_argument, NULL, OPT_BIND },
     { "timeout-ms", required_argument, NULL, OPT_TIMEOUT_MS },
+    { "slow-ms", required_argument, NULL, OPT_SLOW_MS },
+    { "slow-level", required_argument, NULL, OPT_SLOW_LEVEL },
     { "warn-ms", required_argument, NULL, OPT_WARN_MS },
     { "stop-id", required_argument, NULL, OPT_STOP_ID },
     { "log-json", no_argument, NULL, OPT_LOG_JSON },
@@ -48,14 +52,19 @@ static void usage(void)
     (void)printf(
         "usage: estopd (--key-file PATH | --no-auth) [--can IFACE] [--can-log PATH|-]\n"
         "              [--udp-port 5700] [--tcp-port 5701] [--bind 0.0.0.0]\n"
-        "              [--timeout-ms 200] [--warn-ms TIMEOUT/2] [--stop-id 0xE570E570]\n"
+        "              [--timeout-ms 200] [--slow-ms T] [--slow-level 30] [--warn-ms S/2]\n"
+        "              [--stop-id 0xE570E570]\n"
         "              [--rt-prio 1..99] [--mlock] [--log-json] [--help] [--version]\n"
         "\n"
         "Emergency-stop unit: watches UDP control packets and TCP stop frames and commands\n"
-        "the brake on CAN (docs/PROTOCOL.md). --key-file: only packets and RELEASEs made with\n"
-        "this key (64 hex digits, mode 0600) keep the unit alive or release it; anyone may\n"
-        "stop. --no-auth: a unit without a key. Without --can, frames go to the can-log\n"
-        "(stdout). Port 0 picks a free port; the start event on stderr shows the ports.\n"
+        "the brake on CAN (docs/PROTOCOL.md). No valid control packet for --slow-ms starts a\n"
+        "controlled stop (SLOWING, braking at --slow-level percent; 3 packets end it), none\n"
+        "for --timeout-ms the emergency stop (latched). --warn-ms raises the link-degraded\n"
+        "flag (default: half the slow time, in whole ms). 0 < warn <= slow <= timeout.\n"
+        "--key-file: only packets and RELEASEs made with this key (64 hex digits, mode 0600)\n"
+        "keep the unit alive or release it; anyone may stop. --no-auth: a unit without a key.\n"
+        "Without --can, frames go to the can-log (stdout). Port 0 picks a free port; the\n"
+        "start event on stderr shows the ports.\n"
         "--rt-prio: SCHED_FIFO for the watchdog loop; --mlock: mlockall (no paging stalls).\n");
 }
 
@@ -113,7 +122,13 @@ static int set_ms(const char *name, const char *arg, uint32_t *us, char *err, si
     return 0;
 }
 
-static int set_one(int c, const char *arg, opts_t *o, int *warn_set, char *err, size_t n)
+/* Which times were given: the others default from them once all options are read. */
+typedef struct {
+    int slow;
+    int warn;
+} given_t;
+
+static int set_one(int c, const char *arg, opts_t *o, given_t *given, char *err, size_t n)
 {
     unsigned long long v;
 
@@ -142,8 +157,18 @@ static int set_one(int c, const char *arg, opts_t *o, int *warn_set, char *err, 
         return 0;
     case OPT_TIMEOUT_MS:
         return set_ms("timeout-ms", arg, &o->cfg.timeout_us, err, n);
+    case OPT_SLOW_MS:
+        given->slow = 1;
+        return set_ms("slow-ms", arg, &o->cfg.slow_us, err, n);
+    case OPT_SLOW_LEVEL:
+        /* Any byte parses; the range 1..99 is the core's to check (config_hint). */
+        if (parse_num(arg, 0, 255u, &v) != 0) {
+            return bad_value("slow-level", arg, "a percent 1..99", err, n);
+        }
+        o->cfg.slow_level = (uint8_t)v;
+        return 0;
     case OPT_WARN_MS:
-        *warn_set = 1;
+        given->warn = 1;
         return set_ms("warn-ms", arg, &o->cfg.warn_us, err, n);
     case OPT_STOP_ID:
         if (parse_num(arg, 1, 0xFFFFFFFFu, &v) != 0) {
@@ -182,8 +207,10 @@ static const char *config_hint(estop_err_t e)
 {
     switch (e) {
     case ESTOP_ERR_TIMEOUT: return "--timeout-ms must be 1..60000";
-    case ESTOP_ERR_WARN: return "--warn-ms must be at least 1 and below --timeout-ms";
-    case ESTOP_ERR_STOP_ID: return "--stop-id may not be 0, 1, 2 or 0x32515345";
+    case ESTOP_ERR_SLOW: return "--slow-ms must be 1..--timeout-ms";
+    case ESTOP_ERR_WARN: return "--warn-ms must be 1..--slow-ms";
+    case ESTOP_ERR_SLOW_LEVEL: return "--slow-level must be 1..99";
+    case ESTOP_ERR_STOP_ID: return "--stop-id may not be 0, 1, 2, 3 or 0x32515345";
     default: return "rejected by the core";
     }
 }
@@ -201,9 +228,20 @@ static void getopt_error(int c, char **argv, char *err, size_t n)
     }
 }
 
+/* PROTOCOL.md 3: W defaults to half the slow time, rounded down to a whole millisecond; where
+ * that is 0 (S under 2 ms), 1 ms or S if shorter, as src/estop/core.py default_warn_us. */
+static uint32_t default_warn_us(uint32_t slow_us)
+{
+    uint32_t half = slow_us / 2u / 1000u * 1000u;
+    if (half > 0u) {
+        return half;
+    }
+    return slow_us < 1000u ? slow_us : 1000u;
+}
+
 opts_result_t opts_parse(int argc, char **argv, opts_t *o, char *err, size_t errlen)
 {
-    int warn_set = 0;
+    given_t given = { 0, 0 };
     int c;
     estop_err_t ce;
 
@@ -228,7 +266,7 @@ opts_result_t opts_parse(int argc, char **argv, opts_t *o, char *err, size_t err
             getopt_error(c, argv, err, errlen);
             return OPTS_ERROR;
         }
-        if (set_one(c, optarg, o, &warn_set, err, errlen) != 0) {
+        if (set_one(c, optarg, o, &given, err, errlen) != 0) {
             return OPTS_ERROR;
         }
     }
@@ -242,8 +280,11 @@ opts_result_t opts_parse(int argc, char **argv, opts_t *o, char *err, size_t err
                                                         " (a unit with a key, or one without)");
         return OPTS_ERROR;
     }
-    if (!warn_set) {
-        o->cfg.warn_us = o->cfg.timeout_us / 2u; /* PROTOCOL.md: half the timeout */
+    if (!given.slow) {
+        o->cfg.slow_us = o->cfg.timeout_us; /* S = T: never SLOWING, as in version 2 */
+    }
+    if (!given.warn) {
+        o->cfg.warn_us = default_warn_us(o->cfg.slow_us);
     }
     o->cfg.session = 1u; /* checked here with a stand-in; the real one is drawn at start-up */
     ce = estop_config_check(&o->cfg);

@@ -18,6 +18,7 @@
 #include "core_io.h"
 #include "log.h"
 #include "net.h"
+#include "udp.h"
 
 static int fail(const char *what, char *err, size_t n)
 {
@@ -75,7 +76,7 @@ static int setup_fds(daemon_t *d, char *err, size_t n)
         return -1;
     }
     d->udp_fd = net_udp_open(d->opt.bind, d->opt.udp_port, &d->udp_port, err, n);
-    if (d->udp_fd < 0) {
+    if (d->udp_fd < 0 || udp_setup(d, err, n) != 0) {
         return -1;
     }
     d->tcp_fd = net_tcp_open(d->opt.bind, d->opt.tcp_port, &d->tcp_port, err, n);
@@ -176,10 +177,13 @@ static void log_start_line(const daemon_t *d)
             KV_STR("can", d->opt.can_iface != NULL ? d->opt.can_iface : "-"),
             KV_STR("can_log", can_log),
             KV_MS("timeout_ms", d->opt.cfg.timeout_us),
+            KV_MS("slow_ms", d->opt.cfg.slow_us),
+            KV_NUM("slow_level", d->opt.cfg.slow_level),
             KV_MS("warn_ms", d->opt.cfg.warn_us),
             KV_STR("stop_id", stop_id),
             KV_STR("auth", d->opt.cfg.key_len != 0u ? "key" : "none"),
             KV_STR("session", session),
+            KV_NUM("udp_rcvbuf", d->udp_rcvbuf),
             KV_NUM("rt_prio", d->opt.rt_prio),
             KV_NUM("mlock", d->opt.mlock),
             KV_NUM("pid", getpid()),
@@ -187,6 +191,16 @@ static void log_start_line(const daemon_t *d)
             KV_NUM("version_minor", ESTOP_VERSION_MINOR),
         };
         log_event(clock_mono_us(), "start", NULL, kv, sizeof kv / sizeof kv[0]);
+    }
+    if (d->udp_rcvbuf < d->udp_rcvbuf_wanted) {
+        /* Without CAP_NET_ADMIN the buffer stops at net.core.rmem_max (README: receive
+         * buffer). */
+        log_kv_t kv[] = {
+            KV_NUM("bytes", d->udp_rcvbuf),
+            KV_NUM("wanted", d->udp_rcvbuf_wanted),
+            KV_STR("hint", "net.core.rmem_max"),
+        };
+        log_event(clock_mono_us(), "udp_rcvbuf_small", NULL, kv, 3u);
     }
 }
 

@@ -22,7 +22,7 @@ static void list_u32(char *buf, size_t size, const uint32_t *v, uint32_t n)
 }
 
 /* link_histogram (docs/LINK.md, read by `estop link`): cumulative since start, written when
- * valid packets arrived since the last one. */
+ * valid packets arrived, or the link slowed the unit down or timed out, since the last one. */
 static void report_link(daemon_t *d, uint64_t now, const estop_counters_t *c)
 {
     estop_link_stats_t ls;
@@ -31,10 +31,14 @@ static void report_link(daemon_t *d, uint64_t now, const estop_counters_t *c)
     char edges_s[LIST_MAX];
     uint32_t b;
 
-    if (estop_get_link_stats(&d->core, &ls) != ESTOP_OK || ls.valid == d->stats_valid_reported) {
+    if (estop_get_link_stats(&d->core, &ls) != ESTOP_OK ||
+        (ls.valid == d->stats_valid_reported && ls.slowdowns == d->stats_slowdowns_reported &&
+         ls.timeouts == d->stats_timeouts_reported)) {
         return;
     }
     d->stats_valid_reported = ls.valid;
+    d->stats_slowdowns_reported = ls.slowdowns;
+    d->stats_timeouts_reported = ls.timeouts;
     /* The lower edge of every bin, from the core's own bin rule (bin 0 starts at 0). */
     edges[0] = 0u;
     for (b = 1u; b < ESTOP_GAP_BINS; b++) {
@@ -48,11 +52,15 @@ static void report_link(daemon_t *d, uint64_t now, const estop_counters_t *c)
             KV_NUM("valid", ls.valid),
             KV_NUM("invalid", c->udp_invalid),
             KV_NUM("silences", ls.silences),
+            KV_NUM("slowdowns", ls.slowdowns),
+            KV_NUM("timeouts", ls.timeouts),
             KV_NUM("warn_us", d->opt.cfg.warn_us),
+            KV_NUM("slow_us", d->opt.cfg.slow_us),
+            KV_NUM("timeout_us", d->opt.cfg.timeout_us),
             KV_LIST("edges_us", edges_s),
             KV_LIST("counts", counts_s),
         };
-        log_event(now, "link_histogram", NULL, kv, 6u);
+        log_event(now, "link_histogram", NULL, kv, sizeof kv / sizeof kv[0]);
     }
 }
 
@@ -74,6 +82,20 @@ static void report_auth(daemon_t *d, uint64_t now, const estop_counters_t *c)
     }
 }
 
+/* udp_drops: datagrams the kernel dropped because the receive buffer was full (a flood, or a
+ * loop that could not keep up), since start and since the last report. */
+static void report_drops(daemon_t *d, uint64_t now)
+{
+    if (d->udp_drops != d->stats_drops_reported) {
+        log_kv_t kv[] = {
+            KV_NUM("dropped", (uint32_t)(d->udp_drops - d->stats_drops_reported)),
+            KV_NUM("total", d->udp_drops),
+        };
+        d->stats_drops_reported = d->udp_drops;
+        log_event(now, "udp_drops", NULL, kv, 2u);
+    }
+}
+
 static void report(daemon_t *d, uint64_t now)
 {
     estop_status_t st;
@@ -82,6 +104,7 @@ static void report(daemon_t *d, uint64_t now)
         report_auth(d, now, &st.counters);
         report_link(d, now, &st.counters);
     }
+    report_drops(d, now);
 }
 
 void stats_tick(daemon_t *d, uint64_t now_us)

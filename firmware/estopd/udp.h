@@ -1,11 +1,23 @@
-/* UDP control port: every datagram goes to the core. */
+/* UDP control port: every datagram goes to the core at its receive time (PROTOCOL.md 6). */
 #ifndef ESTOPD_UDP_H
 #define ESTOPD_UDP_H
 
+#include <stddef.h>
+#include <stdint.h>
+
 #include "daemon.h"
 
-/* Drains pending datagrams, at most a batch per wakeup, with the deadline checked
- * before each one so a flood cannot hold back the timeout stop. */
-void udp_readable(daemon_t *d);
+/* Datagrams read per loop round at most: a flood cannot freeze the loop, and the TCP stop
+ * channel is served within a round whatever arrives on UDP. */
+#define UDP_ROUND_MAX 2048u
+
+/* Asks the kernel for receive stamps on the open socket. Returns 0, or -1 with a message. */
+int udp_setup(daemon_t *d, char *err, size_t errlen);
+/* A new loop round: the read budget is UDP_ROUND_MAX again. */
+void udp_round(daemon_t *d);
+/* The drain before any deadline is acted on: reads datagrams, oldest first, and hands each to
+ * the core at its receive time, until the socket is empty, a datagram received at or after t0
+ * (the moment the drain began) has been read, or the round's budget is spent. */
+void udp_drain(daemon_t *d, uint64_t t0);
 
 #endif

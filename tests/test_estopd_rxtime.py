@@ -1,0 +1,168 @@
+"""estopd times control packets by their receive time (PROTOCOL.md 6): a backlog can never
+stretch a deadline, and a packet that arrived before a deadline counts even when it is read
+after it. The backlog is made by stopping the daemon (SIGSTOP) while packets arrive.
+
+Times are judged on the wall clock of this machine: the test's own send times against the
+can-log's stamps, which the daemon takes when it emits a frame. A run whose own timing went
+astray (a loaded machine oversleeping) is not judged but tried again, up to three times.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+from daemon_util import (
+    ARMED,
+    MSG_STATUS,
+    R_UDP_TIMEOUT,
+    STOPPED,
+    Daemon,
+    check_frames,
+    udp_packet,
+)
+
+pytestmark = pytest.mark.timeout(60)
+
+T = 0.2  # the default timeout
+ATTEMPTS = 3
+
+
+class Mistimed(Exception):
+    """The test's own timing missed its window: this attempt says nothing about the daemon."""
+
+
+def pause(d: Daemon) -> None:
+    """SIGSTOP, and wait until the kernel shows the process stopped."""
+    assert d.proc is not None
+    os.kill(d.proc.pid, signal.SIGSTOP)
+    deadline = time.monotonic() + 2.0
+    while time.monotonic() < deadline:
+        stat = Path(f"/proc/{d.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        if stat[0] in ("T", "t"):
+            return
+        time.sleep(0.001)
+    raise AssertionError("estopd did not stop on SIGSTOP")
+
+
+def resume(d: Daemon) -> float:
+    assert d.proc is not None
+    t = time.time()
+    os.kill(d.proc.pid, signal.SIGCONT)
+    return t
+
+
+def sleep_until(t: float) -> None:
+    while (left := t - time.time()) > 0:
+        time.sleep(min(left, 0.005))
+
+
+def attempt(run: object, *args: object) -> None:
+    for _ in range(ATTEMPTS):
+        try:
+            run(*args)  # type: ignore[operator]
+            return
+        except Mistimed:
+            continue
+    pytest.fail(f"the test's own timing missed its window {ATTEMPTS} times (machine too busy)")
+
+
+def backlog_run(tmp_path: Path, hold: float) -> None:
+    with Daemon(tmp_path) as d:
+        try:
+            d.arm()
+            time.sleep(0.04)
+            t_armed = time.time()  # the latest valid packet came before this
+            pause(d)
+            for _ in range(3):
+                d.send_udp(udp_packet())
+            t_sent = time.time()
+            sleep_until(t_sent + hold)
+            t_resume = resume(d)
+            stop = d.wait_frame(lambda f: f.is_brake() and f.reason == R_UDP_TIMEOUT, timeout=3)
+            frames = d.frames()
+        finally:
+            if d.proc is not None and d.proc.poll() is None:
+                os.kill(d.proc.pid, signal.SIGCONT)
+    if t_sent - t_armed > 0.03 or abs(t_resume - (t_sent + hold)) > 0.03:
+        raise Mistimed
+    check_frames(frames)
+    # The packets' own deadline, or the resume if that came later: at once, not T later.
+    due = max(t_sent + T, t_resume)
+    assert stop.t <= due + 0.08, (f"stopped {stop.t - t_resume:.3f} s after the resume, "
+                                  f"{stop.t - t_sent:.3f} s after the backlog was sent")
+    # ... and the backlog counted: never before its own deadline.
+    assert stop.t >= t_sent + T - 0.003, stop.t - t_sent
+
+
+@pytest.mark.parametrize("hold", [0.1, 0.35])
+def test_a_backlog_cannot_stretch_the_deadline(tmp_path: Path, hold: float) -> None:
+    """Valid packets queue while the daemon cannot run. hold 0.1: it runs again before the
+    deadline of the packets it had; read then and timed by the reading, the backlog kept the
+    unit alive until T after the resume. hold 0.35: it runs again after the backlog's own
+    deadline: the stop comes at once."""
+    attempt(backlog_run, tmp_path, hold)
+
+
+class Finger:
+    """Valid packets every 20 ms from a thread, as a remote whose finger stays down."""
+
+    def __init__(self, port: int) -> None:
+        self.port = port
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+
+    def _run(self) -> None:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            while True:
+                s.sendto(udp_packet(), ("127.0.0.1", self.port))
+                if self.stop.wait(0.02):
+                    return
+
+    def __enter__(self) -> Finger:
+        self.thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop.set()
+        self.thread.join(timeout=5)
+
+
+def late_read_run(tmp_path: Path) -> None:
+    with Daemon(tmp_path) as d:
+        try:
+            d.arm()
+            d.send_udp(udp_packet())
+            t1 = time.time()  # P1: its deadline is t1 + T
+            pause(d)
+            sleep_until(t1 + 0.12)
+            d.send_udp(udp_packet())
+            t2 = time.time()  # P2: 80 ms before P1's deadline, read 60 ms after it
+            sleep_until(t1 + 0.26)
+            t_resume = resume(d)
+            with Finger(d.udp_port):  # the link goes on; P2's deadline is t2 + T
+                time.sleep(0.3)
+                reply = d.request(MSG_STATUS, 1)
+            frames = d.frames()
+        finally:
+            if d.proc is not None and d.proc.poll() is None:
+                os.kill(d.proc.pid, signal.SIGCONT)
+    if t2 - t1 > T - 0.04 or t_resume - t1 < T + 0.03 or t_resume - t2 > T - 0.04:
+        raise Mistimed
+    check_frames(frames)
+    stops = [f for f in frames if f.is_brake() and f.state == STOPPED and f.t > t1]
+    assert not stops, f"stopped {stops[0].t - t1:.3f} s after P1, P2 came {t2 - t1:.3f} s after P1"
+    assert reply.state == ARMED
+
+
+def test_a_packet_received_before_the_deadline_counts_when_read_after_it(
+        tmp_path: Path) -> None:
+    """The daemon reads P2 only after P1's deadline has passed, but P2 arrived before it: the
+    unit must look at what it has received before it acts on the deadline, and stay ARMED."""
+    attempt(late_read_run, tmp_path)

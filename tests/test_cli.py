@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from estop import cli, remote
+from estop import cli, remote, remoteterm
 from estop.linkmodel import WIFI, LinkConfig, LinkModel
 from estop.protocol import auth, tcp, udp
 from estop.protocol.can import BrakeFrame, StatusFrame
@@ -614,7 +614,7 @@ def test_remote_handle_key(unit: FakeUnit) -> None:
         line = remote.handle_key(r, "t")
         assert line == "status -> ACK seq=1 state=STOPPED reason=boot flags=0x00"
         assert remote.handle_key(r, "q") == "quit"
-        assert list(remote._split_keys("a\x1b[Ab")) == ["a", "\x1b[A", "b"]
+        assert list(remoteterm._split_keys("a\x1b[Ab")) == ["a", "\x1b[A", "b"]
     finally:
         r.close()
 

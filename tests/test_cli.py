@@ -40,8 +40,8 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 
 @dataclass
 class FakeUnit(FakeUnitPorts):
-    """Just enough of the unit for the CLI: a UDP port recording control packets (and stop
-    datagrams, which stop it) and a TCP stop port answering per spec section 3 (STOPPED
+    """Just enough of the unit for the CLI: a UDP port recording control packets (and stop and
+    lift datagrams, which stop it) and a TCP stop port answering per spec section 3 (STOPPED
     latched, RELEASE needs a live, neutral link of >= 5 valid packets, udp timeout 200 ms).
     ``mode`` breaks the replies on purpose: ``silent`` (no reply), ``close`` (hang up),
     ``badcrc``, ``wrongseq``, ``split`` (reply in two pieces)."""
@@ -70,8 +70,9 @@ class FakeUnit(FakeUnitPorts):
             with self.lock:
                 if len(data) == auth.REQUEST_SIZE and data[:4] == auth.REQUEST_MAGIC:
                     self.stop_datagrams.append(data)
-                    if auth.AuthRequest.decode(data, None).kind(self.stop_id) == "stop":
-                        self._enter_stop(2)
+                    kind = auth.AuthRequest.decode(data, None).kind(self.stop_id)
+                    if kind in ("stop", "lift"):
+                        self._enter_stop(2 if kind == "stop" else 5)
                     continue
                 self.packets.append((now, data))
                 self._expire(now)
@@ -128,8 +129,8 @@ class FakeUnit(FakeUnitPorts):
             self._expire(now)
             kind = req.kind(self.stop_id)
             nak = 0
-            if kind == "stop":
-                self._enter_stop(2)
+            if kind in ("stop", "lift"):
+                self._enter_stop(2 if kind == "stop" else 5)
             elif kind == "release" and self.state == 0:
                 live = now - self.last_valid_t < self.timeout and self.valid_run >= 5
                 if not live:
@@ -466,14 +467,16 @@ def test_remote_script_sends_at_rate_with_exact_content(unit: FakeUnit, capsys) 
 
 def test_remote_full_script_against_fake_unit(unit: FakeUnit, capsys) -> None:
     script = ("hold 0.3; release; expect ack armed; drive 0.3 0.2; steer -0.25; signal left; "
-              "horn on; wait 0.1; lift; wait 0.4; status; expect stopped udp_timeout; "
-              "stop; expect ack stopped udp_timeout")
+              "horn on; wait 0.1; lift; wait 0.1; status; expect stopped lift; "
+              "stop; expect ack stopped lift")
     code, out, _ = run_cli(capsys, "remote", "--host", LOCAL, "--udp-port", str(unit.udp_port),
                            "--tcp-port", str(unit.tcp_port), "--rate", "100", "--script", script)
     assert code == 0, out
     assert "release -> ACK seq=1 state=ARMED reason=none flags=0x00" in out
-    assert "status -> ACK seq=2 state=STOPPED reason=udp_timeout" in out
-    assert "stop -> ACK seq=3 state=STOPPED reason=udp_timeout" in out
+    # v3: the lift datagrams stop the unit at once, with reason lift
+    assert "lift: lift sent x3" in out
+    assert "status -> ACK seq=2 state=STOPPED reason=lift" in out
+    assert "stop -> ACK seq=3 state=STOPPED reason=lift" in out
     assert [r.msg_id for r in unit.requests] == [tcp.RELEASE, tcp.STATUS, tcp.DEFAULT_STOP_ID]
     pkts = [udp.decode(d) for _, d in unit.packets]
     # neutral, then drive at 0.3, back to gas 0 in drive, then steering/signal/horn

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 
 from estop.cliutil import (
     EXIT_OK,
@@ -36,7 +37,14 @@ from estop.keyfile import key_from_args
 from estop.linkmodel import IDEAL, WIFI, LinkConfig
 from estop.protocol import tcp, udp
 from estop.remotescript import ExpectFailed, ScriptError, ScriptRunner, Step, parse_script
-from estop.remotesender import MAX_RATE_HZ, MIN_RATE_HZ, Remote, RemoteStats, check_rate
+from estop.remotesender import (
+    MAX_RATE_HZ,
+    MIN_RATE_HZ,
+    Remote,
+    RemoteStats,
+    check_rate,
+    lift_line,
+)
 from estop.remoteterm import handle_key, run_interactive
 from estop.stopchannel import DEFAULT_STOP_DEADLINE, StopChannelError
 
@@ -68,7 +76,7 @@ EPILOG = """\
 script (--script TEXT or --script-file FILE): commands separated by ';' or new lines,
 '#' starts a comment, times in seconds:
   hold [T]        finger down: start sending (then wait T)
-  lift [T]        finger up: stop sending (then wait T)
+  lift [T]        finger up: stop sending, send the lift datagrams (then wait T)
   wait T          wait
   gas X           gas_brake X (-1.0 full brake .. 1.0 full gas)
   steer X         steering X (-1.0 left .. 1.0 right)
@@ -81,11 +89,15 @@ script (--script TEXT or --script-file FILE): commands separated by ';' or new l
   stop            the stop button: stop datagram + TCP STOP, tried again until an
                   answer or --stop-deadline; prints the reply and the attempts
   release | status             TCP request, prints the reply
-  expect W...     the last reply must match every word (ack nak stopped armed none boot
-                  tcp_stop udp_timeout fault unknown_msg_id no_live_link not_neutral
-                  not_authenticated link_degraded link_ok), else exit 1
-example: --script "hold 1.0; release; expect ack armed; drive 0.3 2.0; lift; wait 0.5;
-  status; expect stopped udp_timeout; stop"
+  expect W...     the last reply must match every word (ack nak stopped armed slowing
+                  none boot tcp_stop udp_timeout fault lift unknown_msg_id no_live_link
+                  not_neutral not_authenticated link_degraded link_ok), else exit 1
+example: --script "hold 1.0; release; expect ack armed; drive 0.3 2.0; lift; wait 0.1;
+  status; expect stopped lift; stop"
+
+the end of a hold (lift, the space key, the end of the script, q, Ctrl-C) sends a
+lift datagram at once and twice more 10 ms apart (spec section 8): the unit stops
+with reason lift without waiting for its timeout
 
 keys (terminal): space hold/lift, s stop, r release, t status, arrows gas/steering,
 n neutral, g next gear, h horn, 0-3 turn signal, q quit
@@ -168,7 +180,8 @@ def _summary(remote: Remote) -> str:
     s = remote.stats
     return (f"summary: {s.sent} packets sent, {s.delivered} delivered, {s.lost} lost "
             f"({s.loss_fraction * 100:.1f} %), longest loss burst "
-            f"{remote.link.stats.longest_burst}, {s.requests} TCP replies")
+            f"{remote.link.stats.longest_burst}, {s.requests} TCP replies, "
+            f"{s.lift_datagrams} lift datagrams")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -203,26 +216,33 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise ConnectionFailure(f"cannot open a UDP socket: {exc}") from None
     code = EXIT_OK
+    quiet: bool = args.quiet
+
+    def log(line: str) -> None:
+        if not quiet or " -> " in line:
+            out(line)
+
     with remote:
-        if steps is None:
-            run_interactive(remote)
-        else:
-            quiet: bool = args.quiet
-
-            def log(line: str) -> None:
-                if not quiet or " -> " in line:
-                    out(line)
-
-            runner = ScriptRunner(remote, log=log)
-            try:
-                runner.run(steps)
-            except ExpectFailed as exc:
-                out(f"expect failed: {exc}")
-                code = EXIT_PROBLEM
-            except StopChannelError as exc:
-                remote.lift()
-                raise ConnectionFailure(str(exc)) from None
-            finally:
-                remote.lift()
+        try:
+            if steps is None:
+                run_interactive(remote)
+            else:
+                code = _run_script(remote, steps, log)
+        finally:
+            # however the run ends (the script's end, q, Ctrl-C, a failed stop channel), a
+            # hold still on ends here, and the unit is told at once
+            if remote.held:
+                log(f"end of run: {lift_line(remote)}")
     out(_summary(remote))
     return code
+
+
+def _run_script(remote: Remote, steps: list[Step], log: Callable[[str], None]) -> int:
+    try:
+        ScriptRunner(remote, log=log).run(steps)
+    except ExpectFailed as exc:
+        out(f"expect failed: {exc}")
+        return EXIT_PROBLEM
+    except StopChannelError as exc:
+        raise ConnectionFailure(str(exc)) from None
+    return EXIT_OK

@@ -6,7 +6,7 @@ Commands are separated by ``;`` or new lines, ``#`` starts a comment. Times are 
 
 ====================  ========================================================================
 ``hold [T]``          finger down: start sending (then wait T)
-``lift [T]``          finger up: stop sending (then wait T)
+``lift [T]``          finger up: stop sending, send the lift datagrams (then wait T)
 ``wait T``            do nothing else for T
 ``gas X``             gas_brake X (-1.0 full brake .. 1.0 full gas)
 ``steer X``           steering X (-1.0 left .. 1.0 right)
@@ -20,14 +20,18 @@ Commands are separated by ``;`` or new lines, ``#`` starts a comment. Times are 
                       answer or the stop deadline), print the reply and the attempts
 ``release``           TCP RELEASE, print the reply
 ``status``            TCP STATUS, print the reply
-``expect W...``       the last reply must match every word: ack, nak, stopped, armed, a reason
-                      (none, boot, tcp_stop, udp_timeout, fault), a NAK reason (unknown_msg_id,
-                      no_live_link, not_neutral, not_authenticated) or link_degraded /
-                      link_ok; else :class:`ExpectFailed`
+``expect W...``       the last reply must match every word: ack, nak, a state (stopped, armed,
+                      slowing), a reason (none, boot, tcp_stop, udp_timeout, fault, lift), a
+                      NAK reason (unknown_msg_id, no_live_link, not_neutral,
+                      not_authenticated) or link_degraded / link_ok; else
+                      :class:`ExpectFailed`
 ====================  ========================================================================
 
-Example: ``hold 1.0; release; expect ack armed; drive 0.3 2.0; lift; wait 0.5; status;
-expect stopped udp_timeout; stop``.
+The hold ends with ``lift`` (and with the end of the script, whatever ends it): no more control
+packets, and the lift datagrams tell the unit at once; the step's line says ``lift sent x3``.
+
+Example: ``hold 1.0; release; expect ack armed; drive 0.3 2.0; lift; wait 0.1; status;
+expect stopped lift; stop``.
 """
 
 from __future__ import annotations
@@ -41,7 +45,7 @@ from estop.protocol import tcp
 from estop.protocol.can import REASON_NAMES, STATE_NAMES
 from estop.protocol.tcp import Reply
 from estop.protocol.udp import Gear, TurnSignal
-from estop.remotesender import MAX_RATE_HZ, MIN_RATE_HZ, Remote
+from estop.remotesender import MAX_RATE_HZ, MIN_RATE_HZ, Remote, lift_line
 from estop.stopchannel import StopChannelError, format_reply
 
 __all__ = ["ExpectFailed", "ScriptError", "ScriptRunner", "Step", "parse_script"]
@@ -216,11 +220,14 @@ class ScriptRunner:
                 raise ExpectFailed(f"{step.text}: got {format_reply(self.last_reply)}")
             self._say(f"{step.text}: ok")
             return
+        if op == "lift":
+            self._say(f"{step.text}: {lift_line(r)}")
+            if args:
+                time.sleep(args[0])
+            return
         self._say(step.text)
         if op == "hold":
             r.hold()
-        elif op == "lift":
-            r.lift()
         elif op == "gas":
             r.set_control(gas_brake=args[0])
         elif op == "steer":
@@ -241,6 +248,6 @@ class ScriptRunner:
                 time.sleep(args[1])
                 r.set_control(gas_brake=0.0)
             return
-        if op in ("hold", "lift", "wait") and args:
+        if op in ("hold", "wait") and args:
             time.sleep(args[0])
 

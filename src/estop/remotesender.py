@@ -1,11 +1,15 @@
 """The tablet as a library: :class:`Remote` sends control packets over UDP while *held* (a
 finger on the screen) and talks to the unit's TCP stop channel.
 
-While held the remote sends control packets at a fixed rate (default 50 Hz); when the finger
-lifts it sends nothing. The stop button, RELEASE and STATUS go over the TCP stop channel, one
-connection kept open. The stop button also sends a stop datagram to the UDP port at once, and
-keeps trying (a fresh connection and another datagram each time) until the unit answers or
-``stop_deadline`` (default 3 s) passes.
+While held the remote sends control packets at a fixed rate (default 50 Hz). When the finger
+lifts it sends no more control packets and tells the unit at once: a lift datagram (a stop
+request, reason lift) and two repeats 10 ms apart (spec section 8), so the unit stops without
+waiting for its timeout; should all three be lost, the timeout still stops it.
+
+The stop button, RELEASE and STATUS go over the TCP stop channel, one connection kept open.
+The stop button also sends a stop datagram to the UDP port at once, and keeps trying (a fresh
+connection and another datagram each time) until the unit answers or ``stop_deadline``
+(default 3 s) passes.
 
 With a key (spec section 5) the packets are the 60-byte authenticated form and the requests
 48-byte frames whose replies must verify; the remote learns the unit's session from replies
@@ -44,6 +48,9 @@ from estop.protocol.udp import ControlPacket
 from estop.stopchannel import (
     DEFAULT_REMOTE_ID,
     DEFAULT_STOP_DEADLINE,
+    LIFT_GAP,
+    LIFT_SENDS,
+    LiftDatagram,
     MessageCounter,
     StopChannel,
     StopChannelError,
@@ -59,6 +66,7 @@ __all__ = [
     "Remote",
     "RemoteStats",
     "check_rate",
+    "lift_line",
 ]
 
 PacketHook = Callable[[float, bytes, float | None], None]
@@ -87,6 +95,7 @@ class RemoteStats:
     send_errors: int = 0  # sendto() failed
     requests: int = 0  # TCP requests answered
     stop_datagrams: int = 0  # stop datagrams handed to the link (lost ones included)
+    lift_datagrams: int = 0  # lift datagrams handed to the link (lost ones included)
 
     @property
     def loss_fraction(self) -> float:
@@ -96,9 +105,10 @@ class RemoteStats:
 class Remote:
     """The tablet: a sender thread for UDP control packets plus a TCP stop channel.
 
-    ``hold()``/``lift()`` start and stop sending; ``set_control()`` changes what is sent from
-    the next packet on; ``stop()``/``release()``/``status()`` return the unit's
-    :class:`~estop.protocol.tcp.Reply` (or raise :class:`~estop.stopchannel.StopChannelError`).
+    ``hold()``/``lift()`` start and stop sending, and the end of a hold is reported with lift
+    datagrams (:meth:`lift`); ``set_control()`` changes what is sent from the next packet on;
+    ``stop()``/``release()``/``status()`` return the unit's :class:`~estop.protocol.tcp.Reply`
+    (or raise :class:`~estop.stopchannel.StopChannelError`).
     The sender thread starts with ``start()`` or the ``with`` block and ends with ``close()``.
     ``on_packet(t_send, data, t_deliver_or_None)`` is called from the sender thread for every
     packet (times on ``time.monotonic()``).
@@ -130,12 +140,20 @@ class Remote:
                                      remote_id=remote_id, counter=self.counter,
                                      session=lambda: self.channel.session,
                                      transmit=self._send_datagram)
+        self.lift_datagram = LiftDatagram(host, udp_port, key=key, remote_id=remote_id,
+                                          counter=self.counter,
+                                          session=lambda: self.channel.session,
+                                          transmit=self._send_lift_datagram)
         self.stats = RemoteStats()
         self._control = ControlPacket()
         self._held = False
         self._next_send = 0.0
         self._inflight: list[tuple[float, int, bytes, bool]] = []  # (due, n, data, control)
         self._n = 0
+        self._lifts = 0  # holds ended so far: the seq of their lift datagrams
+        self._lift_left = 0  # lift datagrams of the latest lift still to send
+        self._lift_due = 0.0  # when the next of them goes out
+        self._lift_sent = 0  # lift datagrams of the latest lift handed to the link
         self._closing = False
         self._cond = threading.Condition()
         self._thread: threading.Thread | None = None
@@ -153,10 +171,12 @@ class Remote:
         return self
 
     def close(self, *, flush: bool = True) -> None:
-        """Stop sending; with ``flush`` wait for packets still in flight (link delay) first."""
+        """Stop sending: a hold still on ends here, with its lift datagrams (:meth:`lift`),
+        which go out in any case; with ``flush`` wait for packets still in flight (link
+        delay) too."""
+        self.lift()
+        self.wait_lift_sent()
         with self._cond:
-            self._held = False
-            self._cond.notify_all()
             if flush and self._thread is not None:
                 self._cond.wait_for(lambda: not self._inflight, timeout=5.0)
             self._closing = True
@@ -203,12 +223,51 @@ class Remote:
                 self._next_send = time.monotonic()
                 self._cond.notify_all()
 
-    def lift(self) -> None:
-        """Finger up: once this returns, no further packet is sent (those already in flight
-        in the link model still arrive, as on a real network)."""
+    def lift(self) -> int:
+        """Finger up: once this returns, no further control packet is sent (those already in
+        flight in the link model still arrive, as on a real network) until the next
+        :meth:`hold`.
+
+        When this ends a hold, the unit is told at once (spec section 8): a lift datagram goes
+        out before this returns, and :data:`~estop.stopchannel.LIFT_SENDS` - 1 more follow
+        from the sender thread, each :data:`~estop.stopchannel.LIFT_GAP` after the previous
+        (:meth:`wait_lift_sent` waits for them, :meth:`close` always does). With a key they
+        carry the tag, the known session and the remote's counter, like its other requests.
+        Returns the number of lift datagrams this lift sends: LIFT_SENDS, or 0 when the remote
+        was not held."""
         with self._cond:
+            if not self._held:
+                return 0
             self._held = False
+            self._lifts += 1
+            self._lift_left = LIFT_SENDS
+            self._lift_sent = 0
+            self._send_lift()
             self._cond.notify_all()
+            return LIFT_SENDS
+
+    @property
+    def lift_sent(self) -> int:
+        """Lift datagrams of the latest lift handed to the link so far (0..LIFT_SENDS)."""
+        return self._lift_sent
+
+    def wait_lift_sent(self, timeout: float = 1.0) -> bool:
+        """Wait (at most ``timeout`` s) until every lift datagram of the latest lift has been
+        handed to the link; True if none is left to send. Without the sender thread (never
+        started, or closed) the repeats are sent from here."""
+        deadline = time.monotonic() + timeout
+        with self._cond:
+            while self._lift_left:
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    return False
+                if self._thread is None:
+                    if self._lift_due <= time.monotonic():
+                        self._send_lift()
+                        continue
+                    left = min(left, self._lift_due - time.monotonic())
+                self._cond.wait(max(_MIN_WAIT, left))
+            return True
 
     @property
     def control(self) -> ControlPacket:
@@ -279,6 +338,9 @@ class Remote:
                     self._write(data, control)
                 if not self._inflight:
                     self._cond.notify_all()  # close(flush=True) may be waiting
+                if self._lift_left and self._lift_due <= now:
+                    self._send_lift()
+                    self._cond.notify_all()  # wait_lift_sent() may be waiting
                 if self._held and self._next_send <= now:
                     self._send_one(now)
                     self._next_send += self._period
@@ -287,6 +349,8 @@ class Remote:
                 wake = math.inf
                 if self._held:
                     wake = self._next_send
+                if self._lift_left:
+                    wake = min(wake, self._lift_due)
                 if self._inflight:
                     wake = min(wake, self._inflight[0][0])
                 timeout = 0.5 if wake == math.inf else wake - time.monotonic()
@@ -304,6 +368,24 @@ class Remote:
             self.stats.lost += 1
         if self.on_packet is not None:
             self.on_packet(now, data, t_deliver)
+
+    def _send_lift(self) -> None:
+        """One lift datagram of the latest lift, now (the lock is held). The next is due
+        LIFT_GAP after this one went out, not after it was planned, so two are never closer
+        than LIFT_GAP even when this one was late."""
+        try:
+            self.lift_datagram.send(self._lifts)
+        except OSError:
+            self.stats.send_errors += 1
+        self._lift_left -= 1
+        self._lift_due = time.monotonic() + LIFT_GAP
+
+    def _send_lift_datagram(self, data: bytes) -> None:
+        """A lift datagram, through the same link as the control packets."""
+        with self._cond:
+            self.stats.lift_datagrams += 1
+            self._lift_sent += 1
+            self._transmit(time.monotonic(), data, False)
 
     def _send_datagram(self, data: bytes) -> None:
         """A stop datagram, through the same link as the control packets."""
@@ -329,3 +411,11 @@ class Remote:
         except OSError:
             self.stats.send_errors += 1
 
+
+def lift_line(remote: Remote) -> str:
+    """Lift ``remote``, wait (bounded) for its lift datagrams and say what went out, for the
+    tools' output: ``lift sent x3``, or ``not held: nothing to send``."""
+    if not remote.lift():
+        return "not held: nothing to send"
+    remote.wait_lift_sent()
+    return f"lift sent x{remote.lift_sent}"

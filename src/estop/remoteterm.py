@@ -2,7 +2,9 @@
 line shows what is sent.
 
 Keys: space hold/lift, s stop, r release, t status, arrows gas and steering (0.1 steps),
-n neutral, g next gear, h horn, 0-3 turn signal, q quit.
+n neutral, g next gear, h horn, 0-3 turn signal, q quit. A lift sends the lift datagrams
+(spec section 8) and the status line says so (``lifted, lift sent x3``); q and Ctrl-C end a
+hold the same way (the command line does that when this returns).
 """
 
 from __future__ import annotations
@@ -49,7 +51,13 @@ def _read_keys(fd: int, timeout: float) -> str:
 def _status_line(remote: Remote) -> str:
     c = remote.control
     gear = Gear(c.gear).name.lower() if c.gear in _GEAR_CYCLE else str(c.gear)
-    return (f"\r[{'HELD' if remote.held else 'lifted'}] gas {c.gas_brake:+.1f} "
+    if remote.held:
+        hold = "HELD"
+    elif remote.lift_sent:  # the latest hold ended: say that the unit was told
+        hold = f"lifted, lift sent x{remote.lift_sent}"
+    else:
+        hold = "lifted"
+    return (f"\r[{hold}] gas {c.gas_brake:+.1f} "
             f"steer {c.steering:+.1f} gear {gear} signal {TurnSignal(c.turn_signal).name.lower()}"
             f" horn {'on' if c.horn else 'off'} | sent {remote.stats.sent} "
             f"lost {remote.stats.lost}   ")
@@ -114,14 +122,16 @@ def run_interactive(remote: Remote) -> None:
     fd = sys.stdin.fileno()
     out(_HELP)
     with _raw_terminal(fd):
-        while True:
-            sys.stdout.write(_status_line(remote))
-            sys.stdout.flush()
-            for key in _split_keys(_read_keys(fd, 0.1)):
-                line = handle_key(remote, key)
-                if line == "quit":
-                    out()
-                    return
-                if line:
-                    out("\n" + line)
+        try:
+            while True:
+                sys.stdout.write(_status_line(remote))
+                sys.stdout.flush()
+                for key in _split_keys(_read_keys(fd, 0.1)):
+                    line = handle_key(remote, key)
+                    if line == "quit":
+                        return
+                    if line:
+                        out("\n" + line)
+        finally:
+            out()  # leave the status line, whatever ended the loop (q, Ctrl-C)
 

@@ -263,6 +263,9 @@ def test_connection_refused_exit_3(capsys) -> None:
     ["release", "--host", LOCAL, "--seq", "-1"],
     ["status", "--host", LOCAL, "--timeout", "0"],
     ["status", "--host", LOCAL, "--timeout", "nan"],
+    ["lift", "--host", LOCAL, "--udp-port", "0"],
+    ["lift", "--host", LOCAL, "--tcp-port", "x"],
+    ["lift", "--host", LOCAL, "--stop-deadline", "1"],  # no retries: a stop button's option
     ["frobnicate"],
     [],
     ["monitor"],
@@ -271,6 +274,8 @@ def test_connection_refused_exit_3(capsys) -> None:
     ["remote", "--host", LOCAL, "--script", "gas 2"],
     ["remote", "--host", LOCAL, "--loss", "60", "--burst", "1", "--script", "hold 1"],
     ["remote", "--host", LOCAL, "--rate", "-5", "--script", "hold 1"],
+    ["remote", "--host", LOCAL, "--rate-hz", "0", "--script", "hold 1"],
+    ["monitor", "-c", "vcan0", "--log", "x"],  # a channel needs an interface
 ])
 def test_usage_errors_one_line_exit_2(argv: list[str], capsys) -> None:
     code = cli.main(argv)
@@ -295,7 +300,9 @@ def test_version(capsys) -> None:
     assert cli.main(["--version"]) == 0
     assert capsys.readouterr().out.strip() == "estop 1.0.0"
     assert cli.main(["monitor", "--help"]) == 0
-    assert "--interface" in capsys.readouterr().out
+    assert "-i IF, --interface IF" in capsys.readouterr().out
+    assert cli.main(["lift", "--help"]) == 0
+    assert "--tcp-port PORT, --port PORT" in capsys.readouterr().out
 
 
 # ------------------------------------------------------------------------------ demo slot

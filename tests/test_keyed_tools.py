@@ -120,9 +120,9 @@ class KeyedUnit(FakeUnitPorts):
         return body + tag
 
     def _decide(self, msg_id: int, authenticated: bool) -> tuple[bool, int]:
-        if msg_id == tcp.DEFAULT_STOP_ID:
+        if msg_id in (tcp.DEFAULT_STOP_ID, tcp.LIFT):  # stop requests: never refused
             if self.state == 1:
-                self.state, self.reason = 0, 2
+                self.state, self.reason = 0, 2 if msg_id == tcp.DEFAULT_STOP_ID else 5
             return True, 0
         if msg_id == tcp.STATUS:
             return True, 0
@@ -232,6 +232,22 @@ def test_stop_with_a_key(unit: KeyedUnit, key_path: str, capsys) -> None:
     assert len(unit.stop_datagrams) == 1
     ok, session, _ = unit.stop_datagrams[0]
     assert session == 0 and not ok  # the session is not known yet: a stop all the same
+
+
+def test_lift_with_a_key(unit: KeyedUnit, key_path: str, capsys) -> None:
+    code, out, _ = run_cli(capsys, "lift", "--host", LOCAL, "--tcp-port", str(unit.tcp_port),
+                           "--udp-port", str(unit.udp_port), "--key-file", key_path,
+                           "--remote-id", "9", "--seq", "4")
+    assert code == 0 and out.strip() == ("ACK seq=4 state=STOPPED reason=boot flags=0x00 "
+                                         "(lift sent x3)")
+    # a 48-byte LIFT (its tag right, but not authenticated: the session is not known, and a
+    # LIFT needs none), after the three lift datagrams, tagged, with rising counters
+    assert unit.requests == [(tcp.LIFT, False, 0, 48)]
+    wait_until(lambda: len(unit.lift_datagrams) >= 3)
+    assert [(ok, session, seq) for ok, session, _, seq in unit.lift_datagrams] == [
+        (False, 0, 4)] * 3
+    counters = [c for _, _, c, _ in unit.lift_datagrams]
+    assert counters == sorted(counters) and len(set(counters)) == 3
 
 
 def test_forged_ack_to_a_stop_is_not_believed(key_path: str, capsys) -> None:

@@ -154,7 +154,7 @@ def test_script_rate_bounds() -> None:
 def test_cli_max_rate_script_ends_cleanly(sink: UdpSink,
                                           capsys: pytest.CaptureFixture[str]) -> None:
     t0 = time.monotonic()
-    code = cli.main(["remote", "--host", LOCAL, "--udp-port", str(sink.port), "--rate", "1000",
+    code = cli.main(["remote", "--host", LOCAL, "--udp-port", str(sink.port), "--rate-hz", "1000",
                      "--tcp-port", str(unused_tcp_port()), "-q", "--script",
                      "hold 0.3; lift; wait 0.3"])
     out = capsys.readouterr().out

@@ -149,6 +149,18 @@ def test_stop_datagram_alone_stops_the_unit(keyed: Daemon, capsys) -> None:
     assert brake_states(keyed, (0, 2)) == [(0, 1), (1, 0), (0, 2)]
 
 
+def test_lift_one_shot_stops_the_unit_with_reason_lift(keyed: Daemon, capsys) -> None:
+    with Remote(LOCAL, keyed.udp_port, keyed.tcp_port,
+                key=load_key_file(key_path_of(keyed))) as r:
+        arm(r)
+        # anyone may send a LIFT: a keyless one-shot stops the keyed unit
+        code, out, err = run_cli(capsys, "lift", "--host", LOCAL, "--tcp-port",
+                                 str(keyed.tcp_port), "--udp-port", str(keyed.udp_port))
+        assert (code, err) == (0, "")
+        assert out == "ACK seq=1 state=STOPPED reason=lift flags=0x00 (lift sent x3)\n"
+    assert brake_states(keyed, (0, 5)) == [(0, 1), (1, 0), (0, 5)]
+
+
 def test_keyless_unit_with_the_plain_tools(keyless: Daemon, capsys) -> None:
     code, out, _ = run_cli(
         capsys, "remote", "--host", LOCAL, "--udp-port", str(keyless.udp_port), "--tcp-port",

@@ -59,9 +59,9 @@ __all__ = ["DESCRIPTION", "Monitor", "add_arguments", "format_frame", "run"]
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group(required=True)
     src.add_argument("--log", metavar="FILE", help="read a can-utils log file ('-': stdin)")
-    src.add_argument("--interface", metavar="IF",
+    src.add_argument("-i", "--interface", metavar="IF",
                      help="python-can interface (socketcan, virtual, ...)")
-    parser.add_argument("--channel", help="python-can channel (vcan0, can0, ...)")
+    parser.add_argument("-c", "--channel", help="python-can channel (vcan0, can0, ...)")
     parser.add_argument("--brake-id", type=parse_u32, default=BRAKE_ID,
                         help=f"ESTOP_BRAKE CAN ID (default {BRAKE_ID:#05x})")
     parser.add_argument("--status-id", type=parse_u32, default=STATUS_ID,

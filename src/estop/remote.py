@@ -108,7 +108,7 @@ by --stop-deadline)"""
 
 
 def rate_arg(text: str) -> float:
-    """argparse type of ``--rate``."""
+    """argparse type of ``--rate-hz``."""
     try:
         value = float(text)
     except ValueError:
@@ -127,7 +127,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"control packet port (default {udp.DEFAULT_PORT})")
     parser.add_argument("--tcp-port", type=port, default=tcp.DEFAULT_PORT,
                         help=f"stop channel port (default {tcp.DEFAULT_PORT})")
-    parser.add_argument("--rate", type=rate_arg, default=50.0,
+    # --rate-hz as the other tools name a rate; --rate is the older name
+    parser.add_argument("--rate-hz", "--rate", dest="rate", type=rate_arg, default=50.0,
+                        metavar="HZ",
                         help=f"packets per second while held, {MIN_RATE_HZ:g}..{MAX_RATE_HZ:g} "
                              f"(default 50)")
     parser.add_argument("--wifi", action="store_true",

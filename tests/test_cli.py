@@ -365,8 +365,10 @@ def test_monitor_clean_log(tmp_path: Path, capsys) -> None:
     assert code == 0 and err == ""
     lines = out.splitlines()
     assert lines[-1] == "summary: 44 frames, 44 accepted; problems: none"
+    assert lines[-2] == "brake commands: release 40, controlled 0, emergency 0"
+    # v3: each ESTOP_BRAKE line ends with what the brake controller does on it
     assert lines[0] == ("(1700000000.000000) 050 ESTOP_BRAKE ARMED reason=none brake=0 "
-                        "level=0 flags=0x00 ctr=0")
+                        "level=0 flags=0x00 ctr=0 => release")
     assert lines[1] == ("(1700000000.001000) 051 ESTOP_STATUS valid=5 invalid=0 auth_failures=0 "
                         "stops=1 link_age=12ms ctr=0")
     assert "!" not in out
@@ -386,7 +388,10 @@ def test_monitor_flags_crc_jump_gap(tmp_path: Path, capsys) -> None:
     assert "(1700000000.095000) 050 ! bad_crc: CRC " in out
     assert "(1700000000.110000) 050 ! counter_jump: counter 11 expected, got 13 (2 lost)" in out
     assert "(1700000000.180000) 050 ! gap: 60.0 ms without a good frame (limit 50 ms)" in out
-    assert "STOPPED reason=tcp_stop brake=1 level=100 flags=0x00 ctr=1  <- state change" in out
+    assert ("STOPPED reason=tcp_stop brake=1 level=100 flags=0x00 ctr=1 => EMERGENCY  "
+            "<- state change") in out
+    # the frame with the bad CRC did not come whole from the unit: it commands nothing
+    assert "flags=0x00 ctr=10  [rejected]" in out
     assert out.splitlines()[-1] == ("summary: 16 frames, 15 accepted; problems: bad_crc 1, "
                                     "counter_jump 1, gap 1")
 

@@ -109,22 +109,38 @@ def test_an_unknown_brake_request_is_an_emergency_brake_at_once(unknown: int) ->
     assert out.distance == pytest.approx(V * 0.3 + V * V / (2 * A))
 
 
-def test_before_the_first_frame_the_controller_brakes_and_at_rest_nothing_rolls() -> None:
+def test_what_the_record_does_not_show_is_taken_as_released() -> None:
+    # the record starts at 1.0, after the moment: released until then (the cautious side of
+    # a distance), then ARMED, then braking 50 ms after the last frame (1.49)
     bus = Bus()
     bus.t = 1.0
     bus.state(50, ARMED)
-    # no frame yet at the moment: braking at once, full; released by the first ARMED frame
-    # at 1.0; braking again 50 ms after the last one (1.49)
     early = roll_out(bus.frames, 0.5, V)
-    assert early.braking_began == 0.5
-    v1 = V - A * 0.5
-    assert early.distance == pytest.approx(V * 0.5 - A * 0.5 ** 2 / 2 + v1 * 0.54
-                                           + v1 * v1 / (2 * A))
+    assert early.braking_began == pytest.approx(1.54)
+    assert early.distance == pytest.approx(V * 1.04 + V * V / (2 * A))
+    # a record whose ESTOP_BRAKE frames start late: silence from the record's start brakes
+    late = [(0.0, 0x051, StatusFrame(1, 0, 0, 0, 5, 0).encode()), *Bus().state(1, ARMED).frames]
+    late[1] = (0.2, *late[1][1:])
+    out = roll_out(late, 0.0, V)
+    assert out.braking_began == pytest.approx(0.050)
+    # no frame at all: silence is a failure, counted from the moment
+    nothing = roll_out([], 3.0, V)
+    assert nothing.braking_began == pytest.approx(3.05) and nothing.record_end is None
+    assert nothing.beyond_record
+    # with an actuator delay the commands before the record are not seen either: released
+    delayed = roll_out(Bus().state(30, STOPPED, reason=5).frames, 0.0, V,
+                       params=VehicleParams(actuator_delay=0.2))
+    assert delayed.braking_began == pytest.approx(0.2)
     rest = roll_out(bus.frames, 1.2, 0.0)
     assert (rest.distance, rest.braking_began, rest.standstill) == (0.0, None, 1.2)
     assert rest.summary().startswith("at 0.0 km/h: at rest, standstill +0.0 ms")
-    nothing = roll_out([], 0.0, V)  # no frame at all: silence is a failure
-    assert nothing.braking_began == 0.0 and nothing.record_end is None
+
+
+@pytest.mark.parametrize("unknown", [3, 255])
+def test_a_record_that_begins_with_an_unknown_brake_request_brakes_at_once(
+        unknown: int) -> None:
+    out = roll_out(Bus().raw(20, unknown).frames, 0.0, V)
+    assert out.braking_began == 0.0 and out.distance == pytest.approx(V * V / (2 * A))
 
 
 def test_the_replay_is_the_same_one_frame_at_a_time_and_reads_can_logs() -> None:
@@ -179,14 +195,12 @@ def test_every_replay_ends_at_rest_with_a_distance_that_is_never_negative(
     assert out.distance <= speed * (end - moment) + speed * speed / (2 * A) + 1e-9
 
 
-@given(st.lists(st.integers(0, 2), max_size=40).map(sorted), st.floats(0.3, 1.0),
+@given(st.lists(st.integers(0, 2), max_size=40).map(sorted), st.floats(0.0, 0.5),
        st.floats(0.1, 30.0), st.floats(0.0, 0.3), st.floats(0.0, 0.3))
 def test_more_actuator_delay_never_less_distance(kinds: list[int], moment: float,
                                                  speed: float, d1: float, d2: float) -> None:
-    # frames 10 ms apart whose command only grows (ARMED, SLOWING, STOPPED), as in a stop,
-    # after 0.6 s of ARMED: the controller released the brake before any delay reaches back
-    # (before its first frame it brakes, and a delay would carry that into the moment)
-    frames = frame_stream([(0, 0)] * 60 + [(k, 0) for k in kinds])
+    # frames 10 ms apart whose command only grows (ARMED, SLOWING, STOPPED), as in a stop
+    frames = frame_stream([(k, 0) for k in kinds])
     short, long = sorted((d1, d2))
     near = roll_out(frames, moment, speed, params=VehicleParams(actuator_delay=short))
     far = roll_out(frames, moment, speed, params=VehicleParams(actuator_delay=long))

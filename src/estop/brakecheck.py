@@ -295,6 +295,12 @@ class BrakeFrameChecker:
         return self.deceleration_share(now) > 0.0
 
     @property
+    def commanded_share(self) -> float | None:
+        """What the latest commanding ESTOP_BRAKE asked for, however old (None before any);
+        :meth:`deceleration_share` adds the silence rule."""
+        return self._share
+
+    @property
     def silence_deadline(self) -> float | None:
         """When the 50 ms rule brakes unless another ESTOP_BRAKE is accepted first: the last
         accepted one's time plus ``timeout`` (None before the first)."""

@@ -6,10 +6,15 @@ the start of a watch) at a given speed (docs/VEHICLE.md).
 The car is at ``speed`` at ``moment``, whatever came before; from then on it brakes with the
 share the controller commands, each change on the frame that caused it, or where the 50 ms
 silence rule starts braking. The controller's state at ``moment`` comes from the frames before
-it, so feed the record from its start: before the first accepted ESTOP_BRAKE the controller
-brakes (share 1). After the last frame the record is silent, and the silence rule brakes 50 ms
-after the last accepted ESTOP_BRAKE: a replay always ends at standstill, and
-:attr:`RollOut.beyond_record` tells when the braking began only after the record ended.
+it, so feed the record from its start.
+
+What the record does not show is taken as released, as a distance estimate must not count on
+braking it cannot see: before the record's first frame (of any ID), and in its first 50 ms
+until an ESTOP_BRAKE commands. From there on silence is a failure, as for the controller: no
+accepted ESTOP_BRAKE in the record's first 50 ms, or none for 50 ms later, brakes fully. After
+the last frame the record is silent, so a replay always ends at standstill;
+:attr:`RollOut.beyond_record` tells when the braking began only after the record ended. (A
+record without any frame starts at ``moment``.)
 
 Use, e.g. in the demo or the HIL harness, with frames on one clock (here a can-log)::
 
@@ -101,22 +106,27 @@ class RollOutReplay:
         self.speed = speed
         self.params = params
         self.checker = BrakeFrameChecker(brake_id=brake_id, status_id=None, timeout=timeout)
-        self._share = EMERGENCY  # the controller's command so far: brake before any frame
+        self._share = 0.0  # the command so far: before the record, taken as released
         self._vehicle: Vehicle | None = None  # starts with the first command it must act on
+        self._began: float | None = None  # the record's first frame
         self._last_t: float | None = None
         Vehicle(speed, moment, params=params)  # refuse a bad speed or moment now
 
     def feed(self, t: float, can_id: int, data: bytes | bytearray | memoryview) -> None:
+        if self._began is None:
+            self._began = t
         self._last_t = t if self._last_t is None else max(self._last_t, t)
-        deadline = self.checker.silence_deadline
+        deadline = self._silence_deadline()
         if deadline is not None and deadline <= t:
             self._command(deadline, EMERGENCY)  # 50 ms without an accepted frame
         if self.checker.feed(t, can_id, data) is not None:
-            self._command(t, self.checker.deceleration_share(t))
+            self._command(t, self._controller_share(t))
 
     def result(self) -> RollOut:
         """The car's stop: the frames fed, then the silence after them."""
-        deadline = self.checker.silence_deadline
+        if self._began is None:
+            self._began = self.moment  # no frame at all: the record starts at the moment
+        deadline = self._silence_deadline()
         if deadline is not None:
             self._command(deadline, EMERGENCY)
         vehicle = self._vehicle or Vehicle(self.speed, self.moment, share=self._share,
@@ -126,6 +136,24 @@ class RollOutReplay:
         assert standstill is not None  # the silence rule always ends in an emergency brake
         return RollOut(self.moment, self.speed, vehicle.braking_began,
                        vehicle.full_braking_began, standstill, vehicle.position, self._last_t)
+
+    def _silence_deadline(self) -> float | None:
+        """When silence brakes: 50 ms after the last accepted ESTOP_BRAKE, or after the
+        record's start before the first."""
+        deadline = self.checker.silence_deadline
+        if deadline is None and self._began is not None:
+            deadline = self._began + self.checker.timeout
+        return deadline
+
+    def _controller_share(self, t: float) -> float:
+        if self.checker.silence_deadline is not None:
+            return self.checker.deceleration_share(t)
+        # no ESTOP_BRAKE accepted in the record yet: a frame from the unit that failed the
+        # content check brakes; else released (not seen) for the record's first 50 ms
+        assert self._began is not None
+        if self.checker.commanded_share is None and t < self._began + self.checker.timeout:
+            return 0.0
+        return EMERGENCY
 
     def _command(self, t: float, share: float) -> None:
         if share == self._share:

@@ -4,6 +4,7 @@ polling loops of fake units (datagrams, connections, chunks)."""
 from __future__ import annotations
 
 import socket
+import struct
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -11,25 +12,50 @@ from collections.abc import Callable, Iterator
 LOCAL = "127.0.0.1"
 
 
+# Linux's SO_TIMESTAMPNS (and SCM_TIMESTAMPNS), which the socket module does not name.
+SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS", 35)
+
+
 class UdpSink:
-    """A UDP socket on loopback that counts every datagram it receives, on a thread."""
+    """A UDP socket on loopback that counts every datagram it receives, on a thread. It keeps
+    the kernel's receive time of each (``stamps``, wall-clock seconds): on loopback that is
+    when it was sent, whenever the thread got round to reading it."""
 
     def __init__(self) -> None:
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1 << 20)
+        self.sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
         self.sock.bind((LOCAL, 0))
         self.sock.settimeout(0.02)
         self.port: int = self.sock.getsockname()[1]
         self.datagrams: list[bytes] = []
+        self.stamps: list[float] = []
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
 
     def _run(self) -> None:
-        for data in datagrams(self.sock, self._stop):
+        while not self._stop.is_set():
+            try:
+                data, ancillary, _, _ = self.sock.recvmsg(2048, socket.CMSG_SPACE(16))
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            stamp = time.time()
+            for level, kind, raw in ancillary:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(raw) >= 16:
+                    sec, nsec = struct.unpack("qq", raw[:16])
+                    stamp = sec + nsec / 1e9
             with self._lock:
                 self.datagrams.append(data)
+                self.stamps.append(stamp)
+
+    def received(self) -> list[tuple[float, bytes]]:
+        """(kernel receive time, datagram) of everything so far, in order."""
+        with self._lock:
+            return list(zip(self.stamps, self.datagrams, strict=True))
 
     @property
     def count(self) -> int:

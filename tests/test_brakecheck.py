@@ -1,4 +1,5 @@
-"""BrakeFrameChecker: what a brake controller accepts, and when it brakes."""
+"""BrakeFrameChecker: what a brake controller accepts, when it brakes, and how hard (the graded
+answer of spec section 7)."""
 
 from __future__ import annotations
 
@@ -6,8 +7,9 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from estop.brakecheck import BRAKE_TIMEOUT, BrakeFrameChecker
+from estop.brakecheck import BRAKE_TIMEOUT, BrakeFrameChecker, grade_kind, grade_text
 from estop.protocol.can import BrakeFrame, StatusFrame
+from estop.protocol.crc import e2e_crc8
 
 
 def armed(counter: int) -> bytes:
@@ -181,3 +183,117 @@ def test_poll_from_the_start_of_the_watch() -> None:
     chk.feed(10.6, 0x050, armed(0))  # frames came: the gap from the start is not a "gap"
     assert chk.counts["gap"] == 0
     assert [e.kind for e in chk.finish(10.605)] == []
+
+
+# ------------------------------------------------------- the graded answer (spec section 7)
+
+def slowing(counter: int, level: int = 30) -> bytes:
+    return BrakeFrame.for_state(2, 0, 0, counter % 15, slow_level=level).encode()
+
+
+def raw_brake(brake_request: int, counter: int, level: int = 0, state: int = 1,
+              reason: int = 0) -> bytes:
+    """An ESTOP_BRAKE written byte by byte, with a right CRC-8 (data ID 0x0E57)."""
+    payload = bytes((brake_request, level, state, reason, 0, 0, counter % 15))
+    return payload + bytes((e2e_crc8(0x0E57, payload),))
+
+
+def test_deceleration_share_follows_the_accepted_frames() -> None:
+    chk = BrakeFrameChecker()
+    assert chk.deceleration_share(0.0) == 1.0  # nothing accepted yet: brake
+    assert chk.silence_deadline is None
+    chk.feed(1.000, 0x050, armed(0))
+    assert chk.deceleration_share(1.000) == 0.0
+    assert chk.silence_deadline == pytest.approx(1.050)
+    v = chk.feed(1.010, 0x050, slowing(1, level=30))
+    assert v is not None and v.accepted and v.share == pytest.approx(0.30)
+    assert chk.deceleration_share(1.011) == pytest.approx(0.30)
+    assert chk.brake_applied(1.011)
+    chk.feed(1.020, 0x050, slowing(2, level=99))
+    assert chk.deceleration_share(1.020) == pytest.approx(0.99)
+    chk.feed(1.030, 0x050, stopped(3, reason=5))
+    assert chk.deceleration_share(1.030) == 1.0
+    chk.feed(1.040, 0x050, armed(4))  # the controller follows the frames; the unit latches
+    assert chk.deceleration_share(1.040) == 0.0
+    assert dict(chk.grades) == {"release": 2, "controlled": 2, "emergency": 1}
+
+
+def test_50_ms_without_an_accepted_frame_is_an_emergency_brake_whatever_the_grade() -> None:
+    for frame, share in ((armed, 0.0), (slowing, 0.3)):
+        chk = BrakeFrameChecker()
+        chk.feed(0.0, 0x050, frame(0))
+        assert chk.deceleration_share(0.0499) == pytest.approx(share)
+        assert chk.deceleration_share(0.050) == 1.0
+        assert chk.deceleration_share(7.0) == 1.0
+
+
+@pytest.mark.parametrize("after", ["release", "controlled"])
+@pytest.mark.parametrize("unknown", [3, 255])
+def test_an_unknown_brake_request_is_an_emergency_brake_at_once(unknown: int,
+                                                                after: str) -> None:
+    # a frame from the unit (right CRC, counter in order) whose brake_request the controller
+    # does not know: neither a release nor the previous grade held for up to 50 ms
+    chk = BrakeFrameChecker()
+    chk.feed(0.000, 0x050, armed(0) if after == "release" else slowing(0))
+    v = chk.feed(0.010, 0x050, raw_brake(unknown, 1))
+    assert v is not None and not v.accepted
+    assert [e.kind for e in v.events] == ["bad_content"] and "brake_request" in v.events[0].message
+    assert v.share == 1.0
+    assert chk.deceleration_share(0.010) == 1.0 and chk.brake_applied(0.010)
+    assert chk.deceleration_share(0.049) == 1.0  # the earlier frame is still young: no matter
+    assert chk.grades["emergency"] == 1
+    v = chk.feed(0.020, 0x050, raw_brake(unknown, 2, level=100, state=0, reason=2))
+    assert v is not None and v.share == 1.0  # however its other fields read
+    v = chk.feed(0.030, 0x050, armed(3))  # counter in order: accepted, the grade follows it
+    assert v is not None and v.accepted and v.events == ()
+    assert chk.deceleration_share(0.030) == 0.0
+
+
+def test_contradictory_frame_from_the_unit_brakes_a_bad_crc_or_a_repeat_changes_nothing() -> None:
+    chk = BrakeFrameChecker()
+    chk.feed(0.00, 0x050, armed(0))
+    bad_crc = bytearray(armed(1))
+    bad_crc[7] ^= 0x01
+    v = chk.feed(0.01, 0x050, bytes(bad_crc))
+    assert v is not None and v.share is None  # not whole from the unit: commands nothing
+    assert chk.deceleration_share(0.01) == 0.0  # until the 50 ms run out
+    v = chk.feed(0.02, 0x050, armed(0))  # a repeat of counter 0: stale
+    assert v is not None and v.share is None and chk.deceleration_share(0.02) == 0.0
+    v = chk.feed(0.03, 0x050, raw_brake(0, 1, level=100))  # release at level 100: contradicts
+    assert v is not None and not v.accepted and v.share == 1.0
+    assert chk.deceleration_share(0.03) == 1.0
+    assert chk.deceleration_share(0.06) == 1.0
+
+
+def test_grade_words() -> None:
+    assert [grade_text(s) for s in (0.0, 0.3, 0.99, 1.0)] == [
+        "release", "controlled 30 %", "controlled 99 %", "EMERGENCY"]
+    assert [grade_kind(s) for s in (0.0, 0.01, 1.0)] == ["release", "controlled", "emergency"]
+
+
+@given(st.lists(st.tuples(st.integers(1, 60), st.binary(min_size=8, max_size=8)), max_size=40))
+def test_the_share_is_a_share_and_releases_only_on_an_accepted_release(
+        frames: list[tuple[int, bytes]]) -> None:
+    chk = BrakeFrameChecker()
+    t = 0.0
+    for step_ms, data in frames:
+        t += step_ms / 1000
+        v = chk.feed(t, 0x050, data)
+        assert v is not None
+        share = chk.deceleration_share(t)
+        assert 0.0 <= share <= 1.0
+        if share < 1.0:  # anything short of an emergency brake comes from an accepted frame
+            assert chk.last_brake is not None and chk.last_brake.deceleration_share == share
+            assert v.share is None or v.accepted
+
+
+@pytest.mark.parametrize("unknown", [3, 255])
+def test_brake_applied_right_after_an_unknown_request_that_follows_a_release(
+        unknown: int) -> None:
+    # was a hole: the release frame, 10 ms old, still counted, so the controller kept
+    # releasing for up to 50 ms after the unit had said something it does not know
+    chk = BrakeFrameChecker()
+    chk.feed(0.000, 0x050, armed(0))
+    chk.feed(0.010, 0x050, raw_brake(unknown, 1))
+    assert chk.brake_applied(0.010)
+    assert chk.brake_applied(0.030)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 
-from estop import cli, remote
+from estop import cli, remote, remoteterm
 from estop.linkmodel import WIFI, LinkConfig, LinkModel
 from estop.protocol import auth, tcp, udp
 from estop.protocol.can import BrakeFrame, StatusFrame
@@ -40,8 +40,8 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 
 @dataclass
 class FakeUnit(FakeUnitPorts):
-    """Just enough of the unit for the CLI: a UDP port recording control packets (and stop
-    datagrams, which stop it) and a TCP stop port answering per spec section 3 (STOPPED
+    """Just enough of the unit for the CLI: a UDP port recording control packets (and stop and
+    lift datagrams, which stop it) and a TCP stop port answering per spec section 3 (STOPPED
     latched, RELEASE needs a live, neutral link of >= 5 valid packets, udp timeout 200 ms).
     ``mode`` breaks the replies on purpose: ``silent`` (no reply), ``close`` (hang up),
     ``badcrc``, ``wrongseq``, ``split`` (reply in two pieces)."""
@@ -70,8 +70,9 @@ class FakeUnit(FakeUnitPorts):
             with self.lock:
                 if len(data) == auth.REQUEST_SIZE and data[:4] == auth.REQUEST_MAGIC:
                     self.stop_datagrams.append(data)
-                    if auth.AuthRequest.decode(data, None).kind(self.stop_id) == "stop":
-                        self._enter_stop(2)
+                    kind = auth.AuthRequest.decode(data, None).kind(self.stop_id)
+                    if kind in ("stop", "lift"):
+                        self._enter_stop(2 if kind == "stop" else 5)
                     continue
                 self.packets.append((now, data))
                 self._expire(now)
@@ -128,8 +129,8 @@ class FakeUnit(FakeUnitPorts):
             self._expire(now)
             kind = req.kind(self.stop_id)
             nak = 0
-            if kind == "stop":
-                self._enter_stop(2)
+            if kind in ("stop", "lift"):
+                self._enter_stop(2 if kind == "stop" else 5)
             elif kind == "release" and self.state == 0:
                 live = now - self.last_valid_t < self.timeout and self.valid_run >= 5
                 if not live:
@@ -262,6 +263,9 @@ def test_connection_refused_exit_3(capsys) -> None:
     ["release", "--host", LOCAL, "--seq", "-1"],
     ["status", "--host", LOCAL, "--timeout", "0"],
     ["status", "--host", LOCAL, "--timeout", "nan"],
+    ["lift", "--host", LOCAL, "--udp-port", "0"],
+    ["lift", "--host", LOCAL, "--tcp-port", "x"],
+    ["lift", "--host", LOCAL, "--stop-deadline", "1"],  # no retries: a stop button's option
     ["frobnicate"],
     [],
     ["monitor"],
@@ -270,6 +274,8 @@ def test_connection_refused_exit_3(capsys) -> None:
     ["remote", "--host", LOCAL, "--script", "gas 2"],
     ["remote", "--host", LOCAL, "--loss", "60", "--burst", "1", "--script", "hold 1"],
     ["remote", "--host", LOCAL, "--rate", "-5", "--script", "hold 1"],
+    ["remote", "--host", LOCAL, "--rate-hz", "0", "--script", "hold 1"],
+    ["monitor", "-c", "vcan0", "--log", "x"],  # a channel needs an interface
 ])
 def test_usage_errors_one_line_exit_2(argv: list[str], capsys) -> None:
     code = cli.main(argv)
@@ -294,7 +300,9 @@ def test_version(capsys) -> None:
     assert cli.main(["--version"]) == 0
     assert capsys.readouterr().out.strip() == "estop 1.0.0"
     assert cli.main(["monitor", "--help"]) == 0
-    assert "--interface" in capsys.readouterr().out
+    assert "-i IF, --interface IF" in capsys.readouterr().out
+    assert cli.main(["lift", "--help"]) == 0
+    assert "--tcp-port PORT, --port PORT" in capsys.readouterr().out
 
 
 # ------------------------------------------------------------------------------ demo slot
@@ -357,8 +365,10 @@ def test_monitor_clean_log(tmp_path: Path, capsys) -> None:
     assert code == 0 and err == ""
     lines = out.splitlines()
     assert lines[-1] == "summary: 44 frames, 44 accepted; problems: none"
+    assert lines[-2] == "brake commands: release 40, controlled 0, emergency 0"
+    # v3: each ESTOP_BRAKE line ends with what the brake controller does on it
     assert lines[0] == ("(1700000000.000000) 050 ESTOP_BRAKE ARMED reason=none brake=0 "
-                        "level=0 flags=0x00 ctr=0")
+                        "level=0 flags=0x00 ctr=0 => release")
     assert lines[1] == ("(1700000000.001000) 051 ESTOP_STATUS valid=5 invalid=0 auth_failures=0 "
                         "stops=1 link_age=12ms ctr=0")
     assert "!" not in out
@@ -378,7 +388,10 @@ def test_monitor_flags_crc_jump_gap(tmp_path: Path, capsys) -> None:
     assert "(1700000000.095000) 050 ! bad_crc: CRC " in out
     assert "(1700000000.110000) 050 ! counter_jump: counter 11 expected, got 13 (2 lost)" in out
     assert "(1700000000.180000) 050 ! gap: 60.0 ms without a good frame (limit 50 ms)" in out
-    assert "STOPPED reason=tcp_stop brake=1 level=100 flags=0x00 ctr=1  <- state change" in out
+    assert ("STOPPED reason=tcp_stop brake=1 level=100 flags=0x00 ctr=1 => EMERGENCY  "
+            "<- state change") in out
+    # the frame with the bad CRC did not come whole from the unit: it commands nothing
+    assert "flags=0x00 ctr=10  [rejected]" in out
     assert out.splitlines()[-1] == ("summary: 16 frames, 15 accepted; problems: bad_crc 1, "
                                     "counter_jump 1, gap 1")
 
@@ -466,14 +479,16 @@ def test_remote_script_sends_at_rate_with_exact_content(unit: FakeUnit, capsys) 
 
 def test_remote_full_script_against_fake_unit(unit: FakeUnit, capsys) -> None:
     script = ("hold 0.3; release; expect ack armed; drive 0.3 0.2; steer -0.25; signal left; "
-              "horn on; wait 0.1; lift; wait 0.4; status; expect stopped udp_timeout; "
-              "stop; expect ack stopped udp_timeout")
+              "horn on; wait 0.1; lift; wait 0.1; status; expect stopped lift; "
+              "stop; expect ack stopped lift")
     code, out, _ = run_cli(capsys, "remote", "--host", LOCAL, "--udp-port", str(unit.udp_port),
                            "--tcp-port", str(unit.tcp_port), "--rate", "100", "--script", script)
     assert code == 0, out
     assert "release -> ACK seq=1 state=ARMED reason=none flags=0x00" in out
-    assert "status -> ACK seq=2 state=STOPPED reason=udp_timeout" in out
-    assert "stop -> ACK seq=3 state=STOPPED reason=udp_timeout" in out
+    # v3: the lift datagrams stop the unit at once, with reason lift
+    assert "lift: lift sent x3" in out
+    assert "status -> ACK seq=2 state=STOPPED reason=lift" in out
+    assert "stop -> ACK seq=3 state=STOPPED reason=lift" in out
     assert [r.msg_id for r in unit.requests] == [tcp.RELEASE, tcp.STATUS, tcp.DEFAULT_STOP_ID]
     pkts = [udp.decode(d) for _, d in unit.packets]
     # neutral, then drive at 0.3, back to gas 0 in drive, then steering/signal/horn
@@ -614,7 +629,7 @@ def test_remote_handle_key(unit: FakeUnit) -> None:
         line = remote.handle_key(r, "t")
         assert line == "status -> ACK seq=1 state=STOPPED reason=boot flags=0x00"
         assert remote.handle_key(r, "q") == "quit"
-        assert list(remote._split_keys("a\x1b[Ab")) == ["a", "\x1b[A", "b"]
+        assert list(remoteterm._split_keys("a\x1b[Ab")) == ["a", "\x1b[A", "b"]
     finally:
         r.close()
 

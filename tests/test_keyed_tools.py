@@ -41,12 +41,14 @@ class KeyedUnit(FakeUnitPorts):
     """UDP and TCP ports of a unit with key K and session N. ``mode``: ``normal``, ``forge``
     (reply tags are wrong), ``keyless`` (reply tags are zero, as from a unit without a key).
     It keeps what it authenticated: ``packets`` (60-byte control packets, decoded fields),
-    ``stop_datagrams``, ``requests`` (msg_id, authenticated, session, frame length)."""
+    ``stop_datagrams`` and ``lift_datagrams`` (tag and session right, session, counter; a lift
+    datagram also its seq), ``requests`` (msg_id, authenticated, session, frame length)."""
 
     mode: str = "normal"
     packets: list[tuple[int, int, int, bytes]] = field(default_factory=list)
     rejected: int = 0
     stop_datagrams: list[tuple[bool, int, int]] = field(default_factory=list)
+    lift_datagrams: list[tuple[bool, int, int, int]] = field(default_factory=list)
     requests: list[tuple[int, bool, int, int]] = field(default_factory=list)
     state: int = 0
     reason: int = 1
@@ -74,11 +76,14 @@ class KeyedUnit(FakeUnitPorts):
                 else:
                     self.rejected += 1
             elif len(data) == 48 and data[:4] == b"ESQ2":
-                msg_id, _seq, rid, session, counter = struct.unpack("<IIIQQ", data[4:32])
+                msg_id, seq, rid, session, counter = struct.unpack("<IIIQQ", data[4:32])
+                ok = hmac.compare_digest(blake(data[:32]), data[32:]) and session == N
                 if msg_id == tcp.DEFAULT_STOP_ID:  # anyone may stop
-                    ok = hmac.compare_digest(blake(data[:32]), data[32:]) and session == N
                     self.stop_datagrams.append((ok, session, counter))
                     self.state, self.reason = 0, 2 if self.state == 1 else self.reason
+                elif msg_id == 3:  # LIFT: a stop request too, reason lift
+                    self.lift_datagrams.append((ok, session, counter, seq))
+                    self.state, self.reason = 0, 5 if self.state == 1 else self.reason
             else:
                 self.rejected += 1
 
@@ -115,9 +120,9 @@ class KeyedUnit(FakeUnitPorts):
         return body + tag
 
     def _decide(self, msg_id: int, authenticated: bool) -> tuple[bool, int]:
-        if msg_id == tcp.DEFAULT_STOP_ID:
+        if msg_id in (tcp.DEFAULT_STOP_ID, tcp.LIFT):  # stop requests: never refused
             if self.state == 1:
-                self.state, self.reason = 0, 2
+                self.state, self.reason = 0, 2 if msg_id == tcp.DEFAULT_STOP_ID else 5
             return True, 0
         if msg_id == tcp.STATUS:
             return True, 0
@@ -229,6 +234,22 @@ def test_stop_with_a_key(unit: KeyedUnit, key_path: str, capsys) -> None:
     assert session == 0 and not ok  # the session is not known yet: a stop all the same
 
 
+def test_lift_with_a_key(unit: KeyedUnit, key_path: str, capsys) -> None:
+    code, out, _ = run_cli(capsys, "lift", "--host", LOCAL, "--tcp-port", str(unit.tcp_port),
+                           "--udp-port", str(unit.udp_port), "--key-file", key_path,
+                           "--remote-id", "9", "--seq", "4")
+    assert code == 0 and out.strip() == ("ACK seq=4 state=STOPPED reason=boot flags=0x00 "
+                                         "(lift sent x3)")
+    # a 48-byte LIFT (its tag right, but not authenticated: the session is not known, and a
+    # LIFT needs none), after the three lift datagrams, tagged, with rising counters
+    assert unit.requests == [(tcp.LIFT, False, 0, 48)]
+    wait_until(lambda: len(unit.lift_datagrams) >= 3)
+    assert [(ok, session, seq) for ok, session, _, seq in unit.lift_datagrams] == [
+        (False, 0, 4)] * 3
+    counters = [c for _, _, c, _ in unit.lift_datagrams]
+    assert counters == sorted(counters) and len(set(counters)) == 3
+
+
 def test_forged_ack_to_a_stop_is_not_believed(key_path: str, capsys) -> None:
     u = KeyedUnit(mode="forge")
     try:
@@ -281,6 +302,15 @@ def test_remote_with_a_key_end_to_end(unit: KeyedUnit, key_path: str, capsys) ->
     assert udp.ControlPacket() in bodies
     assert any(b.gear == Gear.DRIVE and b.gas_brake > 0.29 for b in bodies)
     assert unit.stop_datagrams == [(True, N, unit.stop_datagrams[0][2])]  # authenticated
+    # the lift at the end: three lift datagrams with the key, the session and the remote's
+    # counter (above every control packet's), one seq
+    assert "lift: lift sent x3" in out
+    wait_until(lambda: len(unit.lift_datagrams) >= 3)
+    assert len(unit.lift_datagrams) == 3
+    assert {(ok, session) for ok, session, _, _ in unit.lift_datagrams} == {(True, N)}
+    assert len({seq for *_, seq in unit.lift_datagrams}) == 1
+    lift_counters = [c for _, _, c, _ in unit.lift_datagrams]
+    assert lift_counters == sorted(lift_counters) and lift_counters[0] > max(counters)
 
 
 def test_remote_api_refuses_a_forged_reply(key_path: str) -> None:

@@ -1,5 +1,6 @@
 """The stop button (``estop stop``, the remote's ``stop`` command and key, Remote.stop()): it
 does not give up after one failed try, and it sends a stop datagram (spec section 1) at once.
+``estop lift``, the other stop request: three lift datagrams 10 ms apart, then LIFT over TCP.
 
 Real sockets on 127.0.0.1: a UDP socket receives the datagrams and checks their bytes; small
 TCP servers on threads close the first connection, never answer, or NAK.
@@ -7,6 +8,7 @@ TCP servers on threads close the first connection, never answer, or NAK.
 
 from __future__ import annotations
 
+import json
 import re
 import socket
 import struct
@@ -229,3 +231,62 @@ def test_remote_stop_key_retries(sink: UdpSink, restarting: ScriptedStopPort) ->
         r.close()
     assert line == "stop -> ACK seq=2 state=STOPPED reason=tcp_stop flags=0x00 (after 2 attempts)"
     assert sink.wait_for(2)
+
+
+# --------------------------------------------------------------------------- estop lift
+
+def check_lift_datagrams(sink: UdpSink, seq: int) -> None:
+    """Three keyless lift datagrams with ``seq`` (msg_id 3, session 0, remote id 1, zero tag,
+    rising counters), >= 10 ms apart by the kernel's receive stamps (a little less allowed for
+    the wall clock's slew)."""
+    received = sink.received()
+    assert len(received) == 3
+    fields = [struct.unpack("<IIIQQ", d[4:32]) for _, d in received]
+    assert all(len(d) == 48 and d[:4] == b"ESQ2" and d[32:] == bytes(16) for _, d in received)
+    assert {f[:4] for f in fields} == {(tcp.LIFT, seq, 1, 0)}
+    counters = [f[4] for f in fields]
+    assert counters == sorted(counters) and len(set(counters)) == 3
+    gaps = [b[0] - a[0] for a, b in zip(received, received[1:], strict=False)]
+    assert all(0.0095 <= g <= 0.1 for g in gaps), gaps
+
+
+def test_lift_one_shot_sends_the_lift_datagrams_then_lift(sink: UdpSink,
+                                                          capsys: pytest.CaptureFixture[str]
+                                                          ) -> None:
+    port = ScriptedStopPort("ack")
+    try:
+        code, out, err = run_cli(capsys, "lift", "--host", LOCAL, "--tcp-port", str(port.port),
+                                 "--udp-port", str(sink.port), "--seq", "9")
+        assert port.requests == [tcp.Request(tcp.LIFT, 9).encode()]
+    finally:
+        port.close()
+    assert (code, err) == (0, "")
+    assert out == "ACK seq=9 state=STOPPED reason=tcp_stop flags=0x00 (lift sent x3)\n"
+    assert sink.settle(3, 0.1) == 3
+    check_lift_datagrams(sink, 9)
+
+
+def test_lift_one_shot_json_and_the_old_port_name(sink: UdpSink,
+                                                  capsys: pytest.CaptureFixture[str]) -> None:
+    port = ScriptedStopPort("nak")
+    try:
+        code, out, _ = run_cli(capsys, "lift", "--host", LOCAL, "--port", str(port.port),
+                               "--udp-port", str(sink.port), "--json")
+    finally:
+        port.close()
+    assert code == 1
+    got = json.loads(out)
+    assert (got["request"], got["reply"], got["nak"], got["lift_datagrams"]) == (
+        "lift", "NAK", "unknown_msg_id", 3)
+
+
+def test_lift_one_shot_without_tcp_still_sends_the_datagrams(sink: UdpSink,
+                                                            capsys: pytest.CaptureFixture[str]
+                                                            ) -> None:
+    code, out, err = run_cli(capsys, "lift", "--host", LOCAL, "--tcp-port",
+                             str(unused_tcp_port()), "--udp-port", str(sink.port))
+    assert code == 3 and out == ""
+    assert re.fullmatch(r"estop: error: lift sent x3, but no reply: cannot connect to "
+                        rf"{LOCAL}:\d+: .*\n", err), err
+    assert sink.settle(3, 0.1) == 3
+    check_lift_datagrams(sink, 1)

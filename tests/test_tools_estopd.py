@@ -1,4 +1,4 @@
-"""The ``estop`` tools against the real estopd (protocol version 2) on loopback, with a key and
+"""The ``estop`` tools against the real estopd (protocol version 3) on loopback, with a key and
 without: what the unit does is read from its can-log (the brake frames), not from the tools.
 """
 
@@ -15,6 +15,7 @@ import pytest
 from estop import cli
 from estop.keyfile import load_key_file
 from estop.loopback import Daemon
+from estop.loopback import stamp as canlog_stamp
 from estop.protocol import can, canlog
 from estop.remote import Remote
 from net_util import LOCAL, unused_tcp_port
@@ -90,11 +91,14 @@ def test_keyed_remote_drives_and_stops(keyed: Daemon, key_path: str, capsys) -> 
     code, out, err = run_cli(
         capsys, "remote", "--host", LOCAL, "--udp-port", str(keyed.udp_port), "--tcp-port",
         str(keyed.tcp_port), "--key-file", key_path, "--remote-id", "3", "--script",
-        "hold 0.5; release; expect ack armed; drive 0.2 0.3; lift; wait 0.5; status; "
-        "expect stopped udp_timeout; hold 0.5; release; expect ack armed; stop; "
+        "hold 0.5; release; expect ack armed; drive 0.2 0.3; lift; wait 0.1; status; "
+        "expect stopped lift; hold 0.5; release; expect ack armed; stop; "
         "expect ack stopped tcp_stop; lift")
     assert code == 0, out + err
-    assert brake_states(keyed, (0, 2)) == [(0, 1), (1, 0), (0, 3), (1, 0), (0, 2)]
+    # v3: the lift stops the unit at once with reason lift (not udp_timeout at the timeout);
+    # the last lift, while stopped, keeps the first reason
+    assert out.count("lift: lift sent x3") == 2
+    assert brake_states(keyed, (0, 2)) == [(0, 1), (1, 0), (0, 5), (1, 0), (0, 2)]
 
 
 def test_keyed_unit_refuses_the_plain_forms(keyed: Daemon, capsys) -> None:
@@ -145,6 +149,18 @@ def test_stop_datagram_alone_stops_the_unit(keyed: Daemon, capsys) -> None:
     assert brake_states(keyed, (0, 2)) == [(0, 1), (1, 0), (0, 2)]
 
 
+def test_lift_one_shot_stops_the_unit_with_reason_lift(keyed: Daemon, capsys) -> None:
+    with Remote(LOCAL, keyed.udp_port, keyed.tcp_port,
+                key=load_key_file(key_path_of(keyed))) as r:
+        arm(r)
+        # anyone may send a LIFT: a keyless one-shot stops the keyed unit
+        code, out, err = run_cli(capsys, "lift", "--host", LOCAL, "--tcp-port",
+                                 str(keyed.tcp_port), "--udp-port", str(keyed.udp_port))
+        assert (code, err) == (0, "")
+        assert out == "ACK seq=1 state=STOPPED reason=lift flags=0x00 (lift sent x3)\n"
+    assert brake_states(keyed, (0, 5)) == [(0, 1), (1, 0), (0, 5)]
+
+
 def test_keyless_unit_with_the_plain_tools(keyless: Daemon, capsys) -> None:
     code, out, _ = run_cli(
         capsys, "remote", "--host", LOCAL, "--udp-port", str(keyless.udp_port), "--tcp-port",
@@ -185,3 +201,36 @@ def test_stop_button_survives_a_daemon_restart(key_path: str, tmp_path: Path) ->
                     proc.stderr.close()
     finally:
         first.stop()
+
+
+@pytest.mark.parametrize("keyed_unit", [True, False], ids=["key", "no-key"])
+def test_a_remotes_lift_stops_the_unit_at_once_with_reason_lift(keyed_unit: bool,
+                                                                key_path: str) -> None:
+    # a timeout of 1 s: a stop within the bound below can only be the lift's. The warn time
+    # is given, as it must lie below the slow time, which the daemon may leave at its 200 ms
+    # default until it has --slow-ms
+    key = load_key_file(key_path) if keyed_unit else None
+    with Daemon([estopd_or_skip()], timeout_ms=1000, extra_args=["--warn-ms", "100"],
+                key_file=key_path if keyed_unit else None) as d:
+        with Remote(LOCAL, d.udp_port, d.tcp_port, key=key) as r:
+            arm(r)
+            assert brake_states(d, (1, 0))[-1] == (1, 0)
+            t_lift = time.time()
+            assert r.lift() == 3
+            stopped_at = None
+            deadline = time.monotonic() + 5.0
+            while stopped_at is None and time.monotonic() < deadline:
+                try:
+                    rec = d.frames.get(timeout=0.05)
+                except queue.Empty:
+                    continue
+                if rec.can_id == can.BRAKE_ID:
+                    f = can.BrakeFrame.decode(rec.data)
+                    if (f.state, f.reason) == (can.State.STOPPED, can.Reason.LIFT):
+                        stopped_at = canlog_stamp(rec)
+            status = r.status()
+    assert stopped_at is not None, "the unit did not stop with reason lift"
+    # at once (the daemon sends the frame on the change of state), not at the 1 s timeout;
+    # 150 ms leaves room for a loaded machine
+    assert stopped_at - t_lift < 0.150, stopped_at - t_lift
+    assert (status.state, status.reason) == (can.State.STOPPED, can.Reason.LIFT)

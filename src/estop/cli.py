@@ -1,16 +1,17 @@
 """The ``estop`` command line: argparse dispatch to one module per sub-command.
 
-================================  ==========================================================
-``estop remote``                  play the tablet: UDP control packets, stop/release keys
-                                  or a script (:mod:`estop.remote`)
-``estop stop|release|status``     one TCP request, print the reply (:mod:`estop.oneshot`)
-``estop monitor``                 decode and check ESTOP_BRAKE / ESTOP_STATUS
-                                  (:mod:`estop.monitor`)
-``estop demo``                    the scripted demo (:mod:`estop.demo`)
-``estop keygen PATH``             write a fresh key file, mode 0600 (:mod:`estop.keyfile`)
-``estop link``                    false stops per hour per timeout from a recording of the
-                                  control link (:mod:`estop.link`)
-================================  ==========================================================
+===================================  =======================================================
+``estop remote``                     play the tablet: UDP control packets, stop/release keys
+                                     or a script (:mod:`estop.remote`)
+``estop stop|lift|release|status``   one TCP request (stop and lift: with their datagrams),
+                                     print the reply (:mod:`estop.oneshot`)
+``estop monitor``                    decode and check ESTOP_BRAKE / ESTOP_STATUS
+                                     (:mod:`estop.monitor`)
+``estop demo``                       the scripted demo (:mod:`estop.demo`)
+``estop keygen PATH``                write a fresh key file, mode 0600 (:mod:`estop.keyfile`)
+``estop link``                       false stops per hour per timeout from a recording of the
+                                     control link (:mod:`estop.link`)
+===================================  =======================================================
 
 Exit codes: 0 success/ACK, 1 NAK or problems found, 2 usage error (one line
 ``estop: error: ...``), 3 connection, timeout or malformed reply, 130 interrupted.

@@ -8,6 +8,17 @@ Flags bad lengths, bad CRCs, illegal or repeated alive counters, counter jumps, 
 contradict each other, and gaps of 50 ms (``--timeout-ms``) or more between good ESTOP_BRAKE
 frames (live buses also get a ``timeout`` line while the silence lasts).
 
+Each ESTOP_BRAKE line ends with what a brake controller does on it (spec section 7):
+``=> release``, ``=> controlled 30 %``, ``=> EMERGENCY``. A frame from the unit (right CRC,
+legal new counter) that the controller must reject for its content, an unknown brake_request
+above all, is an emergency brake too: ``=> EMERGENCY (brake_request 3 unknown)  [rejected]``;
+frames that did not come whole from the unit command nothing and get no grade. Before the
+summary a ``brake commands:`` line counts the frames that commanded, by grade.
+
+``--speed-kmh V`` adds the roll-out of a car driving at V when the watch began (the first
+record of a log, or the start of a live watch), braking as the frames command
+(docs/VEHICLE.md): when braking began, when it stood still, how far it rolled.
+
 Silence is a failure (spec section 7): a watch with no good ESTOP_BRAKE frame at all has not
 seen a working unit (``no_brake_frame``), and the silence at the end counts (``timeout``): in
 a log, from the last good ESTOP_BRAKE to the last line (a frame of any ID); on a live bus, up
@@ -25,7 +36,14 @@ import time
 from collections.abc import Iterable
 from typing import TextIO
 
-from estop.brakecheck import EVENT_KINDS, BrakeFrameChecker, CheckEvent, Verdict
+from estop.brakecheck import (
+    EVENT_KINDS,
+    GRADE_KINDS,
+    BrakeFrameChecker,
+    CheckEvent,
+    Verdict,
+    grade_text,
+)
 from estop.cliutil import (
     EXIT_OK,
     EXIT_PROBLEM,
@@ -38,6 +56,7 @@ from estop.cliutil import (
 )
 from estop.protocol.can import (
     BRAKE_ID,
+    BRAKE_REQUEST_NAMES,
     STATUS_ID,
     BrakeFrame,
     StatusFrame,
@@ -46,22 +65,26 @@ from estop.protocol.can import (
     state_name,
 )
 from estop.protocol.canlog import CanLogError, read_log
+from estop.rollout import RollOutReplay
+from estop.vehicle import DEFAULT_EMERGENCY_DECEL, VehicleParams, kmh
 
 DESCRIPTION = ("Decode ESTOP_BRAKE / ESTOP_STATUS from a python-can bus or a can-utils log and "
                "flag what a brake controller would: bad length, CRC or counter, "
                "contradictory fields, counter jumps/repeats, gaps of 50 ms or more. Silence "
                "is a failure: no good ESTOP_BRAKE at all, or none for 50 ms before the end "
-               "of the log or of --duration, is flagged.")
+               "of the log or of --duration, is flagged. Each ESTOP_BRAKE shows what the "
+               "brake controller does on it (release, controlled N %, EMERGENCY; an unknown "
+               "brake_request is an emergency brake).")
 
-__all__ = ["DESCRIPTION", "Monitor", "add_arguments", "format_frame", "run"]
+__all__ = ["DESCRIPTION", "Monitor", "add_arguments", "format_frame", "grade_note", "run"]
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group(required=True)
     src.add_argument("--log", metavar="FILE", help="read a can-utils log file ('-': stdin)")
-    src.add_argument("--interface", metavar="IF",
+    src.add_argument("-i", "--interface", metavar="IF",
                      help="python-can interface (socketcan, virtual, ...)")
-    parser.add_argument("--channel", help="python-can channel (vcan0, can0, ...)")
+    parser.add_argument("-c", "--channel", help="python-can channel (vcan0, can0, ...)")
     parser.add_argument("--brake-id", type=parse_u32, default=BRAKE_ID,
                         help=f"ESTOP_BRAKE CAN ID (default {BRAKE_ID:#05x})")
     parser.add_argument("--status-id", type=parse_u32, default=STATUS_ID,
@@ -75,6 +98,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="stop after this many ESTOP frames")
     parser.add_argument("-q", "--quiet", action="store_true",
                         help="print only problems, state changes and the summary")
+    parser.add_argument("--speed-kmh", type=non_negative_float, default=None,
+                        help="also print how far a car at this speed when the watch began "
+                             "rolls, braking as the frames command (docs/VEHICLE.md)")
+    parser.add_argument("--decel-ms2", type=positive_float, default=None,
+                        help="with --speed-kmh: the car's emergency deceleration, m/s^2 "
+                             f"(default {DEFAULT_EMERGENCY_DECEL:g})")
+    parser.add_argument("--actuator-delay-ms", type=non_negative_float, default=None,
+                        help="with --speed-kmh: the brake acts this long after the controller "
+                             "(default 0)")
 
 
 def format_frame(frame: BrakeFrame | StatusFrame) -> str:
@@ -93,14 +125,35 @@ def format_frame(frame: BrakeFrame | StatusFrame) -> str:
             f"ctr={frame.counter}")
 
 
+def grade_note(verdict: Verdict) -> str:
+    """`` => <grade>`` for an ESTOP_BRAKE that commands (see the module's docstring), with why
+    a rejected one brakes; empty for a frame that commands nothing."""
+    if verdict.share is None:
+        return ""
+    note = f" => {grade_text(verdict.share)}"
+    frame = verdict.frame
+    if not verdict.accepted and isinstance(frame, BrakeFrame):
+        if frame.brake_request not in BRAKE_REQUEST_NAMES:
+            note += f" (brake_request {frame.brake_request} unknown)"
+        else:
+            note += " (content rejected)"
+    return note
+
+
 class Monitor:
-    """Feeds a :class:`BrakeFrameChecker` and writes the monitor's lines to ``write``."""
+    """Feeds a :class:`BrakeFrameChecker` and writes the monitor's lines to ``stream``
+    (standard output by default). With ``speed`` (m/s) it also replays the frames into the
+    vehicle model (:meth:`roll`, :meth:`roll_out_line`)."""
 
     def __init__(self, checker: BrakeFrameChecker, *, quiet: bool = False,
-                 stream: TextIO | None = None) -> None:
+                 stream: TextIO | None = None, speed: float | None = None,
+                 params: VehicleParams | None = None) -> None:
         self.checker = checker
         self.quiet = quiet
         self._stream = stream
+        self.speed = speed
+        self.params = params or VehicleParams()
+        self.rollout: RollOutReplay | None = None
 
     def _line(self, text: str) -> None:
         if self._stream is None:
@@ -121,7 +174,7 @@ class Monitor:
             mark = "" if verdict.accepted else "  [rejected]"
             if verdict.state_changed:
                 mark += "  <- state change"
-            self._line(f"{head} {format_frame(verdict.frame)}{mark}")
+            self._line(f"{head} {format_frame(verdict.frame)}{grade_note(verdict)}{mark}")
         elif verdict.frame is None and not self.quiet:
             self._line(f"{head} {data.hex().upper()}  [rejected]")
         for ev in verdict.events:
@@ -130,6 +183,37 @@ class Monitor:
 
     def event(self, ev: CheckEvent) -> None:
         self._line(f"{self._stamp(ev.t)} {ev.can_id:03X} ! {ev.kind}: {ev.message}")
+
+    def begin(self, t: float) -> None:
+        """The watch starts at ``t``: the moment of the roll-out (with a speed)."""
+        if self.speed is not None and self.rollout is None:
+            self.rollout = RollOutReplay(t, self.speed, params=self.params,
+                                         brake_id=self.checker.brake_id,
+                                         timeout=self.checker.timeout)
+
+    def roll(self, t: float, can_id: int, data: bytes) -> None:
+        """A record of any ID, for the roll-out (the first one begins the watch)."""
+        if self.speed is not None:
+            self.begin(t)
+            assert self.rollout is not None
+            self.rollout.feed(t, can_id, data)
+
+    def roll_out_line(self) -> str | None:
+        """``roll-out at 15.0 km/h from the start of the watch (...): ...``, or None without
+        a speed."""
+        if self.speed is None:
+            return None
+        if self.rollout is None:
+            return "roll-out: nothing was watched"
+        out = self.rollout.result()
+        return (f"roll-out {out.summary()}, from the start of the watch "
+                f"{self._stamp(out.moment)}")
+
+    def commands(self) -> str:
+        """``brake commands: release 40, controlled 0, emergency 4``: the ESTOP_BRAKE frames
+        that commanded, by grade."""
+        grades = self.checker.grades
+        return "brake commands: " + ", ".join(f"{k} {grades[k]}" for k in GRADE_KINDS)
 
     def summary(self) -> str:
         c = self.checker
@@ -147,6 +231,7 @@ def _run_log(monitor: Monitor, lines: Iterable[str], count: int | None) -> None:
             end = rec.timestamp if end is None else max(end, rec.timestamp)
             if rec.extended:
                 continue
+            monitor.roll(rec.timestamp, rec.can_id, rec.data)
             if monitor.frame(rec.timestamp, rec.can_id, rec.data) is not None:
                 seen += 1
                 if count is not None and seen >= count:
@@ -168,7 +253,9 @@ def _run_bus(monitor: Monitor, interface: str, channel: str | None, duration: fl
         raise ConnectionFailure(f"cannot open {interface} bus {channel or ''}: {why}") from None
     end = None if duration is None else time.monotonic() + duration
     seen = 0
-    monitor.checker.begin(time.time())
+    began = time.time()
+    monitor.checker.begin(began)
+    monitor.begin(began)
     try:
         while end is None or time.monotonic() < end:
             try:
@@ -179,6 +266,7 @@ def _run_bus(monitor: Monitor, interface: str, channel: str | None, duration: fl
             if msg is not None and not (msg.is_error_frame or msg.is_remote_frame
                                         or msg.is_extended_id):
                 t = msg.timestamp or now
+                monitor.roll(t, msg.arbitration_id, bytes(msg.data))
                 if monitor.frame(t, msg.arbitration_id, bytes(msg.data)) is not None:
                     seen += 1
                     if count is not None and seen >= count:
@@ -203,7 +291,13 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("CAN IDs must be 11-bit (0..0x7FF)")
     checker = BrakeFrameChecker(brake_id=args.brake_id, status_id=args.status_id,
                                 timeout=args.timeout_ms / 1000.0)
-    monitor = Monitor(checker, quiet=args.quiet)
+    if args.speed_kmh is None and (args.decel_ms2, args.actuator_delay_ms) != (None, None):
+        raise UsageError("--decel-ms2 and --actuator-delay-ms need --speed-kmh")
+    speed = None if args.speed_kmh is None else kmh(args.speed_kmh)
+    params = VehicleParams(
+        emergency_decel=DEFAULT_EMERGENCY_DECEL if args.decel_ms2 is None else args.decel_ms2,
+        actuator_delay=(args.actuator_delay_ms or 0.0) / 1000.0)
+    monitor = Monitor(checker, quiet=args.quiet, speed=speed, params=params)
     try:
         if args.log is not None:
             if args.log == "-":
@@ -220,5 +314,9 @@ def run(args: argparse.Namespace) -> int:
             _run_bus(monitor, args.interface, args.channel, args.duration, args.count)
     except KeyboardInterrupt:
         pass
+    roll_out = monitor.roll_out_line()
+    if roll_out is not None:
+        out(roll_out)
+    out(monitor.commands())
     out(monitor.summary())
     return EXIT_PROBLEM if checker.problems else EXIT_OK

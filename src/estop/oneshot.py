@@ -1,4 +1,4 @@
-"""``estop stop | release | status``: one request over the TCP stop channel.
+"""``estop stop | lift | release | status``: one request over the TCP stop channel.
 
 Opens a connection, sends one frame, prints the decoded reply and exits with:
 
@@ -13,6 +13,11 @@ section 1; it needs no handshake), then STOP over TCP, and tries both again, eac
 fresh connection, until the unit answers or ``--stop-deadline`` (default 3 s) passes. The
 reply line says how many tries it took (``... (after 2 attempts)``).
 
+``lift`` does what a remote does when the last finger leaves the screen (spec section 8): three
+lift datagrams to the UDP control port, 10 ms apart, then LIFT over TCP, whose reply it prints
+(``... (lift sent x3)``). The unit stops with reason lift (a LIFT is a stop request: anyone
+may send it).
+
 With ``--key-file`` (spec section 5) requests are 48-byte frames and every reply must verify
 under the key, else exit 3 (``does NOT verify``); ``release`` first asks STATUS on the same
 connection to learn the unit's session.
@@ -23,6 +28,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+from dataclasses import dataclass
 
 from estop.cliutil import (
     EXIT_ACK,
@@ -40,6 +46,7 @@ from estop.protocol import tcp, udp
 from estop.stopchannel import (
     DEFAULT_REMOTE_ID,
     DEFAULT_STOP_DEADLINE,
+    LiftDatagram,
     MessageCounter,
     StopChannel,
     StopChannelError,
@@ -48,33 +55,43 @@ from estop.stopchannel import (
     format_reply,
     press_stop,
     reply_dict,
+    send_lift,
 )
 
-__all__ = ["COMMANDS", "add_arguments", "run", "send_once", "stop_once"]
+__all__ = ["COMMANDS", "LiftOutcome", "add_arguments", "lift_once", "run", "send_once",
+           "stop_once"]
 
 COMMANDS = {
     "stop": "press the stop button: a stop datagram (UDP) and STOP (TCP), tried again until "
             "the unit answers or the deadline passes; print the reply",
+    "lift": "end a dead-man hold as a remote does: three lift datagrams (UDP, 10 ms apart) "
+            "and LIFT (TCP); the unit stops with reason lift; print the reply",
     "release": "ask the unit to leave the stopped state (RELEASE) and print the reply",
     "status": "ask for the unit's state (STATUS, changes nothing) and print the reply",
 }
 
 
 def add_arguments(parser: argparse.ArgumentParser, kind: str = "") -> None:
-    """Options of ``estop KIND`` (``stop`` also gets ``--udp-port`` and ``--stop-deadline``)."""
+    """Options of ``estop KIND`` (``stop`` and ``lift`` also get ``--udp-port``, ``stop``
+    ``--stop-deadline``)."""
     parser.add_argument("--host", required=True, help="the unit's address")
-    parser.add_argument("--port", type=port, default=tcp.DEFAULT_PORT,
-                        help=f"TCP stop port (default {tcp.DEFAULT_PORT})")
+    # --tcp-port as in estop remote; --port is the older name
+    parser.add_argument("--tcp-port", "--port", dest="port", type=port, default=tcp.DEFAULT_PORT,
+                        metavar="PORT", help=f"TCP stop port (default {tcp.DEFAULT_PORT})")
     parser.add_argument("--seq", type=parse_u32, default=1,
                         help="sequence number echoed in the reply (default 1)")
-    parser.add_argument("--stop-id", type=parse_u32, default=tcp.DEFAULT_STOP_ID,
-                        help=f"the vehicle's stop ID (default {tcp.DEFAULT_STOP_ID:#010X})")
+    if kind == "lift":
+        parser.set_defaults(stop_id=tcp.DEFAULT_STOP_ID)  # a LIFT does not name the vehicle
+    else:
+        parser.add_argument("--stop-id", type=parse_u32, default=tcp.DEFAULT_STOP_ID,
+                            help=f"the vehicle's stop ID (default {tcp.DEFAULT_STOP_ID:#010X})")
     parser.add_argument("--timeout", type=positive_float, default=2.0,
                         help="seconds to wait for connect and reply (default 2)")
-    if kind == "stop":
+    if kind in ("stop", "lift"):
         parser.add_argument("--udp-port", type=port, default=udp.DEFAULT_PORT,
-                            help=f"the unit's UDP control port, for the stop datagram "
+                            help=f"the unit's UDP control port, for the {kind} datagram "
                                  f"(default {udp.DEFAULT_PORT})")
+    if kind == "stop":
         parser.add_argument("--stop-deadline", type=positive_float,
                             default=DEFAULT_STOP_DEADLINE, metavar="S",
                             help="try again (fresh connection, another stop datagram) until "
@@ -87,14 +104,16 @@ def add_arguments(parser: argparse.ArgumentParser, kind: str = "") -> None:
 def send_once(kind: str, host: str, port: int = tcp.DEFAULT_PORT, *, seq: int = 1,
               stop_id: int = tcp.DEFAULT_STOP_ID, timeout: float = 2.0,
               key: bytes | None = None, remote_id: int = DEFAULT_REMOTE_ID) -> tcp.Reply:
-    """Send one ``stop``/``release``/``status`` request on a fresh connection; return the reply.
+    """Send one ``stop``/``lift``/``release``/``status`` request on a fresh connection; return
+    the reply.
 
     With ``key`` the request is a 48-byte frame and the reply must verify; a RELEASE is then
     preceded by a STATUS on the same connection, to learn the unit's session (a RELEASE with
     another session is not authenticated). Raises
     :class:`estop.stopchannel.StopChannelError` on connection/timeout/reply errors.
     """
-    msg_id = {"stop": stop_id, "release": tcp.RELEASE, "status": tcp.STATUS}[kind]
+    msg_id = {"stop": stop_id, "lift": tcp.LIFT, "release": tcp.RELEASE,
+              "status": tcp.STATUS}[kind]
     with StopChannel(host, port, timeout=timeout, stop_id=stop_id, key=key,
                      remote_id=remote_id) as channel:
         if key is not None and kind == "release":
@@ -118,6 +137,43 @@ def stop_once(host: str, port: int = tcp.DEFAULT_PORT, udp_port: int = udp.DEFAU
         return press_stop(channel, deadline=deadline, seq=seq, datagram=datagram)
 
 
+@dataclass(frozen=True, slots=True)
+class LiftOutcome:
+    """What :func:`lift_once` achieved."""
+
+    reply: tcp.Reply | None  # the unit's answer to the TCP LIFT, None when it failed
+    datagrams: int  # lift datagrams sent
+    errors: tuple[str, ...] = ()  # one line per failure (datagram or TCP)
+
+    def line(self) -> str:
+        """``ACK seq=1 state=STOPPED reason=lift flags=0x00 (lift sent x3)``, or the failure."""
+        sent = f"lift sent x{self.datagrams}"
+        if self.reply is None:
+            return f"{sent}, but no reply: {'; '.join(self.errors)}"
+        return f"{format_reply(self.reply)} ({sent})"
+
+
+def lift_once(host: str, port: int = tcp.DEFAULT_PORT, udp_port: int = udp.DEFAULT_PORT, *,
+              seq: int = 1, timeout: float = 2.0, key: bytes | None = None,
+              remote_id: int = DEFAULT_REMOTE_ID) -> LiftOutcome:
+    """End a dead-man hold as a remote does (spec section 8): three lift datagrams with
+    ``seq`` to ``udp_port``, 10 ms apart, then LIFT with ``seq`` over TCP on a fresh
+    connection (with ``key``: 48-byte frames under the key, a reply that must verify).
+    Never raises :class:`estop.stopchannel.StopChannelError`: failures are in the outcome."""
+    counter = MessageCounter()
+    datagram = LiftDatagram(host, udp_port, key=key, remote_id=remote_id, counter=counter)
+    with contextlib.closing(datagram):
+        sent, errors = send_lift(datagram, seq)
+    try:
+        with StopChannel(host, port, timeout=timeout, key=key, remote_id=remote_id,
+                         counter=counter) as channel:
+            reply: tcp.Reply | None = channel.request(tcp.LIFT, seq)
+    except StopChannelError as exc:
+        reply = None
+        errors.append(str(exc))
+    return LiftOutcome(reply, sent, tuple(errors))
+
+
 def run(args: argparse.Namespace) -> int:
     kind: str = args.command
     try:
@@ -127,6 +183,8 @@ def run(args: argparse.Namespace) -> int:
     key = key_from_args(args)
     if kind == "stop":
         return _run_stop(args, key)
+    if kind == "lift":
+        return _run_lift(args, key)
     try:
         reply = send_once(kind, args.host, args.port, seq=args.seq, stop_id=args.stop_id,
                           timeout=args.timeout, key=key, remote_id=args.remote_id)
@@ -149,6 +207,20 @@ def _run_stop(args: argparse.Namespace, key: bytes | None) -> int:
     if args.json:
         out(json.dumps({"request": "stop", **reply_dict(reply), "attempts": outcome.attempts,
                         "stop_datagrams": outcome.datagrams}, sort_keys=True))
+    else:
+        out(outcome.line())
+    return EXIT_ACK if reply.ack else EXIT_NAK
+
+
+def _run_lift(args: argparse.Namespace, key: bytes | None) -> int:
+    outcome = lift_once(args.host, args.port, args.udp_port, seq=args.seq,
+                        timeout=args.timeout, key=key, remote_id=args.remote_id)
+    reply = outcome.reply
+    if reply is None:
+        raise ConnectionFailure(outcome.line())
+    if args.json:
+        out(json.dumps({"request": "lift", **reply_dict(reply),
+                        "lift_datagrams": outcome.datagrams}, sort_keys=True))
     else:
         out(outcome.line())
     return EXIT_ACK if reply.ack else EXIT_NAK

@@ -1,5 +1,7 @@
 """Client side of the TCP stop channel: one connection, requests answered by reply frames;
-and the stop button, which does not give up after one failed try (:func:`press_stop`).
+the stop button, which does not give up after one failed try (:func:`press_stop`); and the
+request frames a remote sends on the UDP control port, the stop and lift datagrams
+(:class:`StopDatagram`, :class:`LiftDatagram`, :func:`send_lift`).
 
 Used by ``estop stop|release|status`` (one request per connection) and by
 :class:`estop.remote.Remote` (one connection kept open, as the tablet does).
@@ -20,8 +22,12 @@ from estop.protocol.tcp import FrameAssembler, Reply, Request
 __all__ = [
     "DEFAULT_REMOTE_ID",
     "DEFAULT_STOP_DEADLINE",
+    "LIFT_GAP",
+    "LIFT_SENDS",
+    "LiftDatagram",
     "MessageCounter",
     "ReplyNotAuthentic",
+    "RequestDatagram",
     "StopChannel",
     "StopChannelError",
     "StopDatagram",
@@ -29,10 +35,13 @@ __all__ = [
     "format_reply",
     "press_stop",
     "reply_dict",
+    "send_lift",
 ]
 
 DEFAULT_STOP_DEADLINE = 3.0  # seconds a stop press keeps trying for an ACK
 DEFAULT_REMOTE_ID = 1  # a remote's id (spec section 5) unless told otherwise
+LIFT_SENDS = 3  # lift datagrams at the end of a hold: one at once, two repeats (spec section 8)
+LIFT_GAP = 0.010  # seconds between two lift datagrams (spec section 8)
 _RETRY_GAPS = (0.05, 0.1, 0.2, 0.25)  # pause after the 1st, 2nd, 3rd, later failed attempts
 
 
@@ -263,23 +272,22 @@ class MessageCounter:
             return self._last
 
 
-class StopDatagram:
-    """Sends the stop datagram of spec section 1 to the unit's UDP control port: a 48-byte
-    request frame whose msg_id is the stop ID. Without a key its tag is 16 zero bytes; the
-    session is 0 unless one is known; the counter rises with every datagram. The unit stops on
-    it whatever its tag says, without waiting for a TCP handshake.
+class RequestDatagram:
+    """Sends 48-byte request frames (spec section 5.2) with one msg_id to the unit's UDP control
+    port: the stop and lift datagrams of spec section 1. Without a key the tag is 16 zero
+    bytes; the session is 0 unless one is known; the counter rises with every datagram (the
+    unit checks none of them on a stop request, but a remote raises its counter with every
+    message). No reply comes over UDP.
 
-    ``send(seq)`` writes one datagram (the seq of the TCP request it goes with); it raises
-    OSError when the socket refuses. ``transmit`` replaces the plain ``sendto`` (the remote
-    passes its link model)."""
+    ``send(seq)`` writes one datagram; it raises OSError when the socket refuses.
+    ``transmit`` replaces the plain ``sendto`` (the remote passes its link model)."""
 
-    def __init__(self, host: str, port: int, *, stop_id: int = tcp.DEFAULT_STOP_ID,
-                 key: bytes | None = None, remote_id: int = 0,
-                 counter: MessageCounter | None = None,
+    def __init__(self, host: str, port: int, msg_id: int, *, key: bytes | None = None,
+                 remote_id: int = 0, counter: MessageCounter | None = None,
                  session: Callable[[], int] | None = None,
                  transmit: Callable[[bytes], None] | None = None) -> None:
         self.addr = (host, port)
-        self.stop_id = tcp.check_stop_id(stop_id)
+        self.msg_id = msg_id
         self.key = None if key is None else auth.check_key(key)
         self.remote_id = remote_id
         self.counter = counter or MessageCounter()
@@ -289,9 +297,8 @@ class StopDatagram:
         self.sent = 0
 
     def encode(self, seq: int) -> bytes:
-        return auth.stop_datagram(seq, self.counter.next(), key=self.key,
-                                  session=self._session(), remote_id=self.remote_id,
-                                  stop_id=self.stop_id)
+        return auth.AuthRequest(self.msg_id, seq, self.remote_id, self._session(),
+                                self.counter.next()).encode(self.key)
 
     def send(self, seq: int) -> None:
         data = self.encode(seq)
@@ -308,6 +315,53 @@ class StopDatagram:
         if self._sock is not None:
             self._sock.close()
             self._sock = None
+
+
+class StopDatagram(RequestDatagram):
+    """The stop datagram: a request frame whose msg_id is the vehicle's stop ID. The unit stops
+    on it (reason tcp stop) whatever its tag says, without waiting for a TCP handshake;
+    ``send(seq)`` takes the seq of the TCP STOP it goes with."""
+
+    def __init__(self, host: str, port: int, *, stop_id: int = tcp.DEFAULT_STOP_ID,
+                 key: bytes | None = None, remote_id: int = 0,
+                 counter: MessageCounter | None = None,
+                 session: Callable[[], int] | None = None,
+                 transmit: Callable[[bytes], None] | None = None) -> None:
+        super().__init__(host, port, tcp.check_stop_id(stop_id), key=key, remote_id=remote_id,
+                         counter=counter, session=session, transmit=transmit)
+        self.stop_id = stop_id
+
+
+class LiftDatagram(RequestDatagram):
+    """The lift datagram: a request frame with msg_id LIFT (3). A remote sends it when the last
+    finger leaves the screen, at once and twice more :data:`LIFT_GAP` apart (spec section 8);
+    the unit stops on it with reason lift whatever its tag says."""
+
+    def __init__(self, host: str, port: int, *, key: bytes | None = None, remote_id: int = 0,
+                 counter: MessageCounter | None = None,
+                 session: Callable[[], int] | None = None,
+                 transmit: Callable[[bytes], None] | None = None) -> None:
+        super().__init__(host, port, tcp.LIFT, key=key, remote_id=remote_id, counter=counter,
+                         session=session, transmit=transmit)
+
+
+def send_lift(datagram: LiftDatagram, seq: int, *, sends: int = LIFT_SENDS,
+              gap: float = LIFT_GAP) -> tuple[int, list[str]]:
+    """The end of a hold, blocking: ``sends`` lift datagrams with ``seq``, the first at once,
+    each next one ``gap`` seconds after the previous went out (spec section 8). A send the
+    socket refuses does not stop the others. Returns (datagrams sent, one line per failure).
+    """
+    sent = 0
+    errors: list[str] = []
+    for i in range(sends):
+        if i:
+            time.sleep(gap)
+        try:
+            datagram.send(seq)
+            sent += 1
+        except OSError as exc:
+            errors.append(f"lift datagram not sent: {exc.strerror or exc}")
+    return sent, errors
 
 
 @dataclass(frozen=True, slots=True)

@@ -28,6 +28,7 @@ from daemon_util import (
     ARMED,
     MSG_RELEASE,
     MSG_STATUS,
+    R_NONE,
     R_TCP_STOP,
     R_UDP_TIMEOUT,
     START_RE,
@@ -177,7 +178,7 @@ def test_a_stop_behind_unread_replies_is_not_lost(tmp_path: Path) -> None:
 
     Whether the replies block at all depends on how far the kernel coalesces them into its
     buffers (a small receive buffer, set before connecting, makes it likely); the stop must
-    happen either way, and when the client is dropped for not reading, only after its STOP."""
+    happen either way, and the client is never closed for not reading (version 3)."""
     with Daemon(tmp_path) as d, Heartbeat(d.udp_port):
         d.arm()
         with socket.socket() as s:
@@ -186,13 +187,42 @@ def test_a_stop_behind_unread_replies_is_not_lost(tmp_path: Path) -> None:
             s.connect(("127.0.0.1", d.tcp_port))
             burst = b"".join(tcp_frame(MSG_STATUS, i) for i in range(300))
             s.sendall(burst + tcp_frame(STOP_ID, 301))
+            me = f"src=127.0.0.1:{s.getsockname()[1]} "
             d.wait_log(lambda line: " state " in line and "reason=tcp_stop" in line, timeout=5)
             time.sleep(0.2)
         lines = d.log()
         stop_at = next(i for i, line in enumerate(lines) if "reason=tcp_stop" in line)
-        blocked = [i for i, line in enumerate(lines) if "why=reply_blocked" in line]
-        assert all(i > stop_at for i in blocked), lines  # dropped only after its STOP
+        closed = [i for i, line in enumerate(lines) if " client_close " in line and me in line]
+        assert all(i > stop_at for i in closed), lines  # closed only once the client left
+        assert not any("why=reply_blocked" in line for line in lines), lines
         assert status(d) == (STOPPED, R_TCP_STOP)
+
+
+def test_a_client_that_never_reads_is_not_closed_and_its_late_stop_counts(
+        tmp_path: Path) -> None:
+    """Version 3 (PROTOCOL.md 2): a client that does not read its replies is not closed for
+    that; its replies are dropped and counted, and a STOP it sends later, after more than the
+    5 s user timeout a silent peer gets, still stops the unit on the same connection. The
+    version 2 daemon closed it (why=reply_blocked) and the late STOP was lost."""
+    with Daemon(tmp_path) as d, Heartbeat(d.udp_port):
+        d.arm()
+        s = d.connect()
+        try:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+            s.settimeout(2)
+            me = f"src=127.0.0.1:{s.getsockname()[1]} "
+            s.sendall(tcp_frame(MSG_STATUS, 1) * 2048)  # 32 KiB of requests: far more replies
+            d.wait_log(lambda line: " reply_dropped " in line, timeout=5)  # than fit anywhere
+            time.sleep(6.0)  # past TCP_USER_TIMEOUT: a shut window must not close it either
+            assert not any(" client_close " in line and me in line for line in d.log()), d.log()
+            assert status(d) == (ARMED, R_NONE)
+            s.sendall(tcp_frame(STOP_ID, 99))
+            d.wait_log(lambda line: " state " in line and "reason=tcp_stop" in line, timeout=5)
+        finally:
+            s.close()
+        line = d.wait_log(lambda line: " client_close " in line and me in line)
+    dropped = int(line.split("replies_dropped=")[1].split()[0])
+    assert dropped > 1000, line  # counted, never sent
 
 
 def test_a_stop_then_reset_still_stops(tmp_path: Path) -> None:

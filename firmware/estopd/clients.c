@@ -19,7 +19,7 @@
 #define DRAIN_MAX 65536u
 #define TCP_RCVBUF 8192    /* the kernel doubles it */
 /* Replies a client has not read yet stay below this (the kernel doubles it): an honest
- * client has one or two outstanding, one that never reads is dropped soon. */
+ * client has one or two outstanding; for one that never reads, replies are dropped soon. */
 #define TCP_SNDBUF 4096
 /* A peer that vanished without a FIN is found within about KEEP_IDLE + KEEP_CNT * KEEP_INTVL
  * seconds; one that stops acknowledging replies within USER_TIMEOUT_MS. */
@@ -42,10 +42,10 @@ void clients_init(daemon_t *d)
 }
 
 static void log_client(uint64_t now, const char *event, int slot,
-                       const struct sockaddr_in *peer, const char *why)
+                       const struct sockaddr_in *peer, const char *why, uint32_t dropped)
 {
     char addr[NET_ADDR_LEN];
-    log_kv_t kv[3];
+    log_kv_t kv[4];
     size_t n = 0;
 
     net_fmt_addr(peer, addr, sizeof addr);
@@ -59,6 +59,10 @@ static void log_client(uint64_t now, const char *event, int slot,
     }
     if (why != NULL) {
         log_kv_t k = KV_STR("why", why);
+        kv[n++] = k;
+    }
+    if (dropped != 0u) {
+        log_kv_t k = KV_NUM("replies_dropped", dropped);
         kv[n++] = k;
     }
     /* Anyone can connect as often as they like: these lines are rate-limited. */
@@ -100,12 +104,13 @@ static void close_now(daemon_t *d, uint32_t slot, const char *why)
     memset(&out, 0, sizeof out);
     err = estop_tcp_close(&d->core, slot, (uint32_t)now, &out);
     (void)cio_done(d, err, "tcp_close", &out, now, NULL, -1);
-    log_client(now, "client_close", (int)slot, &c->peer, why);
+    log_client(now, "client_close", (int)slot, &c->peer, why, c->reply.dropped);
 }
 
 /* Feeds bytes to the core one frame at a time, as the core asks. Returns 0 while the
- * connection stays usable, -1 once it has been closed. A client that does not read its replies
- * is not closed here: the rest of what it sent is handled first (see retire). */
+ * connection stays usable, -1 once it has been closed. A client whose connection broke while
+ * a reply was written is not closed here: the rest of what it sent is handled first (see
+ * retire). */
 static int feed(daemon_t *d, uint32_t slot, const uint8_t *buf, size_t len)
 {
     size_t off = 0;
@@ -129,7 +134,7 @@ static int feed(daemon_t *d, uint32_t slot, const uint8_t *buf, size_t len)
         }
         if ((res & CIO_CLOSE) != 0u) {
             /* Framing is lost: the frames before this one have been handled. */
-            log_client(now, "bad_crc", (int)slot, &d->clients[slot].peer, NULL);
+            log_client(now, "bad_crc", (int)slot, &d->clients[slot].peer, NULL, 0u);
             close_now(d, slot, "bad_crc");
             return -1;
         }
@@ -210,8 +215,8 @@ static int client_start(daemon_t *d, int fd, int slot, const struct sockaddr_in 
     d->clients[slot].fd = fd;
     d->clients[slot].peer = *peer;
     d->clients[slot].quiet_since_us = now;
-    d->clients[slot].reply_err = 0;
-    log_client(now, "client_open", slot, peer, NULL);
+    reply_reset(&d->clients[slot].reply);
+    log_client(now, "client_open", slot, peer, NULL, 0u);
     return 0;
 }
 
@@ -246,9 +251,17 @@ uint64_t clients_next_wakeup(const daemon_t *d)
 
 void clients_service(daemon_t *d, uint64_t now)
 {
+    uint32_t i;
     if (d->accept_paused_until != 0u && now >= d->accept_paused_until) {
         d->accept_paused_until = 0u;
         listener_events(d, EPOLLIN);
+    }
+    /* The end of a reply the kernel took in part goes out as soon as there is room (the loop
+     * comes by at least every brake period). */
+    for (i = 0; i < ESTOP_MAX_SLOTS; i++) {
+        if (d->clients[i].fd >= 0 && d->clients[i].reply.rest_len > 0u) {
+            (void)reply_flush(&d->clients[i].reply, d->clients[i].fd);
+        }
     }
 }
 
@@ -283,7 +296,7 @@ void clients_accept(daemon_t *d)
         slot = pick_slot(d, &evict);
         if (evict) {
             log_client(clock_mono_us(), "client_evict", slot, &d->clients[slot].peer,
-                       "make_room");
+                       "make_room", 0u);
             retire(d, (uint32_t)slot, "evicted");
         }
         set_client_options(fd);
@@ -295,23 +308,23 @@ void clients_accept(daemon_t *d)
 
 int clients_reply(daemon_t *d, uint32_t slot, const uint8_t *reply, size_t len)
 {
-    ssize_t n;
     client_t *c = &d->clients[slot];
+    reply_result_t res;
 
-    if (c->fd < 0 || c->reply_err != 0) {
-        return c->fd < 0 ? -1 : 0; /* already known: the client goes once its input is handled */
+    if (c->fd < 0) {
+        return -1;
     }
-    do {
-        n = send(c->fd, reply, len, MSG_NOSIGNAL | MSG_DONTWAIT);
-    } while (n < 0 && errno == EINTR);
-    if (n == (ssize_t)len) {
-        return 0;
+    res = reply_send(&c->reply, c->fd, reply, len);
+    if (res == REPLY_DROPPED && c->reply.dropped == 1u) {
+        /* Not reading is no reason to close (PROTOCOL.md 2). Whether a window that stays shut
+         * counts toward the kernel's user timeout has varied between kernels, so that timeout
+         * goes for this client; a peer that vanished still gives up its slot to the next
+         * client that needs one (the quietest makes room). */
+        unsigned off = 0u;
+        (void)setsockopt(c->fd, IPPROTO_TCP, TCP_USER_TIMEOUT, &off, sizeof off);
+        log_client(clock_mono_us(), "reply_dropped", (int)slot, &c->peer, "not_reading", 1u);
     }
-    /* A client that does not read its replies is never waited for, and a partial write would
-     * break its framing: no further reply goes to it, and it is closed once the input it has
-     * sent is handled. */
-    c->reply_err = (n < 0) ? errno : EAGAIN;
-    return -1;
+    return res == REPLY_SENT ? 0 : -1;
 }
 
 void clients_event(daemon_t *d, uint32_t slot)
@@ -335,10 +348,10 @@ void clients_event(daemon_t *d, uint32_t slot)
         }
         return;
     }
-    if (feed(d, slot, buf, (size_t)n) == 0 && d->clients[slot].reply_err != 0) {
-        int e = d->clients[slot].reply_err;
+    if (feed(d, slot, buf, (size_t)n) == 0 && d->clients[slot].reply.hard_err != 0) {
+        /* The connection broke under a reply: what the client sent is handled, then it goes. */
         char ebuf[16];
-        retire(d, slot, e == EAGAIN ? "reply_blocked" : log_errno_name(e, ebuf, sizeof ebuf));
+        retire(d, slot, log_errno_name(d->clients[slot].reply.hard_err, ebuf, sizeof ebuf));
     }
 }
 
@@ -350,7 +363,8 @@ void clients_close_all(daemon_t *d, const char *why)
         if (d->clients[i].fd >= 0) {
             (void)close(d->clients[i].fd);
             d->clients[i].fd = -1;
-            log_client(now, "client_close", (int)i, &d->clients[i].peer, why);
+            log_client(now, "client_close", (int)i, &d->clients[i].peer, why,
+                       d->clients[i].reply.dropped);
         }
     }
 }

@@ -10,6 +10,7 @@
 #include "estop_core.h"
 #include "notify.h"
 #include "opts.h"
+#include "reply.h"
 
 /* epoll tags (data.u64). */
 enum {
@@ -25,8 +26,7 @@ typedef struct {
     int fd;                   /* -1: slot free */
     struct sockaddr_in peer;
     uint64_t quiet_since_us;  /* accepted, or its latest complete frame: who makes room */
-    int reply_err;            /* errno of a reply that could not be written (EAGAIN: the client
-                                 does not read); the client goes once its input is handled */
+    reply_state_t reply;      /* replies not read: dropped and counted, never waited for */
 } client_t;
 
 typedef struct {

@@ -119,7 +119,8 @@ clean:
 
 # Installation on a car (README: "Run it on a car"). PREFIX and SYSCONFDIR as usual; DESTDIR
 # for staging. A key is made only where none exists (never overwritten), mode 0600; the same
-# for the config. Then: systemctl daemon-reload && systemctl enable --now estopd.
+# for the config; the sysctl.d file raises net.core.rmem_max for estopd's UDP buffer. Then:
+# sysctl --system && systemctl daemon-reload && systemctl enable --now estopd.
 PREFIX     ?= /usr/local
 SYSCONFDIR ?= /etc
 BINDIR     := $(PREFIX)/bin
@@ -135,6 +136,7 @@ install: firmware/build/estopd
 	install -d -m 0700 $(DESTDIR)$(SYSCONFDIR)/estop
 	test -e $(DESTDIR)$(SYSCONFDIR)/estop/estopd.conf || \
 	  install -m 0644 deploy/estopd.conf.example $(DESTDIR)$(SYSCONFDIR)/estop/estopd.conf
+	install -D -m 0644 deploy/90-estopd.conf $(DESTDIR)$(SYSCONFDIR)/sysctl.d/90-estopd.conf
 	test -e $(DESTDIR)$(SYSCONFDIR)/estop/key || scripts/new-key $(DESTDIR)$(SYSCONFDIR)/estop/key
 
 firmware/build/estopd: $(wildcard firmware/core/* firmware/estopd/*)

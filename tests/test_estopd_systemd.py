@@ -205,6 +205,8 @@ def test_make_install_puts_everything_in_place(installed: Path) -> None:
     text = key.read_text()
     assert len(text) == 65 and text.endswith("\n") and int(text, 16) >= 0
     assert (installed / "etc/estop/estopd.conf").exists()
+    sysctl = (installed / "etc/sysctl.d/90-estopd.conf").read_text()
+    assert "net.core.rmem_max = 4194304" in sysctl.splitlines()  # estopd's UDP buffer
     unit = (installed / "usr/lib/systemd/system/estopd.service").read_text()
     assert f"ExecStart={installed}/usr/bin/estopd --key-file" in unit
     assert "@" not in unit.replace("@system-service", "").replace("@memlock", "")

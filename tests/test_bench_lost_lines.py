@@ -219,34 +219,47 @@ def test_a_report_long_after_the_trial_leaves_it_alone(bench: ModuleType) -> Non
 
 
 def test_the_demo_gives_no_figure_for_a_stop_with_lost_lines(tmp_path: Path) -> None:
-    """estop demo times its stops from the can-log too: with the first stop frames of each
-    stop lost, it says so instead of printing a late figure."""
-    from estop import demo
+    """estop demo times its stops and replays its distances from the can-log too: with the
+    first stop frames of each stop from ARMED lost (the lift, the stop datagram, the stop
+    button), it says so instead of printing a late figure; the loss of the link, which stops
+    from SLOWING, loses nothing and keeps its figures."""
+    from estop.demo_bus import BusWatch
+    from estop.demo_car import LiveCar
+    from estop.demo_checks import check
+    from estop.demo_report import write_report
+    from estop.demo_result import Result, Settings
+    from estop.demo_story import finish_run, run_story
+    from estop.demo_view import View
     from estop.protocol import auth
 
     key = bytes(range(32))
     key_file = tmp_path / "key"
     key_file.write_bytes(auth.format_key(key))
     key_file.chmod(0o600)
-    d = LossyPipe([estopd_or_skip()], 3, timeout_ms=TIMEOUT_MS, key_file=str(key_file))
-    view = demo.View(out=io.StringIO(), live=False, t0=time.time())
-    res = demo.Result()
+    settings = Settings()
+    d = LossyPipe([estopd_or_skip()], 3, timeout_ms=settings.timeout_ms,
+                  extra_args=settings.unit_args(), key_file=str(key_file))
+    car = LiveCar(settings.speed)
+    view = View(out=io.StringIO(), live=False, t0=time.time(), watch=BusWatch(car), car=car)
+    res = Result(settings)
     d.start()
     try:
-        demo.run_script(d, view, TIMEOUT_MS, res, key)
+        run_story(d, view, settings, key, res)
     finally:
-        d.stop()
-    res.check_lost_lines(d)
+        rc, _ = finish_run(d, view, res)
+    assert res.problems == [] and check(res, view.watch, rc) == []
     assert len([ln for ln in d.lost if " 050#" in ln]) == 9, d.lost  # 3 at each of 3 stops
-    assert None not in (res.overshoot_ms, res.tcp_latency_ms, res.datagram_latency_ms), \
-        res.problems
-    assert res.overshoot_lost >= 3 and res.tcp_lost >= 3 and res.datagram_lost >= 3
+    for m in (res.lift, res.datagram, res.button):
+        assert m is not None and m.stop is not None and m.lost >= 3, m
+    assert res.loss is not None and res.loss.lost == 0
     out = io.StringIO()
-    demo._report(out, view, res, TIMEOUT_MS, d.dropped_total)
-    text = out.getvalue()
+    write_report(out, view, res, {}, None, d.dropped_total)
+    rows = out.getvalue().splitlines()
     # 3 brake lines each, and a STATUS line when one fell among them
-    for what in ("timeout overshoot", "TCP stop latency", "datagram: stop reason tcp_stop +"
-                 "stop latency"):
-        m = re.search(what + r" +not measured: (\d+) can-log lines lost", text)
-        assert m is not None and int(m.group(1)) >= 3, text
-    assert res.problems == []
+    for what in ("the finger lifts, from", "the attacker's stop datagram, from",
+                 "the stop button, from"):
+        row = next(r for r in rows if r.strip().startswith(what))
+        m = re.search(r"not measured: (\d+) can-log lines lost", row)
+        assert m is not None and int(m.group(1)) >= 3 and " m in " not in row, row
+    loss = next(r for r in rows if "STOPPED udp_timeout" in r)
+    assert "not measured" not in loss and re.search(r" \d+\.\d+ m in \d+ ms", loss), loss

@@ -230,23 +230,24 @@ def test_report_main(tmp_path: Path) -> None:
 
 
 def test_scenario_criteria_format_in_both_profiles() -> None:
+    import hilrun
     import scenarios
 
     for profile in ("strict", "tcg"):
-        lim = scenarios.Limits.for_profile(profile)
+        lim = hilrun.Limits.for_profile(profile)
         for sid, _title, crit, _fn in scenarios.SCENARIOS + scenarios.GLOBAL:
             text = crit.format(**asdict(lim))
             assert "{" not in text, sid
-    assert scenarios.Limits.for_profile("tcg").max > scenarios.Limits.for_profile("strict").max
+    assert hilrun.Limits.for_profile("tcg").max > hilrun.Limits.for_profile("strict").max
 
 
 def test_invalid_packets_really_are_invalid() -> None:
     import flood
-    import scenarios
+    import hilrig
     from estop.protocol import udp
 
     assert not any(udp.is_valid(p) for p in flood.INVALID_PACKETS)
-    assert udp.is_valid(scenarios.NEUTRAL) and udp.is_valid(scenarios.DRIVE_GAS)
+    assert udp.is_valid(hilrig.NEUTRAL) and udp.is_valid(hilrig.DRIVE_GAS)
 
 
 def test_run_command_line() -> None:
@@ -506,18 +507,19 @@ def test_keyed_rows_run_last() -> None:
 def test_attack_packets_are_made_without_the_key() -> None:
     from types import SimpleNamespace
 
-    import scenarios
+    import rows_keyed
     from estop.protocol import auth, udp
+    from hilrig import NEUTRAL
 
     key = bytes(range(32))
     remote = SimpleNamespace(remote_id=7, session=0x0123456789ABCDEF, udp_counter=41)
-    genuine = [auth.AuthControlPacket(7, remote.session, c, udp.decode(scenarios.NEUTRAL))
+    genuine = [auth.AuthControlPacket(7, remote.session, c, udp.decode(NEUTRAL))
                .encode(key) for c in (40, 41)]
-    pkts = scenarios.attack_packets(remote, key, genuine)  # type: ignore[arg-type]
+    pkts = rows_keyed.attack_packets(remote, key, genuine)  # type: ignore[arg-type]
     assert [k for k, _ in pkts] == ["plain", "wrong_key", "replay"] * 2
     for kind, data in pkts:
         if kind == "plain":
-            assert data == scenarios.NEUTRAL and udp.is_valid(data)
+            assert data == NEUTRAL and udp.is_valid(data)
         elif kind == "replay":
             assert data in genuine
         else:

@@ -528,3 +528,185 @@ def test_attack_packets_are_made_without_the_key() -> None:
                 auth.AuthControlPacket.decode(data, key)
             p = auth.AuthControlPacket.decode(data, None)
             assert p.session == remote.session and p.remote_id == 7 and p.counter > 41
+
+
+# --------------------------------------------------------------------------- graded braking (v3)
+
+SLOWING5 = bytes.fromhex("021E02000100053E")  # spec section 4 example
+
+
+def slowing(counter: int, level: int = 30, flags: int = 1) -> bytes:
+    return BrakeFrame.for_state(2, 0, flags, counter, slow_level=level).encode()
+
+
+def _bus(segments: list[tuple[float, float, str, int]], t0: float = 1000.0) -> list[Frame]:
+    """ESTOP_BRAKE every 10 ms: (start, end, state name, reason) relative to ``t0``; a change
+    of state sends at once (the period starts over), as the unit does."""
+    make = {"ARMED": lambda c, r: armed(c), "SLOWING": lambda c, r: slowing(c),
+            "STOPPED": lambda c, r: stopped(c, r)}
+    out: list[Frame] = []
+    ctr = 0
+    for start, end, state, reason in segments:
+        t = start
+        while t < end - 1e-9:
+            out.append(Frame(t0 + t, 0x050, make[state](ctr, reason)))
+            ctr = (ctr + 1) % 15
+            t += 0.010
+    return out
+
+
+def test_spec_slowing_example_grades_the_brake() -> None:
+    assert SLOWING5 == slowing(5)
+    ctl = BrakeController()
+    ctl.on_frame(Frame(0.00, 0x050, armed(4)))
+    assert ctl.share == 0.0 and not ctl.braking
+    ctl.on_frame(Frame(0.01, 0x050, SLOWING5))
+    assert ctl.share == pytest.approx(0.3) and ctl.braking and not ctl.issues
+    ctl.on_frame(Frame(0.02, 0x050, slowing(6, level=55)))  # the unit's own slow level
+    assert ctl.share == pytest.approx(0.55)
+    ctl.on_frame(Frame(0.03, 0x050, armed(7)))
+    ctl.on_frame(Frame(0.04, 0x050, stopped(8, reason=5)))  # lift
+    assert [(c.share, c.cause) for c in ctl.changes] == [
+        (0.0, "frame"), (0.3, "frame"), (0.55, "frame"), (0.0, "frame"), (1.0, "frame")]
+    assert ctl.good == 5 and not ctl.issues
+
+
+def test_unknown_brake_request_is_an_emergency_brake() -> None:
+    # right CRC, a new counter, brake_request 3: the unit said something no controller knows
+    unknown = BrakeFrame(3, 30, 2, 0, 0, 1).encode(validate=False)
+    ctl = BrakeController()
+    ctl.on_frame(Frame(0.00, 0x050, armed(0)))
+    ctl.on_frame(Frame(0.01, 0x050, unknown))
+    assert ctl.share == 1.0 and ctl.changes[-1].cause == "frame"
+    assert ctl.good == 1 and ctl.issues[-1].kind == "bad_content"  # not a good frame
+    # a frame that did not come whole from the unit commands nothing: still the emergency
+    bad = bytearray(armed(2))
+    bad[7] ^= 0xFF
+    ctl.on_frame(Frame(0.02, 0x050, bytes(bad)))
+    assert ctl.share == 1.0
+    ctl.on_frame(Frame(0.03, 0x050, armed(3)))  # a good release releases
+    assert ctl.share == 0.0
+    # the silence watchdog still counts from the last good frame, not from the unknown one
+    ctl2 = BrakeController()
+    ctl2.on_frame(Frame(0.00, 0x050, slowing(0)))
+    ctl2.on_frame(Frame(0.01, 0x050, BrakeFrame(7, 0, 1, 0, 0, 1).encode(validate=False)))
+    ctl2.on_tick(0.0499)
+    assert not ctl2.trips
+    ctl2.on_tick(0.05)
+    assert len(ctl2.trips) == 1 and ctl2.trips[0].last_good == 0.0 and ctl2.share == 1.0
+    assert [c.cause for c in ctl2.changes] == ["frame", "frame"]  # braking since the unknown
+
+
+def test_grading_starts_over_after_a_silence_and_a_new_sender() -> None:
+    ctl = BrakeController()
+    ctl.on_frame(Frame(0.00, 0x050, slowing(0)))
+    ctl.on_tick(0.06)
+    assert ctl.share == 1.0 and ctl.changes[-1].cause == "silence"
+    # 15 frames lost: the counter is back at 0, which is no repeat after a silence
+    ctl.on_frame(Frame(0.16, 0x050, slowing(0)))
+    assert ctl.share == pytest.approx(0.3) and ctl.changes[-1].cause == "frame"
+    ctl.expect_new_sender()
+    ctl.on_frame(Frame(0.17, 0x050, BOOT))  # counter 0 again: a new daemon, graded at once
+    assert ctl.share == 1.0 and ctl.changes[-1] == hilcheck.BrakeChange(0.17, 1.0, "frame")
+
+
+def test_live_and_replayed_grades_agree() -> None:
+    frames = _bus([(0.0, 0.5, "ARMED", 0), (0.5, 0.62, "SLOWING", 0), (0.62, 0.9, "ARMED", 0),
+                   (0.9, 1.0, "SLOWING", 0), (1.0, 1.2, "STOPPED", 3)])
+    live = BrakeController()
+    for f in frames:
+        live.on_frame(f)
+        live.on_tick(f.ts + 0.001)
+    off = replay(frames)
+    assert hilcheck.frame_commands(live.changes) == hilcheck.frame_commands(off.changes)
+    cmds = hilcheck.frame_commands(off.changes, 1000.4, 1001.5)
+    assert [s for _, s in cmds] == [0.3, 0.0, 0.3, 1.0]
+    assert cmds[0][0] == pytest.approx(1000.5)
+
+
+def test_share_at_and_shares_between() -> None:
+    ch = [hilcheck.BrakeChange(1.0, 0.0, "frame"), hilcheck.BrakeChange(2.0, 0.3, "frame"),
+          hilcheck.BrakeChange(2.5, 0.0, "frame"), hilcheck.BrakeChange(3.0, 1.0, "silence")]
+    assert hilcheck.share_at(ch, 0.5) == 1.0  # powers up braking
+    assert hilcheck.share_at(ch, 2.0) == 0.3 and hilcheck.share_at(ch, 2.49) == 0.3
+    assert hilcheck.share_at([], 5.0, initial=0.0) == 0.0
+    assert hilcheck.shares_between(ch, 2.0, 2.5) == [0.3]  # while SLOWING: only 0.3
+    assert hilcheck.shares_between(ch, 1.5, 2.6) == [0.0, 0.3, 0.0]
+    assert hilcheck.shares_between(ch, 2.1, 3.5) == [0.3, 0.0, 1.0]
+
+
+# --------------------------------------------------------------------------- distances (v3)
+
+def test_model_figures() -> None:
+    import hilroll
+
+    v = hilroll.speed()
+    assert v == pytest.approx(15 / 3.6)
+    assert hilroll.single_stage_distance(0.0) == pytest.approx(v * v / 16)  # 1.085 m
+    assert hilroll.single_stage_distance(0.2) == pytest.approx(0.2 * v + v * v / 16)  # 1.918
+    assert hilroll.single_stage_distance(0.2) - hilroll.single_stage_distance(0.0) == \
+        pytest.approx(0.833, abs=1e-3)
+    # two-stage, S = 150 ms, T = 600 ms, L = 30 %: 0.625 m at speed, 450 ms at 2.4 m/s^2,
+    # then a full brake from what is left
+    v1 = v - 0.45 * 2.4
+    want = 0.15 * v + 0.45 * (v + v1) / 2 + v1 * v1 / 16
+    assert hilroll.two_stage_distance(0.15, 0.6, 30) == pytest.approx(want)
+    assert hilroll.two_stage_distance(0.15, 0.6, 30) < hilroll.single_stage_distance(0.6)
+    # S = T: one stage
+    assert hilroll.two_stage_distance(0.2, 0.2, 30) == pytest.approx(
+        hilroll.single_stage_distance(0.2))
+
+
+def test_roll_from_a_lift() -> None:
+    import hilroll
+
+    # ARMED until the lift at +1.000 s; the stop frame 4 ms later; STOPPED lift from then on
+    frames = _bus([(0.0, 1.004, "ARMED", 0), (1.004, 1.5, "STOPPED", 5)])
+    r = hilroll.roll(frames, 1001.0)
+    v = hilroll.speed()
+    assert r.agree, r.disagreement()
+    assert r.bus.distance == pytest.approx(0.004 * v + v * v / 16, abs=1e-6)
+    fig = r.figures()
+    assert fig["braking_after_ms"] == pytest.approx(4.0, abs=1e-3)
+    assert fig["distance_m"] == pytest.approx(1.102, abs=1e-3)
+    assert fig["rolled_before_braking_m"] == pytest.approx(0.017, abs=1e-3)
+
+
+def test_roll_from_the_last_packet_two_stage_and_dead_man() -> None:
+    import hilroll
+
+    # two-stage: last packet at +1.0, SLOWING at +1.152 (S = 150 ms, 2 ms late), STOPPED at
+    # +1.601 (T = 600 ms)
+    frames = _bus([(0.0, 1.152, "ARMED", 0), (1.152, 1.601, "SLOWING", 0),
+                   (1.601, 2.5, "STOPPED", 3)])
+    r = hilroll.roll(frames, 1001.0)
+    assert r.agree, r.disagreement()
+    model = hilroll.two_stage_distance(0.152, 0.601, 30)
+    assert r.bus.distance == pytest.approx(model, abs=1e-6)
+    assert r.figures()["braking_after_ms"] == pytest.approx(152.0, abs=1e-3)
+    # single stage at T = 200 ms
+    dm = hilroll.roll(_bus([(0.0, 1.2005, "ARMED", 0), (1.2005, 2.0, "STOPPED", 3)]), 1001.0)
+    assert dm.agree and dm.bus.distance == pytest.approx(
+        hilroll.single_stage_distance(0.2005), abs=1e-6)
+
+
+def test_roll_disagreement_is_reported() -> None:
+    import hilroll
+
+    frames = _bus([(0.0, 1.0, "ARMED", 0), (1.0, 1.2, "STOPPED", 5)])
+    r = hilroll.roll(frames, 1000.5)
+    bad = hilroll.Roll(r.moment, r.bus, hilroll.EmulatorRoll(r.bus.distance + 0.01, None, 1.0))
+    assert r.agree and not bad.agree
+    assert "estop.rollout" in bad.disagreement()
+    never = hilroll.Roll(r.moment, r.bus, hilroll.EmulatorRoll(r.bus.distance, None, None))
+    assert not never.agree and "never stops" in never.disagreement()
+
+
+def test_speed_after_a_burst() -> None:
+    import hilroll
+
+    ch = [hilcheck.BrakeChange(0.0, 0.0, "frame"), hilcheck.BrakeChange(10.15, 0.3, "frame"),
+          hilcheck.BrakeChange(10.27, 0.0, "frame")]
+    v = hilroll.speed()
+    assert hilroll.speed_after(ch, 10.0, 11.0) == pytest.approx(v - 0.12 * 2.4)
+    assert hilroll.speed_after(ch, 10.0, 10.2) == pytest.approx(v - 0.05 * 2.4)

@@ -499,6 +499,23 @@ def excused(t0: float, t1: float, stalls: Sequence[tuple[float, float]],
     return s if s > 0 and (t1 - t0) - s <= runnable_s else None
 
 
+def judge_drops(dropped: int | None, stall_s: float, what: str,
+                excuse_s: float = STALL_EXCUSE_S) -> Verdict:
+    """Datagrams the kernel dropped at the daemon's socket while ``what`` lasted, against 0: the
+    receive buffer has room for all of it. A drop while a CPU stood still ``excuse_s`` or more
+    (``stall_s`` of it) cannot be judged (the daemon may not have run to read): inconclusive,
+    never a pass. Unknown (no socket found) is a failure."""
+    if dropped is None:
+        return Verdict([f"{what}: no daemon socket in /proc/net/udp"])
+    if not dropped:
+        return Verdict([])
+    if stall_s >= excuse_s:
+        why = (f"the kernel dropped {dropped} datagrams of {what} while a CPU stood still "
+               f"{round(stall_s * 1000, 3)} ms of it")
+        return Verdict([f"kernel drops not judged: {why}"], why)
+    return Verdict([f"the kernel dropped {dropped} datagrams of {what}"])
+
+
 # --------------------------------------------------------------------------- UDP flood figures
 
 def udp_socket_drops(proc_net_udp: str, port: int) -> tuple[int, int] | None:

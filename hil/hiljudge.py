@@ -5,6 +5,9 @@ inconclusive, never a pass).
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
+
 from estop.protocol.can import BRAKE_ID
 from hilcheck import (
     BRAKE_SILENCE_S,
@@ -18,8 +21,10 @@ from hilcheck import (
     status_windows,
     summary,
 )
-from hilrig import NEUTRAL, Exchange, UdpRemote
+from hilrig import NEUTRAL, Daemon, Exchange, UdpRemote
+from hilroll import Roll
 from hilrun import EARLY_TOL_MS, TIMEOUT_MS, Result, Run, ms
+from hilstates import LogChange, log_changes
 
 
 def judge(run: Run, res: Result, key: str, label: str, pairs: list[tuple[float, float]],
@@ -129,24 +134,53 @@ def windows_in(run: Run, t0: float, t1: float) -> list[StatusWindow]:
     return [w for w in status_windows(frames) if w.end > t0 and w.start < t1]
 
 
-def last_packet(run: Run, res: Result, remote: UdpRemote, i: int) -> float | None:
-    """Stop ``remote``'s keepalive and send one last valid packet just after a periodic
-    ARMED frame, so that the deadline falls just after a 10 ms tick: a daemon that waits for
-    its next tick overshoots by nearly 10 ms. Returns the last packet's time, or None when
-    the harness itself was too slow: the link was silent for most of the timeout before the
-    last packet (the unit may rightly have stopped before it), so this is no sample."""
+def last_packet(run: Run, res: Result, remote: UdpRemote, i: int,
+                spoil_s: float = TIMEOUT_MS / 2000,
+                send: Callable[[], float] | None = None, what: str = "last packet") -> float | None:
+    """Stop ``remote``'s keepalive and send one last valid packet (or what ``send`` sends; it
+    returns the time of its first datagram) just after a periodic ARMED frame, so that a
+    deadline falls just after a 10 ms tick: a daemon that waits for its next tick overshoots by
+    nearly 10 ms. Returns the send time, or None when the harness itself was too slow: the
+    link was silent for ``spoil_s`` (most of the time to the first deadline, by default half
+    the timeout) before it (the unit may rightly have acted before it), so this is no sample."""
     t_prev = remote.stop()
     assert t_prev is not None
     tick = run.brake_after(run.mon.index(), lambda b: b.state == 1, 0.1)
     if tick is None:
         res.check(False, f"run {i}: no periodic ARMED frame")
         return None
-    t_last = remote.send(remote.packet(NEUTRAL))
-    if t_last - t_prev >= TIMEOUT_MS / 2000:
-        res.notes.append(f"run {i}: not a sample, the harness's last packet came "
-                         f"{ms(t_last - t_prev)} ms after the one before")
+    t_last = send() if send is not None else remote.send(remote.packet(NEUTRAL))
+    if t_last - t_prev >= spoil_s:
+        res.notes.append(f"run {i}: not a sample, the harness's {what} came "
+                         f"{ms(t_last - t_prev)} ms after the packet before")
         return None
     return t_last
+
+
+def wait_state_lines(d: Daemon, since_mono: float, n: int,
+                     timeout: float = 2.0) -> list[LogChange]:
+    """The daemon's ``state`` lines for changes at or after ``since_mono`` (its clock,
+    CLOCK_MONOTONIC as the harness's): waits (bounded) until ``n`` are there, as a line may be
+    written a little after its frame."""
+    end = time.monotonic() + timeout
+    while True:
+        got = log_changes(r for r in d.events("state")
+                          if float(r.get("t_mono", 0.0)) >= since_mono)
+        if len(got) >= n or time.monotonic() >= end:
+            return got
+        time.sleep(0.01)
+
+
+def judge_rolls(res: Result, key: str, label: str, rolls: list[Roll]) -> None:
+    """How far the car rolled from each moment (hilroll): the figures (metres), the samples
+    for the report, and a failure where estop.rollout and the harness's emulator disagree."""
+    vals = [r.bus.distance for r in rolls]
+    res.distances_m[label] = [round(v, 4) for v in vals]
+    res.figures[key] = summary(vals) if len(vals) > 1 else (round(vals[0], 3) if vals else None)
+    for r in rolls:
+        if not r.agree:
+            res.check(False, f"{label}: the two ways to the distance disagree: "
+                             f"{r.disagreement()}")
 
 
 def show_ex(ex: Exchange) -> str:

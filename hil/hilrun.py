@@ -98,6 +98,7 @@ class Result:
     passed: bool = False
     figures: dict[str, object] = field(default_factory=dict)
     samples_ms: dict[str, list[float]] = field(default_factory=dict)
+    distances_m: dict[str, list[float]] = field(default_factory=dict)  # the car's, hilroll
     notes: list[str] = field(default_factory=list)
     duration_s: float = 0.0
     inconclusive: str | None = None  # the environment spoiled the test: run it once more
@@ -132,6 +133,7 @@ class Run:
         self.t_closed = math.inf
         self.stallmon: StallMonitor | None = None
         self.want_key = False  # the next daemon gets --key-file (keyed rows) or --no-auth
+        self.want_opts: dict[str, str] = {}  # the next daemon's options beyond the defaults
         self.key: bytes | None = None
         self.key_path = self.out / "estopd.key"
         self.aremote: AuthRemote | None = None
@@ -155,9 +157,10 @@ class Run:
 
     def argv(self) -> list[str]:
         keying = ["--key-file", str(self.key_path)] if self.want_key else ["--no-auth"]
+        opts = {"--timeout-ms": str(TIMEOUT_MS), **self.want_opts}
         return [*self.dut, "--can", self.iface, "--udp-port", str(self.udp_port),
                 "--tcp-port", str(self.tcp_port), "--bind", "127.0.0.1",
-                "--timeout-ms", str(TIMEOUT_MS), "--log-json", *keying]
+                *(x for kv in opts.items() for x in kv), "--log-json", *keying]
 
     def ensure_key(self) -> bytes:
         """The unit's key: a fresh one in the run's output directory (mode 0600)."""
@@ -177,6 +180,7 @@ class Run:
             self.mon.ctl.expect_new_sender(time.time())
         d = Daemon(self.argv(), self.out / f"estopd-{len(self.daemons) + 1}.log")
         d.keyed = self.want_key
+        d.opts = dict(self.want_opts)
         self.daemons.append(d)
         # By time, not only by index: a monitor that lags (a loaded host) may still hold the
         # previous daemon's last frames.
@@ -193,6 +197,9 @@ class Run:
     def ensure_daemon(self) -> None:
         if self.daemons and self.daemon.alive and self.daemon.keyed != self.want_key:
             self.restart_daemon("keyed" if self.want_key else "keyless")
+        if self.daemons and self.daemon.alive and self.daemon.opts != self.want_opts:
+            self.restart_daemon(" ".join(x for kv in self.want_opts.items() for x in kv)
+                                or "default options")
         if not self.daemons or not self.daemon.alive:
             t = time.time()
             self.start_daemon()
@@ -269,9 +276,11 @@ class Run:
 
     # ---- helpers used by the scenarios
     def brake_after(self, start: int, pred: Callable[[BrakeFrame], bool],
-                    timeout: float) -> tuple[Frame, BrakeFrame] | None:
+                    timeout: float, after: float = -math.inf) -> tuple[Frame, BrakeFrame] | None:
+        """The first good ESTOP_BRAKE frame from index ``start`` on, stamped after ``after``,
+        that satisfies ``pred``, if one is on the bus within ``timeout`` s."""
         def match(f: Frame) -> bool:
-            if f.can_id != BRAKE_ID or BrakeFrame.check(f.data):
+            if f.can_id != BRAKE_ID or f.ts <= after or BrakeFrame.check(f.data):
                 return False
             return pred(BrakeFrame.parse(f.data))
 

@@ -7,8 +7,9 @@ import time
 
 from estop.protocol.can import BRAKE_ID, STATUS_ID, BrakeFrame, StatusFrame
 from hilcheck import BRAKE_SILENCE_S, periods, summary
-from hiljudge import judge, judge_spoiled, last_packet
+from hiljudge import judge, judge_rolls, judge_spoiled, last_packet
 from hilrig import DRIVE_GAS, NEUTRAL
+from hilroll import MODEL_TEXT, Roll, roll
 from hilrun import EARLY_TOL_MS, KEEPALIVE_GAP_S, TIMEOUT_MS, WARN_MS, Result, Row, Run, ms
 
 # Boot: the mean periods are judged on stall-free stretches (hilcheck.periods); the daemon is
@@ -157,6 +158,7 @@ def sc_deadman(run: Run, res: Result) -> None:
     over: list[tuple[float, float]] = []
     flag: list[tuple[float, float]] = []
     phase: list[float] = []
+    rolls: list[Roll] = []
     spoiled = 0
     for i in range(run.args.repeat):
         run.arm(res)
@@ -177,6 +179,7 @@ def sc_deadman(run: Run, res: Result) -> None:
         fr, b = got
         res.check(b.reason == 3, f"run {i}: stop reason {b.reason}, want 3 udp timeout")
         over.append((t_last + TIMEOUT_MS / 1000, fr.ts))
+        rolls.append(roll(run.mon.window(t_last - 1.0, fr.ts + 0.05), t_last))
         frames = run.mon.since(start)
         degraded = [f for f in frames if f.can_id == BRAKE_ID and f.data[2] == 1
                     and f.data[4] & 1 and f.ts < fr.ts]
@@ -198,6 +201,9 @@ def sc_deadman(run: Run, res: Result) -> None:
     judge(run, res, "degraded_flag_after_warn_ms", "degraded flag after warn time", flag,
           use_median=False, slack_ms=10.0)
     res.figures["last_packet_after_tick_ms"] = summary(phase)
+    # Without a lift the car rolls the whole timeout before braking even starts.
+    judge_rolls(res, "distance_from_last_packet_m", "dead-man, from the last packet", rolls)
+    res.figures["car"] = MODEL_TEXT
     judge_spoiled(res, spoiled, run.args.repeat, len(over), "not every run stopped",
                   keepalive=False)
 
@@ -249,7 +255,8 @@ ROWS: list[Row] = [
      "ACK ARMED, ARMED frame <= {max} ms, log STOPPED->ARMED", sc_release),
     ("deadman", "Dead-man timeout (200 ms)",
      f"reason udp_timeout; overshoot >= -{EARLY_TOL_MS}, " "p50 <= {p50}, max <= {max} ms; "
-     "degraded flag >= 100 ms after the last packet, <= 110 + {max} ms", sc_deadman),
+     "degraded flag >= 100 ms after the last packet, <= 110 + {max} ms; the car's roll-out "
+     "from the last packet", sc_deadman),
     ("tcp_stop", "TCP STOP latency (4 clients)",
      "ACK STOPPED tcp_stop; stop frame p50 <= {p50}, max <= {max} ms",
      sc_tcp_stop),

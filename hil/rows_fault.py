@@ -11,9 +11,9 @@ import time
 import can
 
 from estop.protocol.can import BRAKE_ID, STATUS_ID, BrakeFrame
-from hilcheck import BRAKE_SILENCE_S, replay, sent_between
+from hilcheck import BRAKE_SILENCE_S, judge_drops, overlap, replay, sent_between
 from hiljudge import frame_gap_check, judge, judge_frames, judge_late, show_ex, windows_in
-from hilrig import NEUTRAL, Flooder, RigError, iface_stats, set_link, sh, udp_drops
+from hilrig import NEUTRAL, Flooder, QueueWatch, RigError, iface_stats, set_link, sh, udp_drops
 from hilrun import FLOOD_RATE, RECOVERY_S, TIMEOUT_MS, Result, Row, Run, ms
 
 # The invalid-UDP flood (its target rate is hilrun.FLOOD_RATE): the least rate that counts as
@@ -26,12 +26,17 @@ FLOOD_BURST = 120
 def sc_invalid_flood(run: Run, res: Result) -> None:
     """Invalid UDP from a flooder process of its own (flood.py, sendmmsg) after the last valid
     packet: first an exactly counted burst (ESTOP_STATUS must count every packet of it), then
-    a flood of FLOOD_MIN_RATE packets/s or more across the deadline. The daemon's socket drops
-    what it has no room for (/proc/net/udp); the stop must come at the deadline all the same."""
+    a flood of FLOOD_MIN_RATE packets/s or more across the deadline. The stop must come at the
+    deadline all the same. The daemon's receive buffer (8 MiB, its start line's udp_rcvbuf) has
+    room for the whole flood, so the kernel must drop nothing (/proc/net/udp): a drop while a
+    CPU stood still is inconclusive (the daemon may not have run), never a pass."""
     d = run.daemon
+    starts = d.events("start")
+    res.figures["udp_rcvbuf"] = starts[0].get("udp_rcvbuf") if starts else None
     if run.flooder is None or run.flooder.proc.poll() is not None:
         run.flooder = Flooder(run.udp_port, FLOOD_RATE)
     fl = run.flooder
+    watch: QueueWatch | None = None
     try:
         t_up = fl.ready(60.0)
         res.figures["flooder_up_s"] = round(t_up - fl.t_start, 2)
@@ -51,6 +56,7 @@ def sc_invalid_flood(run: Run, res: Result) -> None:
         res.check(burst["sent"] == FLOOD_BURST, f"the flooder sent {burst['sent']} of the "
                                                 f"{FLOOD_BURST} burst packets")
         res.check(lost is not None, "no daemon socket in /proc/net/udp")
+        res.check(lost == 0, f"the kernel dropped {lost} of a burst of {burst['sent']}")
         res.check(counted + (lost or 0) == burst["sent"],
                   f"ESTOP_STATUS counted {counted} of a burst of {burst['sent']} invalid packets "
                   f"({lost} dropped by the kernel)")
@@ -59,6 +65,7 @@ def sc_invalid_flood(run: Run, res: Result) -> None:
         t_last = run.udp.stop()
         assert t_last is not None
         fl.start()
+        watch = QueueWatch(run.udp_port)
         got = run.brake_after(start, lambda b: b.state == 0, 1.0)
         time.sleep(0.05)
         ex = run.clients[0].release()  # only invalid packets arrive: no live link
@@ -68,15 +75,28 @@ def sc_invalid_flood(run: Run, res: Result) -> None:
     except RigError:
         fl.close()  # in an unknown state: a new one for a second try
         raise
+    finally:
+        rxq_max = watch.stop() if watch is not None else None
     time.sleep(0.25)  # the ESTOP_STATUS frames that count the flood's tail
     t0, t1, sent = flood["t0"], flood["t1"], flood["sent"]
     rate = sent / max(t1 - t0, 1e-6)
     dropped = (drops2[1] - drops1[1]) if drops1 and drops2 else None
-    res.figures["flood"] = {"sent": sent, "s": round(t1 - t0, 3), "rate_per_s": round(rate),
-                            "kernel_drops": dropped, "send_errors": flood["errors"],
-                            "started_after_last_valid_ms": ms(t0 - t_last)}
+    figs: dict[str, object] = {"sent": sent, "s": round(t1 - t0, 3), "rate_per_s": round(rate),
+                               "kernel_drops": dropped, "send_errors": flood["errors"],
+                               "started_after_last_valid_ms": ms(t0 - t_last)}
     if dropped is not None:
-        res.figures["flood"]["handled_per_s"] = round((sent - dropped) / max(t1 - t0, 1e-6))
+        figs["handled_per_s"] = round((sent - dropped) / max(t1 - t0, 1e-6))
+    res.figures["flood"] = figs
+    rcvbuf = res.figures["udp_rcvbuf"]
+    res.figures["rx_queue_max"] = {"bytes": rxq_max, "reads": watch.reads if watch else 0} | (
+        {"of_rcvbuf_pct": round(100 * rxq_max / rcvbuf, 2)}
+        if isinstance(rcvbuf, int) and rcvbuf > 0 and rxq_max is not None else {})
+    drops = judge_drops(dropped, overlap(run.stalls(), t0, t1), f"the flood (receive buffer "
+                                                                 f"{rcvbuf} bytes)")
+    for f in drops.fails:
+        res.check(False, f)
+    if drops.inconclusive:
+        res.inconclusive = drops.inconclusive
     if rate < FLOOD_MIN_RATE:
         res.inconclusive = f"the flooder reached {round(rate)} packets/s only"
         res.check(False, f"not a flood: {round(rate)} < {FLOOD_MIN_RATE} packets/s")
@@ -348,7 +368,8 @@ ROWS: list[Row] = [
      f"a burst of {FLOOD_BURST} counted exactly; then >= {FLOOD_MIN_RATE} packets/s from a "
      "flooder process: stops at last valid + 200 ms (overshoot <= {max} ms, reason "
      "udp_timeout); RELEASE NAK 2; ESTOP_STATUS windows inside the flood saturated (255); "
-     "no ESTOP_BRAKE gap of 50 ms; daemon alive", sc_invalid_flood),
+     "no ESTOP_BRAKE gap of 50 ms; 0 kernel drops (burst and flood); daemon alive",
+     sc_invalid_flood),
     ("iface_down", "CAN link down 300 ms, then up",
      "can_error/fault logged; STOPPED fault; frames resume <= 50 ms after up", sc_iface_down),
     ("txqueue_full", "Transmit queue full (tbf qdisc + flood)",

@@ -6,8 +6,9 @@ that into the test protocol table and the latency plot.
 
 The rows live in modules of their own, imported one way (scenarios -> rows_* and wholerun ->
 hiljudge -> hilrun -> hilrig, hilcheck): ``rows_basic`` (boot, RELEASE, dead-man, TCP STOP),
-``rows_fault`` (flood, link down, full queue, kill, restart, SIGTERM), ``rows_keyed`` (spec
-section 5), ``wholerun`` (the checks of the whole run). This module runs them in order.
+``rows_fault`` (flood, link down, full queue, kill, restart, SIGTERM), ``rows_v3`` (the lift,
+the two-stage stop), ``rows_keyed`` (spec section 5), ``wholerun`` (the checks of the whole
+run). This module runs them in order.
 
 Each scenario returns a :class:`Result` with pass/fail, measured figures and the criterion it
 was judged by. A scenario that raises is a FAIL with the exception as its reason; the runner
@@ -38,7 +39,9 @@ import can  # noqa: E402
 import rows_basic  # noqa: E402
 import rows_fault  # noqa: E402
 import rows_keyed  # noqa: E402
+import rows_v3  # noqa: E402
 from hilrig import LAG_MAX_S  # noqa: E402
+from hilroll import MODEL_TEXT  # noqa: E402
 from hilrun import TIMEOUT_MS, Limits, Result, Row, Run, log, ms  # noqa: E402
 from rows_keyed import KEYED  # noqa: E402
 from wholerun import GLOBAL  # noqa: E402
@@ -46,16 +49,18 @@ from wholerun import GLOBAL  # noqa: E402
 __all__ = ["GLOBAL", "KEYED", "RETRYABLE", "SCENARIOS", "main"]
 
 # The rows in the order they run; the keyed ones last (the daemon restarts with a key once).
-SCENARIOS: list[Row] = [*rows_basic.ROWS, *rows_fault.ROWS, *rows_keyed.ROWS]
+SCENARIOS: list[Row] = [*rows_basic.ROWS, *rows_fault.ROWS, *rows_v3.ROWS, *rows_keyed.ROWS]
 
 # Scenarios that start from any state and may run again when the environment spoiled them.
 RETRYABLE = {"boot", "release", "deadman", "tcp_stop", "invalid_flood", "iface_down",
-             "txqueue_full", "sigkill", *KEYED}
+             "txqueue_full", "sigkill", "lift", "lift_tcp", "two_stage_burst", "two_stage_loss",
+             *KEYED}
 
 
 def run_one(run: Run, sid: str, res: Result, fn: Callable[[Run, Result], None]) -> None:
     t0 = time.monotonic()
     run.want_key = sid in KEYED
+    run.want_opts = rows_v3.OPTIONS.get(sid, {})
     giveups = run.mon.lag_giveups if run.monitor is not None else 0
     try:
         if sid not in ("boot", "restart"):
@@ -146,6 +151,9 @@ def main(argv: list[str] | None = None) -> int:
         "dut_sha256": sha256(args.dut[0]) if exe else None,
         "iface": args.iface,
         "timeout_ms": TIMEOUT_MS,
+        "two_stage": f"S {rows_v3.SLOW_MS} ms, T {rows_v3.TWO_STAGE_TIMEOUT_MS} ms, L "
+                     f"{rows_v3.SLOW_LEVEL} % (the two-stage rows)",
+        "car": MODEL_TEXT,
         "repeat": args.repeat,
     }
     try:

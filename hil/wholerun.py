@@ -1,16 +1,31 @@
-"""The whole-run checks, after the rows: bus integrity and the emulator live vs offline, candump
-vs python-can, the daemon's log lines against the state changes on the bus.
+"""The whole-run checks, after the rows: bus integrity and the emulator live vs offline (its
+graded commands too: release, the SLOWING share, emergency), candump vs python-can, the daemon's
+log lines against the state changes on the bus (SLOWING's among them, each kind counted) and
+their causes.
 """
 
 from __future__ import annotations
 
 import json
 import time
+from collections import Counter
 
-from estop.protocol.can import BRAKE_ID, STATUS_ID, BrakeFrame
-from hilcheck import BRAKE_SILENCE_S, crosscheck, excused, in_windows, read_candump, replay, summary
+from estop.brakecheck import grade_text
+from estop.protocol.can import BRAKE_ID, STATUS_ID, brake_request_name
+from hilcheck import (
+    BRAKE_SILENCE_S,
+    Frame,
+    crosscheck,
+    excused,
+    frame_commands,
+    in_windows,
+    read_candump,
+    replay,
+    summary,
+)
 from hilrig import MARKER_ID
 from hilrun import Result, Row, Run, ms
+from hilstates import bus_transitions, cause_problem, log_changes
 
 # =========================================================================== global checks
 
@@ -91,7 +106,28 @@ def check_bus(run: Run, res: Result) -> None:
     n_off = sum(1 for t in off.trips if t.deadline < cut)
     res.figures["offline_replay_trips"] = n_off
     res.check(n_off == n_live, f"live emulator tripped {n_live}x, replay of the bus {n_off}x")
+    # ... and graded the same: every command a frame gave, at the frame's time.
+    live_cmds = frame_commands(ctl.changes, t1=cut)
+    off_cmds = frame_commands(off.changes, t1=cut)
+    res.figures["emulator_commands"] = share_counts(live_cmds)
+    res.check(live_cmds == off_cmds, "live emulator and the replay graded differently: "
+                                     f"{first_difference(live_cmds, off_cmds)}")
     res.figures["disturbance_windows"] = [w[2] for w in run.windows]
+
+
+def share_counts(cmds: list[tuple[float, float]]) -> dict[str, int]:
+    """Commands by grade (``release``, ``controlled 30 %``, ``EMERGENCY``), counted."""
+    out: dict[str, int] = {}
+    for _, share in cmds:
+        out[grade_text(share)] = out.get(grade_text(share), 0) + 1
+    return out
+
+
+def first_difference(a: list[tuple[float, float]], b: list[tuple[float, float]]) -> str:
+    for i, (x, y) in enumerate(zip(a, b, strict=False)):
+        if x != y:
+            return f"command {i}: live {x}, replay {y}"
+    return f"{len(a)} commands live, {len(b)} in the replay"
 
 
 def check_candump(run: Run, res: Result) -> None:
@@ -118,6 +154,23 @@ def check_candump(run: Run, res: Result) -> None:
     if err:
         res.figures["candump_stderr"] = " | ".join(err.splitlines()[:3])
     res.figures["markers"] = MARKER_ID
+    # The graded commands (SLOWING's brake_request 2 among them) are in both records alike.
+    if window is not None:
+        in_cd = brake_requests(cd, window)
+        in_py = brake_requests(py, window)
+        res.figures["brake_requests"] = in_cd
+        res.check(in_cd == in_py, f"ESTOP_BRAKE brake_requests: candump {in_cd}, python-can "
+                                  f"{in_py}")
+
+
+def brake_requests(frames: list[Frame], window: tuple[float, float]) -> dict[str, int]:
+    """ESTOP_BRAKE frames in ``window`` by brake_request (byte 0) name, counted."""
+    out: dict[str, int] = {}
+    for f in frames:
+        if f.can_id == BRAKE_ID and window[0] <= f.ts <= window[1] and f.data:
+            name = brake_request_name(f.data[0])
+            out[name] = out.get(name, 0) + 1
+    return dict(sorted(out.items()))
 
 
 def check_logs(run: Run, res: Result) -> None:
@@ -131,7 +184,7 @@ def check_logs(run: Run, res: Result) -> None:
             if not isinstance(r.get("t_mono"), int | float) or not isinstance(r.get("event"), str):
                 missing.append(json.dumps(r)[:120])
             elif r["event"] == "state" and not all(k in r for k in ("from", "to", "reason",
-                                                                   "src")):
+                                                                   "src", "cause")):
                 missing.append(json.dumps(r)[:120])
     res.figures["log_lines"] = total
     res.figures["non_json_lines"] = len(bad)
@@ -140,47 +193,50 @@ def check_logs(run: Run, res: Result) -> None:
         res.notes.append(f"log: {line[:120]}")
     res.check(total > 0, "the daemon logged nothing")
     res.check(not bad, "log lines that are not JSON objects")
-    res.check(not missing, "records without t_mono/event (or state without from/to/reason/src)")
+    res.check(not missing, "records without t_mono/event (or state without "
+                           "from/to/reason/src/cause)")
     starts = sum(len(d.events("start")) for d in run.daemons)
     res.figures["start_events"] = f"{starts}/{len(run.daemons)}"
-    # Every state change seen on the bus has a 'state' log line (per daemon instance).
-    bus_changes = 0
-    log_changes = 0
+    # Every state change seen on the bus has a 'state' log line (per daemon instance), kind
+    # by kind (SLOWING's among them), and every line's cause fits its change.
+    bus: Counter[str] = Counter()
+    logged: Counter[str] = Counter()
+    wrong: list[str] = []
     for i, d in enumerate(run.daemons):
         t0 = d.t_start
         t1 = run.daemons[i + 1].t_start if i + 1 < len(run.daemons) else time.time()
         if d.signal_time is not None:  # the last frame after SIGTERM is not a state change
             t1 = min(t1, d.signal_time)
-        prev = None
-        for f in run.mon.window(t0, t1):
-            if f.can_id != BRAKE_ID or BrakeFrame.check(f.data):
-                continue
-            st = f.data[2]
-            if prev is not None and st != prev:
-                bus_changes += 1
-            prev = st
+        bus += bus_transitions(run.mon.window(t0, t1))
         # Which lines came before the signal is judged on the daemon's own clock: the
         # harness may read a line written before the signal only after it.
-        with d.lock:
-            log_changes += sum(1 for ln in d.lines if ln.rec is not None
-                               and ln.rec.get("event") == "state"
-                               and (d.signal_mono is None
-                                    or float(ln.rec.get("t_mono", 0.0)) < d.signal_mono))
-    res.figures["state_changes_bus"] = bus_changes
-    res.figures["state_changes_log"] = log_changes
-    res.check(bus_changes == log_changes,
-              f"{bus_changes} state changes on the bus, {log_changes} 'state' log lines")
+        lines = log_changes(r for r in d.events("state") if d.signal_mono is None
+                            or float(r.get("t_mono", 0.0)) < d.signal_mono)
+        logged += Counter(f"{c.frm}->{c.to}" for c in lines)
+        wrong += [w for w in map(cause_problem, log_changes(d.events("state"))) if w]
+    res.figures["state_changes_bus"] = dict(sorted(bus.items()))
+    res.figures["state_changes_log"] = dict(sorted(logged.items()))
+    res.check(bus == logged, f"{sum(bus.values())} state changes on the bus, "
+                             f"{sum(logged.values())} 'state' log lines: {dict(bus - logged)} "
+                             f"not logged, {dict(logged - bus)} not on the bus")
+    res.figures["causes_wrong"] = len(wrong)
+    for w in wrong[:3]:
+        res.notes.append(f"log: {w}")
+    res.check(not wrong, f"{len(wrong)} state lines whose cause does not fit the change")
 
 
 GLOBAL: list[Row] = [
     ("bus_integrity", "Whole run: frame checks, gaps, emulator",
      "0 CRC/counter/content errors; no gap >= 50 ms and no lost frames outside the provoked "
-     "disturbances; live and offline emulator agree", check_bus),
+     "disturbances; live and offline emulator agree (trips, and every graded command)",
+     check_bus),
     ("candump_crosscheck", "candump -L vs python-can",
-     "same frames, same order, same timestamps between the start and stop markers",
+     "same frames, same order, same timestamps between the start and stop markers (so the "
+     "same brake_requests, controlled stops too)",
      check_candump),
     ("log_format", "estopd --log-json lines",
-     "every line a JSON object with t_mono/event; one state line per state change on the bus",
+     "every line a JSON object with t_mono/event; one state line per state change on the bus, "
+     "kind by kind (SLOWING's too); every state line's cause fits its change",
      check_logs),
 ]
 

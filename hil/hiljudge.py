@@ -171,11 +171,20 @@ def wait_state_lines(d: Daemon, since_mono: float, n: int,
         time.sleep(0.01)
 
 
-def judge_rolls(res: Result, key: str, label: str, rolls: list[Roll]) -> None:
+def judge_rolls(res: Result, key: str, label: str, rolls: list[Roll], model_m: float,
+                model: str, compare: list[tuple[str, float, float]] | None = None) -> None:
     """How far the car rolled from each moment (hilroll): the figures (metres), the samples
-    for the report, and a failure where estop.rollout and the harness's emulator disagree."""
+    for the report (with when braking began, the model's figure for an ideal unit, ``model``
+    saying which, and model figures to ``compare`` with: (what, metres, of them before braking)),
+    and a failure where estop.rollout and the harness's emulator disagree."""
     vals = [r.bus.distance for r in rolls]
-    res.distances_m[label] = [round(v, 4) for v in vals]
+    res.rollouts[label] = {
+        "distance_m": [round(v, 4) for v in vals],
+        "braking_after_ms": [None if r.bus.reaction_time is None
+                             else round(r.bus.reaction_time * 1000, 3) for r in rolls],
+        "before_braking_m": [round(r.bus.distance_before_braking, 4) for r in rolls],
+        "model_m": round(model_m, 4), "model": model,
+        "compare": [[text, round(m, 4), round(b, 4)] for text, m, b in compare or []]}
     res.figures[key] = summary(vals) if len(vals) > 1 else (round(vals[0], 3) if vals else None)
     for r in rolls:
         if not r.agree:

@@ -98,7 +98,8 @@ class Result:
     passed: bool = False
     figures: dict[str, object] = field(default_factory=dict)
     samples_ms: dict[str, list[float]] = field(default_factory=dict)
-    distances_m: dict[str, list[float]] = field(default_factory=dict)  # the car's, hilroll
+    # The car's roll-outs (hilroll) by label: distances, when braking began, the model's figure.
+    rollouts: dict[str, dict[str, object]] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     duration_s: float = 0.0
     inconclusive: str | None = None  # the environment spoiled the test: run it once more

@@ -9,7 +9,7 @@ from estop.protocol.can import BRAKE_ID, STATUS_ID, BrakeFrame, StatusFrame
 from hilcheck import BRAKE_SILENCE_S, periods, summary
 from hiljudge import judge, judge_rolls, judge_spoiled, last_packet
 from hilrig import DRIVE_GAS, NEUTRAL
-from hilroll import MODEL_TEXT, Roll, roll
+from hilroll import MODEL_TEXT, Roll, roll, single_stage_distance
 from hilrun import EARLY_TOL_MS, KEEPALIVE_GAP_S, TIMEOUT_MS, WARN_MS, Result, Row, Run, ms
 
 # Boot: the mean periods are judged on stall-free stretches (hilcheck.periods); the daemon is
@@ -202,7 +202,8 @@ def sc_deadman(run: Run, res: Result) -> None:
           use_median=False, slack_ms=10.0)
     res.figures["last_packet_after_tick_ms"] = summary(phase)
     # Without a lift the car rolls the whole timeout before braking even starts.
-    judge_rolls(res, "distance_from_last_packet_m", "dead-man, from the last packet", rolls)
+    judge_rolls(res, "distance_from_last_packet_m", "dead-man (T 200 ms), from the last packet",
+                rolls, single_stage_distance(TIMEOUT_MS / 1000), "full braking at T")
     res.figures["car"] = MODEL_TEXT
     judge_spoiled(res, spoiled, run.args.repeat, len(over), "not every run stopped",
                   keepalive=False)

@@ -110,7 +110,10 @@ def sc_lift(run: Run, res: Result) -> None:
         if i == 0:
             res.figures["stop_frame"] = fr.data.hex(" ")
     judge(run, res, "lift_to_stop_frame_ms", "lift datagram -> stop frame", lat)
-    judge_rolls(res, "distance_from_lift_m", "from the lift", rolls)
+    judge_rolls(res, "distance_from_lift_m", "lift datagram, from the lift", rolls,
+                single_stage_distance(0.0), "full braking at the lift",
+                [("no lift: full braking T = 200 ms after the last packet (model)",
+                  single_stage_distance(TIMEOUT_MS / 1000), speed() * TIMEOUT_MS / 1000)])
     res.figures["without_lift_model_m"] = round(single_stage_distance(TIMEOUT_MS / 1000), 3)
     res.figures["car"] = MODEL_TEXT
     ex = run.clients[0].status()
@@ -332,11 +335,15 @@ def sc_two_stage_loss(run: Run, res: Result) -> None:
         rolls.append(roll(frames, t_last))
     judge(run, res, "slowing_overshoot_ms", "SLOWING overshoot (loss)", slow)
     judge(run, res, "timeout_overshoot_ms", "two-stage timeout overshoot", stop)
-    judge_rolls(res, "distance_from_last_packet_m", "two-stage, from the last packet", rolls)
+    s, t = SLOW_MS / 1000, TWO_STAGE_TIMEOUT_MS / 1000
+    judge_rolls(res, "distance_from_last_packet_m",
+                f"two-stage (S {SLOW_MS}, T {TWO_STAGE_TIMEOUT_MS} ms), from the last packet",
+                rolls, two_stage_distance(s, t, SLOW_LEVEL), f"{SLOW_LEVEL} % at S, full at T",
+                [(f"single stage at the same T = {TWO_STAGE_TIMEOUT_MS} ms (model)",
+                  single_stage_distance(t), speed() * t)])
     # The v3 claim: braking begins S after the last packet (a single-stage unit: T).
     res.figures["braking_began_after_ms"] = summary(
         [r.bus.reaction_time * 1000 for r in rolls if r.bus.reaction_time is not None])
-    s, t = SLOW_MS / 1000, TWO_STAGE_TIMEOUT_MS / 1000
     res.figures["two_stage_model_m"] = round(two_stage_distance(s, t, SLOW_LEVEL), 3)
     res.figures["single_stage_same_T_model_m"] = round(single_stage_distance(t), 3)
     res.figures["single_stage_200ms_model_m"] = round(single_stage_distance(TIMEOUT_MS / 1000),

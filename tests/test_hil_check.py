@@ -826,10 +826,15 @@ def test_judge_rolls_and_state_lines() -> None:
     good = hilroll.roll(frames, 1001.0)
     bad = hilroll.Roll(good.moment, good.bus, hilroll.EmulatorRoll(2.0, None, 1.0))
     res = Result("lift", "t", "c")
-    hiljudge.judge_rolls(res, "distance_m", "from the lift", [good, good])
-    assert res.distances_m == {"from the lift": [1.1017, 1.1017]} and not res.notes
+    hiljudge.judge_rolls(res, "distance_m", "from the lift", [good, good], 1.085, "ideal",
+                         [("no lift", 1.918, 0.833)])
+    assert res.rollouts == {"from the lift": {
+        "distance_m": [1.1017, 1.1017], "braking_after_ms": [4.0, 4.0],
+        "before_braking_m": [0.0167, 0.0167], "model_m": 1.085,
+        "model": "ideal", "compare": [["no lift", 1.918, 0.833]]}}
+    assert not res.notes
     assert res.figures["distance_m"]["p50"] == pytest.approx(1.102, abs=1e-3)
-    hiljudge.judge_rolls(res, "distance_m", "from the lift", [bad])
+    hiljudge.judge_rolls(res, "distance_m", "from the lift", [bad], 1.085, "ideal")
     assert res.figures["distance_m"] == pytest.approx(1.102, abs=1e-3)
     assert res.notes[0].startswith("FAIL: from the lift: the two ways to the distance disagree")
     d = SimpleNamespace(events=lambda name=None, since=0.0: [
@@ -838,3 +843,35 @@ def test_judge_rolls_and_state_lines() -> None:
     lines = hiljudge.wait_state_lines(d, 6.0, 1, timeout=0.1)  # type: ignore[arg-type]
     assert [c.text() for c in lines] == ["ARMED->STOPPED lift cause=lift_datagram"]
     assert len(hiljudge.wait_state_lines(d, 6.0, 2, timeout=0.05)) == 1  # type: ignore[arg-type]
+
+
+def _doc_v3() -> dict:
+    doc = _doc(True)
+    doc["meta"]["car"] = "15 km/h, emergency deceleration 8 m/s^2, actuator delay 0 ms"
+    doc["meta"]["two_stage"] = "S 150 ms, T 600 ms, L 30 %"
+    doc["results"].append({
+        "id": "lift", "title": "Lift", "criterion": "at once", "passed": True,
+        "figures": {"lift_to_stop_frame_ms": summary([0.5, 0.6, 1.3])},
+        "samples_ms": {"lift datagram -> stop frame": [0.5, 0.6, 1.3]}, "notes": [],
+        "rollouts": {"lift datagram, from the lift": {
+            "distance_m": [1.087, 1.0874, 1.0905], "braking_after_ms": [0.5, 0.6, 1.3],
+            "before_braking_m": [0.002, 0.0025, 0.0054], "model_m": 1.0851,
+            "model": "full braking at the lift",
+            "compare": [["no lift (model)", 1.9184, 0.8333]]}}})
+    return doc
+
+
+def test_protocol_shows_the_roll_outs(tmp_path: Path) -> None:
+    text = hilreport.protocol_md(_doc_v3())
+    assert "- Two-stage daemon: S 150 ms, T 600 ms, L 30 %" in text
+    assert "- Car (vehicle model, docs/VEHICLE.md): 15 km/h" in text
+    assert "## How far the car rolls" in text
+    assert ("| lift datagram, from the lift | 3 | 0.6 (0.5-1.3) | 1.087 (1.087-1.091) | "
+            "1.085 (full braking at the lift) |") in text
+    assert "| no lift (model) | - | - | - | 1.918 |" in text
+    assert "How far the car rolls" not in hilreport.protocol_md(_doc(True))  # no v3 rows
+    (tmp_path / "results.json").write_text(json.dumps(_doc_v3()))
+    assert hilreport.main([str(tmp_path)]) == 0
+    for name in ("latency.png", "distance.png"):
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "Distance plot" in (tmp_path / "protocol.md").read_text()

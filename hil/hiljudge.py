@@ -183,7 +183,7 @@ def judge_rolls(res: Result, key: str, label: str, rolls: list[Roll], model_m: f
         "braking_after_ms": [None if r.bus.reaction_time is None
                              else round(r.bus.reaction_time * 1000, 3) for r in rolls],
         "before_braking_m": [round(r.bus.distance_before_braking, 4) for r in rolls],
-        "model_m": round(model_m, 4), "model": model,
+        "model_m": round(model_m, 3), "model": model,
         "compare": [[text, round(m, 4), round(b, 4)] for text, m, b in compare or []]}
     res.figures[key] = summary(vals) if len(vals) > 1 else (round(vals[0], 3) if vals else None)
     for r in rolls:

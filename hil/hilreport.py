@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import textwrap
 from pathlib import Path
@@ -111,15 +112,21 @@ def rollouts(doc: dict) -> list[tuple[str, dict]]:
             for label, ro in (r.get("rollouts") or {}).items()]
 
 
+def median(values: list[float]) -> float:
+    """The interpolated median, as the rows' figures (hilcheck.summary) give it."""
+    xs = sorted(values)
+    mid = (len(xs) - 1) / 2
+    return (xs[math.floor(mid)] + xs[math.ceil(mid)]) / 2 if xs else float("nan")
+
+
 def _spread(values: list[float], digits: int) -> str:
-    """``p50 (min-max)``; the upper median, as the judging uses."""
+    """``p50 (min-max)``."""
     if not values:
         return "-"
     xs = sorted(values)
-    mid = xs[len(xs) // 2]
     if len(xs) == 1:
-        return f"{mid:.{digits}f}"
-    return f"{mid:.{digits}f} ({xs[0]:.{digits}f}-{xs[-1]:.{digits}f})"
+        return f"{xs[0]:.{digits}f}"
+    return f"{median(xs):.{digits}f} ({xs[0]:.{digits}f}-{xs[-1]:.{digits}f})"
 
 
 def rollout_md(doc: dict) -> list[str]:
@@ -212,8 +219,8 @@ def plot_distance(doc: dict, path: Path) -> bool:
         pre = sorted(float(x) for x in ro.get("before_braking_m", []))
         if not dist:
             continue
-        p50 = dist[len(dist) // 2]
-        before = pre[len(pre) // 2] if pre else 0.0
+        p50 = median(dist)
+        before = median(pre) if pre else 0.0
         bars.append((f"{label}\n(n={len(dist)})", p50, before, dist[0], dist[-1],
                      float(ro.get("model_m", 0.0)), True))
         for text, metres, *rest in ro.get("compare", []):

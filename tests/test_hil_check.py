@@ -870,6 +870,8 @@ def test_protocol_shows_the_roll_outs(tmp_path: Path) -> None:
             "1.085 (full braking at the lift) |") in text
     assert "| no lift (model) | - | - | - | 1.918 |" in text
     assert "How far the car rolls" not in hilreport.protocol_md(_doc(True))  # no v3 rows
+    assert hilreport.median([4.0, 1.0, 3.0, 2.0]) == 2.5 == summary([1.0, 2.0, 3.0, 4.0])["p50"]
+    assert hilreport.median([3.0, 1.0, 2.0]) == 2.0
     (tmp_path / "results.json").write_text(json.dumps(_doc_v3()))
     assert hilreport.main([str(tmp_path)]) == 0
     for name in ("latency.png", "distance.png"):

@@ -44,6 +44,9 @@ REASONS = ["none", "boot", "tcp_stop", "udp_timeout", "fault", "lift"]
 STATES = ["STOPPED", "ARMED", "SLOWING"]
 STOPPED, ARMED, SLOWING = 0, 1, 2
 SLOW_BACK_PACKETS = 3  # valid packets that end SLOWING (spec section 3)
+UDP_RCVBUF = 4 << 20
+UDP_ROUND_MAX = 256  # datagrams read per loop round
+SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # root may exceed net.core.rmem_max
 
 
 def now_us() -> int:
@@ -78,6 +81,11 @@ class Daemon:
         self.fail_since: int | None = None
         self.sent_brake = 0
         self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        # as estopd: a receive buffer that absorbs a flood (4 MiB asked, the kernel doubles it)
+        try:
+            self.udp.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, UDP_RCVBUF)
+        except OSError:
+            self.udp.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RCVBUF)
         self.udp.bind((args.bind, args.udp_port))
         self.udp.setblocking(False)
         self.lsn = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -94,7 +102,8 @@ class Daemon:
         self.log("start", can=args.can, udp_port=args.udp_port, tcp_port=args.tcp_port,
                  timeout_ms=args.timeout_ms, slow_ms=self.slow_us // 1000,
                  slow_level=self.slow_level, warn_ms=self.warn_us // 1000,
-                 auth="key" if self.key else "none", session=f"0x{self.session:016X}")
+                 auth="key" if self.key else "none", session=f"0x{self.session:016X}",
+                 udp_rcvbuf=self.udp.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
         self.next_b = t
         self.next_s = t
 
@@ -203,7 +212,9 @@ class Daemon:
                                                 "udp") else None
 
     def on_udp(self, t: int) -> None:
-        while True:
+        # As estopd: a bounded number per loop round, so that a backlog (a flood into the large
+        # receive buffer) never holds up the frames, the deadlines or the stop channel.
+        for _ in range(UDP_ROUND_MAX):
             try:
                 data = self.udp.recv(64)
             except BlockingIOError:

@@ -636,8 +636,13 @@ class CrossCheck:
 def crosscheck(candump: Sequence[Frame], pycan: Sequence[Frame],
                window: tuple[float, float] | None = None,
                tol_s: float = 2e-6) -> CrossCheck:
-    """Same frames in the same order? Both receivers read the kernel timestamp of the same skb,
-    so a frame has the same time (to the microsecond candump prints) in both records.
+    """Same frames, in the same order? Both receivers read the kernel timestamp of the same
+    skb, so a frame has the same time (to the microsecond candump prints) in both records.
+
+    The order is compared CAN ID by CAN ID: frames of different senders (the daemon's, the
+    harness's markers) that came within microseconds of each other on two CPUs may reach two
+    sockets in either order (seen: a marker 155 us after a stop frame, read before it by
+    candump and after it by python-can). Frames of one ID come from one sender, one at a time.
 
     Only frames inside ``window`` are compared (default: the span both receivers covered), so
     frames at the start/stop edges, seen by one receiver only, do not count.
@@ -651,11 +656,19 @@ def crosscheck(candump: Sequence[Frame], pycan: Sequence[Frame],
     lo, hi = window[0] - tol_s, window[1] + tol_s
     a = [f for f in candump if lo <= f.ts <= hi]
     b = [f for f in pycan if lo <= f.ts <= hi]
+    for can_id in sorted({f.can_id for f in a} | {f.can_id for f in b}):
+        _walk(res, [f for f in a if f.can_id == can_id], [f for f in b if f.can_id == can_id],
+              tol_s)
+    return res
+
+
+def _walk(res: CrossCheck, a: list[Frame], b: list[Frame], tol_s: float) -> None:
+    """Match two records of one CAN ID in order, by timestamp."""
     i = j = 0
     while i < len(a) and j < len(b):
         fa, fb = a[i], b[j]
         if abs(fa.ts - fb.ts) <= tol_s:
-            if fa.can_id == fb.can_id and fa.data == fb.data:
+            if fa.data == fb.data:
                 res.matched += 1
             else:
                 res.data_mismatch.append((fa, fb))
@@ -669,4 +682,3 @@ def crosscheck(candump: Sequence[Frame], pycan: Sequence[Frame],
             j += 1
     res.only_candump.extend(a[i:])
     res.only_pycan.extend(b[j:])
-    return res

@@ -231,8 +231,8 @@ GLOBAL: list[Row] = [
      "disturbances; live and offline emulator agree (trips, and every graded command)",
      check_bus),
     ("candump_crosscheck", "candump -L vs python-can",
-     "same frames, same order, same timestamps between the start and stop markers (so the "
-     "same brake_requests, controlled stops too)",
+     "same frames, same timestamps, in the same order CAN ID by CAN ID, between the start and "
+     "stop markers (so the same brake_requests, controlled stops too)",
      check_candump),
     ("log_format", "estopd --log-json lines",
      "every line a JSON object with t_mono/event; one state line per state change on the bus, "

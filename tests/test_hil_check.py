@@ -186,6 +186,24 @@ def test_read_candump_and_crosscheck() -> None:
     cc = crosscheck(cd, changed)
     assert not cc.ok and len(cc.data_mismatch) == 1
     assert not crosscheck([], py).ok
+    # another ID in the other frame's place is no match either
+    other = crosscheck(cd, [py[0], Frame(py[1].ts, 0x7FF, py[1].data), py[2]])
+    assert not other.ok and len(other.only_candump) == len(other.only_pycan) == 1
+
+
+def test_crosscheck_order_is_per_sender() -> None:
+    # Seen in a run: the daemon's stop frame and the harness's marker 155 us later, on two
+    # CPUs, reached candump's socket in one order and python-can's in the other.
+    stop = Frame(1795599529.515946, 0x050, bytes.fromhex("01640005000001CF"))
+    marker = Frame(1795599529.516101, 0x7FF, b"HILSYNC")
+    before = Frame(1795599529.505946, 0x050, bytes.fromhex("01640005000000E0"))
+    cc = crosscheck([before, marker, stop], [before, stop, marker], (before.ts, marker.ts))
+    assert cc.ok and cc.matched == 3
+    # within one ID the order still counts: two frames swapped do not match
+    late = Frame(stop.ts + 0.01, 0x050, bytes.fromhex("016400050000023A"))
+    swapped = crosscheck([before, stop, late], [before, Frame(stop.ts, 0x050, late.data),
+                                               Frame(late.ts, 0x050, stop.data)])
+    assert not swapped.ok and len(swapped.data_mismatch) == 2
 
 
 def test_summary_and_gaps() -> None:

@@ -45,7 +45,8 @@ STATES = ["STOPPED", "ARMED", "SLOWING"]
 STOPPED, ARMED, SLOWING = 0, 1, 2
 SLOW_BACK_PACKETS = 3  # valid packets that end SLOWING (spec section 3)
 UDP_RCVBUF = 4 << 20
-UDP_ROUND_MAX = 256  # datagrams read per loop round
+UDP_ROUND_MAX = 256  # datagrams read per loop round, at most
+UDP_ROUND_US = 2_000  # and for at most this long
 SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # root may exceed net.core.rmem_max
 
 
@@ -212,9 +213,12 @@ class Daemon:
                                                 "udp") else None
 
     def on_udp(self, t: int) -> None:
-        # As estopd: a bounded number per loop round, so that a backlog (a flood into the large
-        # receive buffer) never holds up the frames, the deadlines or the stop channel.
+        # As estopd: a bounded number per loop round (and, Python being slow under TCG, a
+        # bounded time), so that a backlog (a flood into the large receive buffer) never holds
+        # up the frames, the deadlines or the stop channel.
         for _ in range(UDP_ROUND_MAX):
+            if now_us() - t >= UDP_ROUND_US:
+                return
             try:
                 data = self.udp.recv(64)
             except BlockingIOError:

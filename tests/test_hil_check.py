@@ -895,3 +895,33 @@ def test_protocol_shows_the_roll_outs(tmp_path: Path) -> None:
     for name in ("latency.png", "distance.png"):
         assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "Distance plot" in (tmp_path / "protocol.md").read_text()
+
+
+def test_standin_reads_datagrams_in_batches() -> None:
+    """The stand-in's recvmmsg (ctypes): in order, at most n a call, long ones cut at 64."""
+    import socket
+    import time
+
+    import standin_estopd
+
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        rx.bind(("127.0.0.1", 0))
+        rx.setblocking(False)
+        batch = standin_estopd.BatchReceiver(rx, n=8)
+        assert batch.recv() == []
+        tx.connect(rx.getsockname())
+        sent = [b"", b"a" * 19, b"b" * 20, b"c" * 100] + [bytes([i]) * 5 for i in range(10)]
+        for m in sent:
+            tx.send(m)
+        got: list[bytes] = []
+        end = time.monotonic() + 2.0
+        while len(got) < len(sent) and time.monotonic() < end:
+            more = batch.recv()
+            assert len(more) <= 8
+            got += more
+        assert got == [m[:64] for m in sent]
+    finally:
+        rx.close()
+        tx.close()

@@ -1,8 +1,11 @@
 """Pure logic of the HIL harness (no sockets, no threads, no vcan): testable on any host.
 
 - :class:`BrakeController` emulates the brake controller that receives ESTOP_BRAKE (spec
-  section 4): it accepts only frames with a good CRC, a legal alive counter that moved on, and
-  consistent fields, and it brakes by itself when no good frame has arrived for 50 ms.
+  sections 4 and 7): it accepts only frames with a good CRC, a legal alive counter that moved
+  on, and consistent fields, and it brakes by itself when no good frame has arrived for 50 ms.
+  It grades its braking as a real controller does (section 7): the share of the emergency
+  deceleration is estop.brakecheck's answer (0 release, brake_level/100 for brake_request 2,
+  1 for an emergency brake and for any brake_request it does not know).
   Frame checks use the project's codecs in ``estop.protocol.can`` (``BrakeFrame.check``,
   ``StatusFrame.check``, ``CounterChecker``), which are written independently of the C core.
 - :func:`crosscheck` compares the candump log with what python-can saw.
@@ -19,6 +22,7 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
+from estop.brakecheck import EMERGENCY, BrakeFrameChecker
 from estop.protocol.can import (
     BRAKE_ID,
     STATUS_ID,
@@ -67,9 +71,16 @@ class Trip:
 
 @dataclass(frozen=True, slots=True)
 class BrakeChange:
+    """The controller's braking changed at ``ts``: from then on it decelerates the car at
+    ``share`` of its emergency deceleration (spec section 7)."""
+
     ts: float
-    braking: bool
-    cause: str  # "frame" (brake_request of a good frame) or "silence" (watchdog)
+    share: float
+    cause: str  # "frame" (a frame from the unit commanded it) or "silence" (watchdog)
+
+    @property
+    def braking(self) -> bool:
+        return self.share > 0.0
 
 
 @dataclass
@@ -79,10 +90,17 @@ class BrakeController:
     Feed it every frame with :meth:`on_frame` (in time order) and call :meth:`on_tick` with the
     current time whenever possible; it brakes when no good ESTOP_BRAKE frame arrived for
     ``silence_s``. It powers up braking, as a real one would.
+
+    How hard it brakes (:attr:`share`, every change in :attr:`changes`) is
+    :class:`estop.brakecheck.BrakeFrameChecker`'s graded answer: what the latest frame from the
+    unit commands (a frame with a right CRC and a new counter whose content is wrong, e.g. an
+    unknown brake_request, commands an emergency brake), or 1 after the silence. The grader
+    starts over whenever this controller's counter does (a new sender, a silence), so both
+    agree on which frames came from the unit.
     """
 
     silence_s: float = BRAKE_SILENCE_S
-    braking: bool = True
+    share: float = EMERGENCY
     last_good: float | None = None
     last_frame: BrakeFrame | None = None
     good: int = 0
@@ -95,6 +113,13 @@ class BrakeController:
     _brake_ctr: CounterChecker = field(default_factory=CounterChecker)
     _status_ctr: CounterChecker = field(default_factory=CounterChecker)
     _new_sender_at: float | None = None
+    _grader: BrakeFrameChecker = field(
+        default_factory=lambda: BrakeFrameChecker(status_id=None))
+
+    @property
+    def braking(self) -> bool:
+        """Whether it brakes at all (any share above 0)."""
+        return self.share > 0.0
 
     def expect_new_sender(self, since: float | None = None) -> None:
         """A new daemon starts: its counters start over, so no continuity is expected. With
@@ -103,12 +128,13 @@ class BrakeController:
         if since is None:
             self._brake_ctr.reset()
             self._status_ctr.reset()
+            self._grader.reset()
         self._new_sender_at = since
 
-    def _set(self, ts: float, braking: bool, cause: str) -> None:
-        if braking != self.braking:
-            self.braking = braking
-            self.changes.append(BrakeChange(ts, braking, cause))
+    def _set(self, ts: float, share: float, cause: str) -> None:
+        if share != self.share:
+            self.share = share
+            self.changes.append(BrakeChange(ts, share, cause))
 
     def on_frame(self, frame: Frame) -> None:
         """Any frame (of any ID) proves that time has reached ``frame.ts`` on the bus."""
@@ -118,6 +144,7 @@ class BrakeController:
             self._new_sender_at = None
             self._brake_ctr.reset()
             self._status_ctr.reset()
+            self._grader.reset()
         if frame.can_id == BRAKE_ID:
             self._on_brake(frame)
         elif frame.can_id == STATUS_ID:
@@ -143,6 +170,11 @@ class BrakeController:
         return True
 
     def _on_brake(self, frame: Frame) -> None:
+        if self.tripped:
+            self._grader.reset()  # after a silence its counter starts over, as ours does
+        verdict = self._grader.feed(frame.ts, frame.can_id, frame.data)
+        if verdict is not None and verdict.share is not None:
+            self._set(frame.ts, verdict.share, "frame")
         problems = BrakeFrame.check(frame.data)
         if problems:
             for p in problems:
@@ -155,7 +187,6 @@ class BrakeController:
         self.last_good = frame.ts
         self.last_frame = parsed
         self.tripped = False
-        self._set(frame.ts, parsed.brakes, "frame")
 
     def _on_status(self, frame: Frame) -> None:
         problems = StatusFrame.check(frame.data)
@@ -175,7 +206,7 @@ class BrakeController:
         if now - self.last_good >= self.silence_s - _EPS:
             self.tripped = True
             self.trips.append(Trip(self.last_good, now))
-            self._set(now, True, "silence")
+            self._set(now, EMERGENCY, "silence")
 
 
 def replay(frames: Iterable[Frame], silence_s: float = BRAKE_SILENCE_S,
@@ -189,6 +220,35 @@ def replay(frames: Iterable[Frame], silence_s: float = BRAKE_SILENCE_S,
     if end is not None and ctl.last_good is not None and end - ctl.last_good >= silence_s - _EPS:
         ctl.on_tick(ctl.last_good + silence_s)
     return ctl
+
+
+def share_at(changes: Sequence[BrakeChange], t: float, initial: float = EMERGENCY) -> float:
+    """The share the controller braked with at ``t`` (``initial`` before its first change; it
+    powers up braking)."""
+    share = initial
+    for c in changes:
+        if c.ts > t:
+            break
+        share = c.share
+    return share
+
+
+def shares_between(changes: Sequence[BrakeChange], t0: float, t1: float,
+                   initial: float = EMERGENCY) -> list[float]:
+    """Every share the controller braked with in ``[t0, t1)``, in order (no repeats)."""
+    out = [share_at(changes, t0, initial)]
+    for c in changes:
+        if t0 < c.ts < t1 and c.share != out[-1]:
+            out.append(c.share)
+    return out
+
+
+def frame_commands(changes: Iterable[BrakeChange], t0: float = -math.inf,
+                   t1: float = math.inf) -> list[tuple[float, float]]:
+    """(time, share) of the changes frames commanded in ``[t0, t1]``: the same for the live
+    controller and a replay of the bus record, as both see the same kernel timestamps (the
+    silence watchdog's changes differ: live they come when it looked)."""
+    return [(c.ts, c.share) for c in changes if c.cause == "frame" and t0 <= c.ts <= t1]
 
 
 # --------------------------------------------------------------------------- statistics
@@ -439,6 +499,23 @@ def excused(t0: float, t1: float, stalls: Sequence[tuple[float, float]],
     return s if s > 0 and (t1 - t0) - s <= runnable_s else None
 
 
+def judge_drops(dropped: int | None, stall_s: float, what: str,
+                excuse_s: float = STALL_EXCUSE_S) -> Verdict:
+    """Datagrams the kernel dropped at the daemon's socket while ``what`` lasted, against 0: the
+    receive buffer has room for all of it. A drop while a CPU stood still ``excuse_s`` or more
+    (``stall_s`` of it) cannot be judged (the daemon may not have run to read): inconclusive,
+    never a pass. Unknown (no socket found) is a failure."""
+    if dropped is None:
+        return Verdict([f"{what}: no daemon socket in /proc/net/udp"])
+    if not dropped:
+        return Verdict([])
+    if stall_s >= excuse_s:
+        why = (f"the kernel dropped {dropped} datagrams of {what} while a CPU stood still "
+               f"{round(stall_s * 1000, 3)} ms of it")
+        return Verdict([f"kernel drops not judged: {why}"], why)
+    return Verdict([f"the kernel dropped {dropped} datagrams of {what}"])
+
+
 # --------------------------------------------------------------------------- UDP flood figures
 
 def udp_socket_drops(proc_net_udp: str, port: int) -> tuple[int, int] | None:
@@ -559,8 +636,13 @@ class CrossCheck:
 def crosscheck(candump: Sequence[Frame], pycan: Sequence[Frame],
                window: tuple[float, float] | None = None,
                tol_s: float = 2e-6) -> CrossCheck:
-    """Same frames in the same order? Both receivers read the kernel timestamp of the same skb,
-    so a frame has the same time (to the microsecond candump prints) in both records.
+    """Same frames, in the same order? Both receivers read the kernel timestamp of the same
+    skb, so a frame has the same time (to the microsecond candump prints) in both records.
+
+    The order is compared CAN ID by CAN ID: frames of different senders (the daemon's, the
+    harness's markers) that came within microseconds of each other on two CPUs may reach two
+    sockets in either order (seen: a marker 155 us after a stop frame, read before it by
+    candump and after it by python-can). Frames of one ID come from one sender, one at a time.
 
     Only frames inside ``window`` are compared (default: the span both receivers covered), so
     frames at the start/stop edges, seen by one receiver only, do not count.
@@ -574,11 +656,19 @@ def crosscheck(candump: Sequence[Frame], pycan: Sequence[Frame],
     lo, hi = window[0] - tol_s, window[1] + tol_s
     a = [f for f in candump if lo <= f.ts <= hi]
     b = [f for f in pycan if lo <= f.ts <= hi]
+    for can_id in sorted({f.can_id for f in a} | {f.can_id for f in b}):
+        _walk(res, [f for f in a if f.can_id == can_id], [f for f in b if f.can_id == can_id],
+              tol_s)
+    return res
+
+
+def _walk(res: CrossCheck, a: list[Frame], b: list[Frame], tol_s: float) -> None:
+    """Match two records of one CAN ID in order, by timestamp."""
     i = j = 0
     while i < len(a) and j < len(b):
         fa, fb = a[i], b[j]
         if abs(fa.ts - fb.ts) <= tol_s:
-            if fa.can_id == fb.can_id and fa.data == fb.data:
+            if fa.data == fb.data:
                 res.matched += 1
             else:
                 res.data_mismatch.append((fa, fb))
@@ -592,4 +682,3 @@ def crosscheck(candump: Sequence[Frame], pycan: Sequence[Frame],
             j += 1
     res.only_candump.extend(a[i:])
     res.only_pycan.extend(b[j:])
-    return res

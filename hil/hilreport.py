@@ -1,23 +1,36 @@
-"""Test protocol of a HIL run: Markdown table and latency plot from ``results.json``.
+"""Test protocol of a HIL run: Markdown table, the car's roll-outs, and plots from
+``results.json``.
 
     python hil/hilreport.py OUT_DIR [--extra vm.json]
 
-Writes ``OUT_DIR/protocol.md`` and ``OUT_DIR/latency.png`` and prints the table. Exits 1 when
-the run failed or ``results.json`` is missing or unreadable (never a silent pass).
+Writes ``OUT_DIR/protocol.md``, ``OUT_DIR/latency.png`` (the latencies and deadline overshoots
+measured on the bus) and ``OUT_DIR/distance.png`` (how far the car rolls from the moment that
+mattered, by row) and prints the protocol. Exits 1 when the run failed or ``results.json`` is
+missing or unreadable (never a silent pass).
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
+import textwrap
 from pathlib import Path
 
+# The latency plot's series (samples_ms labels), shown in the order of the rows.
 PLOTTED = (
     "dead-man overshoot",
     "overshoot under invalid flood",
     "TCP STOP -> stop frame",
     "release -> ARMED frame",
+    "lift datagram -> stop frame",
+    "TCP LIFT -> stop frame",
+    "SLOWING overshoot (burst)",
+    "3rd packet -> ARMED frame",
+    "SLOWING overshoot (loss)",
+    "two-stage timeout overshoot",
+    "stop datagram -> stop frame",
 )
 
 
@@ -66,6 +79,10 @@ def protocol_md(doc: dict, extra: dict | None = None) -> str:
         f"- Daemon timeout {meta.get('timeout_ms', '?')} ms; latency scenarios repeated "
         f"{meta.get('repeat', '?')}x; scenario runtime {meta.get('runtime_s', '?')} s",
     ]
+    if meta.get("two_stage"):
+        lines.append(f"- Two-stage daemon: {meta['two_stage']}")
+    if meta.get("car"):
+        lines.append(f"- Car (vehicle model, docs/VEHICLE.md): {meta['car']}")
     for k, v in extra.items():
         lines.append(f"- {k}: {v}")
     if doc.get("fatal"):
@@ -85,7 +102,57 @@ def protocol_md(doc: dict, extra: dict | None = None) -> str:
     lines.append("")
     lines.append("Times are measured on the bus: kernel receive timestamps of the frames "
                  "(python-can) against the harness's own send times, same clock.")
+    lines += rollout_md(doc)
     return "\n".join(lines) + "\n"
+
+
+def rollouts(doc: dict) -> list[tuple[str, dict]]:
+    """(label, roll-out record) of every row that measured one, in the order of the rows."""
+    return [(label, ro) for r in doc.get("results", [])
+            for label, ro in (r.get("rollouts") or {}).items()]
+
+
+def median(values: list[float]) -> float:
+    """The interpolated median, as the rows' figures (hilcheck.summary) give it."""
+    xs = sorted(values)
+    mid = (len(xs) - 1) / 2
+    return (xs[math.floor(mid)] + xs[math.ceil(mid)]) / 2 if xs else float("nan")
+
+
+def _spread(values: list[float], digits: int) -> str:
+    """``p50 (min-max)``."""
+    if not values:
+        return "-"
+    xs = sorted(values)
+    if len(xs) == 1:
+        return f"{xs[0]:.{digits}f}"
+    return f"{median(xs):.{digits}f} ({xs[0]:.{digits}f}-{xs[-1]:.{digits}f})"
+
+
+def rollout_md(doc: dict) -> list[str]:
+    """The distances table: how far the car rolled from the moment that mattered."""
+    ros = rollouts(doc)
+    if not ros:
+        return []
+    car = doc.get("meta", {}).get("car", "15 km/h, emergency deceleration 8 m/s^2")
+    lines = ["", "## How far the car rolls", "",
+             f"The car at {car} (the vehicle model's defaults, docs/VEHICLE.md), from the "
+             "moment that mattered to standstill: replayed from the frames on the bus through "
+             "the brake controller's graded answer (estop.rollout; the harness's own emulator "
+             "must agree to 1 mm). *Model* is the figure for an ideal unit with the row's times.",
+             "", "| From | n | braking began after, ms: p50 (min-max) | distance, m: p50 "
+             "(min-max) | model, m |", "|---|---|---|---|---|"]
+    compare: list[list] = []
+    for label, ro in ros:
+        dist = [float(v) for v in ro.get("distance_m", [])]
+        began = [float(v) for v in ro.get("braking_after_ms", []) if v is not None]
+        lines.append(f"| {cell(label)} | {len(dist)} | {_spread(began, 1)} | "
+                     f"{_spread(dist, 3)} | {float(ro.get('model_m', 0.0)):.3f} "
+                     f"({cell(str(ro.get('model', '')))}) |")
+        compare += ro.get("compare", [])
+    for text, metres, *_ in compare:
+        lines.append(f"| {cell(str(text))} | - | - | - | {float(metres):.3f} |")
+    return lines
 
 
 def plot(doc: dict, path: Path) -> bool:
@@ -102,14 +169,15 @@ def plot(doc: dict, path: Path) -> bool:
                 series.append((name, values))
     if not series:
         return False
-    fig, ax = plt.subplots(figsize=(9, 4.8), dpi=110)
+    fig, ax = plt.subplots(figsize=(max(9.0, 1.1 * len(series) + 1.5), 5.2), dpi=110)
     for i, (_, values) in enumerate(series):
         xs = [i + 0.08 * ((j % 5) - 2) for j in range(len(values))]
         ax.scatter(xs, values, s=22, alpha=0.8, zorder=3)
         if len(values) > 2:
             ax.boxplot([values], positions=[i], widths=0.5, showfliers=False)
     ax.set_xticks(range(len(series)))
-    ax.set_xticklabels([f"{n}\n(n={len(v)})" for n, v in series], fontsize=8)
+    ax.set_xticklabels([textwrap.fill(n, 14) + f"\n(n={len(v)})" for n, v in series],
+                       fontsize=7.5)
     ax.axhline(0, color="grey", lw=0.8)
     prof = doc.get("meta", {}).get("timing_profile") or {}
     for key, style in (("p50", ":"), ("max", "--")):
@@ -121,9 +189,73 @@ def plot(doc: dict, path: Path) -> bool:
     ax.set_ylabel("ms: frame time on the bus - reference time")
     ax.set_xlim(-0.6, len(series) - 0.4)
     meta = doc.get("meta", {})
-    ax.set_title(f"estop stop latencies on {meta.get('iface', 'vcan')} "
+    ax.set_title(f"estop stop latencies and deadline overshoots on {meta.get('iface', 'vcan')} "
                  f"({meta.get('mode', '?')}, {meta.get('date', '')})", fontsize=10)
     ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return True
+
+
+def plot_distance(doc: dict, path: Path) -> bool:
+    """Bars of how far the car rolled (p50, whiskers min-max), split into the metres rolled
+    before braking began and the metres braking; the model's figure of each row as a tick, and
+    the model-only comparisons in grey. False when no row measured a roll-out."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Patch
+
+    ros = rollouts(doc)
+    if not ros:
+        return False
+    car = doc.get("meta", {}).get("car", "")
+    bars: list[tuple[str, float, float, float, float, float | None, bool]] = []
+    for label, ro in ros:
+        dist = sorted(float(x) for x in ro.get("distance_m", []))
+        pre = sorted(float(x) for x in ro.get("before_braking_m", []))
+        if not dist:
+            continue
+        p50 = median(dist)
+        before = median(pre) if pre else 0.0
+        bars.append((f"{label}\n(n={len(dist)})", p50, before, dist[0], dist[-1],
+                     float(ro.get("model_m", 0.0)), True))
+        for text, metres, *rest in ro.get("compare", []):
+            bars.append((str(text), float(metres), float(rest[0]) if rest else 0.0,
+                         float(metres), float(metres), None, False))
+    if not bars:
+        return False
+    fig, ax = plt.subplots(figsize=(9.5, 0.75 * len(bars) + 1.8), dpi=110)
+    ys = list(range(len(bars)))[::-1]
+    for y, (_, total, before, lo, hi, model, measured) in zip(ys, bars, strict=True):
+        color = "tab:blue" if measured else "lightgrey"
+        ax.barh(y, before, color=color, alpha=0.45, hatch="//", edgecolor="grey", height=0.6)
+        ax.barh(y, total - before, left=before, color=color, height=0.6)
+        if measured:
+            ax.errorbar(total, y, xerr=[[total - lo], [hi - total]], fmt="none", ecolor="black",
+                        capsize=4, lw=1)
+            if model is not None:
+                ax.plot([model, model], [y - 0.38, y + 0.38], color="tab:red", lw=1.5)
+        ax.annotate(f"{total:.2f} m", (total, y), xytext=(26, 0), textcoords="offset points",
+                    va="center", fontsize=8)
+    ax.set_yticks(ys)
+    ax.set_yticklabels([textwrap.fill(b[0], 34) if "\n" not in b[0] else b[0] for b in bars],
+                       fontsize=7.5)
+    ax.set_xlabel("metres from the moment that mattered to standstill (hatched: before "
+                  "braking began)")
+    ax.set_xlim(0, max(b[1] for b in bars) * 1.45)
+    ax.legend(handles=[
+        Patch(color="tab:blue", label="measured on the bus: p50, whiskers min-max"),
+        Patch(facecolor="white", edgecolor="grey", hatch="//", label="rolled before braking"),
+        Line2D([], [], color="tab:red", lw=1.5, label="model: ideal unit, the row's times"),
+        Patch(color="lightgrey", label="model only")], fontsize=7.5, loc="upper right")
+    meta = doc.get("meta", {})
+    ax.set_title(f"How far the car rolls from the moment that mattered to standstill\n{car}; "
+                 f"{meta.get('mode', '?')}, {meta.get('date', '')}", fontsize=9)
+    ax.grid(axis="x", alpha=0.3)
     fig.tight_layout()
     fig.savefig(path)
     plt.close(fig)
@@ -153,6 +285,8 @@ def main(argv: list[str] | None = None) -> int:
         try:
             if plot(doc, out / "latency.png"):
                 (extra := extra or {})["Latency plot"] = str(out / "latency.png")
+            if plot_distance(doc, out / "distance.png"):
+                (extra := extra or {})["Distance plot"] = str(out / "distance.png")
         except Exception as exc:  # noqa: BLE001 - a missing plot fails the run, with reason
             sys.stderr.write(f"hil: latency plot failed: {exc}\n")
             ok = False

@@ -338,6 +338,7 @@ class Daemon:
         self.signal_time: float | None = None
         self.signal_mono: float | None = None  # the daemon's clock (t_mono) at the signal
         self.keyed = "--key-file" in argv  # the unit has a key (spec section 5)
+        self.opts: dict[str, str] = {}  # the options a row asked for (Run.want_opts)
 
     def _read(self) -> None:
         assert self.proc.stderr is not None
@@ -428,6 +429,11 @@ class UdpRemote:
         """Keepalive packets sent at or after wall time ``t`` (the list is in time order and
         long: a binary search, as this is polled)."""
         return len(self.keepalive_times) - bisect.bisect_left(self.keepalive_times, t)
+
+    def nth_since(self, t: float, n: int) -> float | None:
+        """The send time of the ``n``-th keepalive packet (1: the first) at or after ``t``."""
+        i = bisect.bisect_left(self.keepalive_times, t) + n - 1
+        return self.keepalive_times[i] if i < len(self.keepalive_times) else None
 
     def send(self, data: bytes) -> float:
         t = time.time()
@@ -520,6 +526,41 @@ class StopClient:
 
     def stop(self, stop_id: int = tcp.DEFAULT_STOP_ID) -> Exchange:
         return self.request(stop_id)
+
+    def lift(self) -> Exchange:
+        return self.request(tcp.LIFT)
+
+    def request_frame(self, msg_id: int, remote_id: int = 0, counter: int = 1) -> Exchange:
+        """A 48-byte request frame (spec section 5.2, tag 16 zero bytes, session 0) on this
+        connection, whose first 4 bytes tell the unit its form, and its 48-byte reply:
+        ``tag_ok`` says whether the reply has the zero tag of a unit without a key and echoes
+        the seq and counter."""
+        self.seq += 1
+        frame = auth.AuthRequest(msg_id, self.seq, remote_id, 0, counter).encode(None)
+        asm = tcp.FrameAssembler(auth.REPLY_SIZE)
+        t0 = time.time()
+        self.sock.sendall(frame)
+        end = time.monotonic() + self.timeout
+        while True:
+            left = end - time.monotonic()
+            if left <= 0:
+                raise RigError(f"no reply to a request frame within {self.timeout} s")
+            self.sock.settimeout(left)
+            data = self.sock.recv(128)
+            if not data:
+                raise RigError("connection closed instead of a reply to a request frame")
+            frames = asm.feed(data)
+            if frames:
+                t1 = time.time()
+                if len(frames) > 1 or asm.pending:
+                    raise RigError("more than one reply frame to one request")
+                try:
+                    rep = auth.AuthReply.decode(frames[0], None)
+                except tcp.FrameError as exc:
+                    raise RigError(f"bad reply frame {frames[0].hex(' ')}: {exc}") from exc
+                ok = (frames[0][32:] == bytes(16) and rep.seq == self.seq
+                      and rep.counter == counter)
+                return Exchange(rep.reply, t0, t1, rep, ok, frame)
 
     def status(self) -> Exchange:
         return self.request(tcp.STATUS)
@@ -734,6 +775,33 @@ class Flooder:
                 self.proc.kill()
                 self.proc.wait(timeout=3)
         self._reader.join(timeout=2)
+
+
+class QueueWatch:
+    """A thread that reads the daemon's UDP receive queue (/proc/net/udp) every ``period`` s:
+    how full it got (bytes of the receive buffer in use, the kernel's count)."""
+
+    def __init__(self, port: int, period: float = 0.005) -> None:
+        self.port = port
+        self.period = period
+        self.max_bytes: int | None = None
+        self.reads = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="queue-watch", daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            got = udp_drops(self.port)
+            if got is not None:
+                self.reads += 1
+                self.max_bytes = max(self.max_bytes or 0, got[0])
+            self._stop.wait(self.period)
+
+    def stop(self) -> int | None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        return self.max_bytes
 
 
 def udp_drops(port: int) -> tuple[int, int] | None:

@@ -1,7 +1,9 @@
 """Stand-in for estopd, used ONLY to self-test the HIL harness (``hil/run --dut-standin``).
 
-It follows spec sections 1-5 and docs/DESIGN.md closely enough for the harness to exercise
-every scenario, so the harness can be checked without the real daemon. It is not the product:
+It follows spec sections 1-5 (version 3: LIFT by TCP and lift datagram, SLOWING with
+``--slow-ms``/``--slow-level``, ``--warn-ms``) and the daemon's log lines (a ``cause`` on every
+``state`` line, firmware/estopd/README.md) closely enough for the harness to exercise every
+scenario, so the harness can be checked without the real daemon. It is not the product:
 test protocols made with it say so in their header. ``--bug NAME`` injects a known defect so
 that one can see the harness catch it:
 
@@ -11,6 +13,9 @@ that one can see the harness catch it:
 - ``bad-crc``: every 50th ESTOP_BRAKE frame carries a wrong CRC
 - ``no-tag-check``: (with a key) tags are not checked, so forged messages authenticate
 - ``no-replay-check``: (with a key) session and counter are not checked, so replays do
+- ``no-lift``: LIFT is not known (NAK 1 on TCP, a lift datagram counts as invalid): only the
+  silence stops the car after a lift
+- ``slow-back-2``: SLOWING ends after 2 valid packets instead of 3
 
 With ``--key-file`` it has a key (spec section 5, codecs of ``estop.protocol.auth``).
 """
@@ -18,6 +23,7 @@ With ``--key-file`` it has a key (spec section 5, codecs of ``estop.protocol.aut
 from __future__ import annotations
 
 import argparse
+import ctypes
 import errno
 import json
 import os
@@ -35,12 +41,65 @@ from estop.protocol.can import BrakeFrame, StatusFrame
 PERIOD_US = 10_000
 STATUS_PERIOD_US = 100_000
 FAULT_AFTER_US = 20_000  # no ESTOP_BRAKE got out for this long: fault
-REASONS = ["none", "boot", "tcp_stop", "udp_timeout", "fault"]
-STATES = ["STOPPED", "ARMED"]
+REASONS = ["none", "boot", "tcp_stop", "udp_timeout", "fault", "lift"]
+STATES = ["STOPPED", "ARMED", "SLOWING"]
+STOPPED, ARMED, SLOWING = 0, 1, 2
+SLOW_BACK_PACKETS = 3  # valid packets that end SLOWING (spec section 3)
+UDP_RCVBUF = 4 << 20
+UDP_ROUND_MAX = 256  # datagrams read per loop round, at most
+UDP_ROUND_US = 2_000  # and for at most this long (the batch under way is finished)
+SO_RCVBUFFORCE = getattr(socket, "SO_RCVBUFFORCE", 33)  # root may exceed net.core.rmem_max
 
 
 def now_us() -> int:
     return time.monotonic_ns() // 1000
+
+
+class _Iovec(ctypes.Structure):
+    _fields_ = [("iov_base", ctypes.c_void_p), ("iov_len", ctypes.c_size_t)]
+
+
+class _Msghdr(ctypes.Structure):
+    _fields_ = [("msg_name", ctypes.c_void_p), ("msg_namelen", ctypes.c_uint32),
+                ("msg_iov", ctypes.POINTER(_Iovec)), ("msg_iovlen", ctypes.c_size_t),
+                ("msg_control", ctypes.c_void_p), ("msg_controllen", ctypes.c_size_t),
+                ("msg_flags", ctypes.c_int)]
+
+
+class _Mmsghdr(ctypes.Structure):
+    _fields_ = [("msg_hdr", _Msghdr), ("msg_len", ctypes.c_uint)]
+
+
+class BatchReceiver:
+    """``recvmmsg(2)`` through ctypes (Python's socket module has none): up to ``n`` datagrams
+    of up to ``size`` bytes (longer ones cut, as ``recv(size)`` would) in one system call."""
+
+    def __init__(self, sock: socket.socket, n: int = 64, size: int = 64) -> None:
+        self.fd = sock.fileno()
+        self.n = n
+        self.libc = ctypes.CDLL(None, use_errno=True)
+        self.libc.recvmmsg.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_uint,
+                                       ctypes.c_int, ctypes.c_void_p]
+        self.libc.recvmmsg.restype = ctypes.c_int
+        self.bufs = [ctypes.create_string_buffer(size) for _ in range(n)]
+        self.iovs = (_Iovec * n)()
+        self.msgs = (_Mmsghdr * n)()
+        for i, buf in enumerate(self.bufs):
+            self.iovs[i].iov_base = ctypes.cast(buf, ctypes.c_void_p)
+            self.iovs[i].iov_len = size
+            self.msgs[i].msg_hdr.msg_iov = ctypes.pointer(self.iovs[i])
+            self.msgs[i].msg_hdr.msg_iovlen = 1
+
+    def recv(self) -> list[bytes]:
+        """The datagrams queued now (at most ``n``); none when the queue is empty."""
+        got = self.libc.recvmmsg(self.fd, ctypes.addressof(self.msgs), self.n,
+                                 socket.MSG_DONTWAIT, None)
+        if got < 0:
+            err = ctypes.get_errno()
+            if err in (errno.EAGAIN, errno.EWOULDBLOCK, errno.EINTR):
+                return []
+            raise OSError(err, os.strerror(err))
+        return [self.bufs[i].raw[:self.msgs[i].msg_len] for i in range(got)]
 
 
 class Daemon:
@@ -48,21 +107,37 @@ class Daemon:
         self.a = args
         self.bugs = set(args.bug or [])
         self.timeout_us = args.timeout_ms * 1000
-        self.warn_us = self.timeout_us // 2
-        self.state, self.reason = 0, 1
+        self.slow_us = (args.slow_ms if args.slow_ms is not None else args.timeout_ms) * 1000
+        # spec section 3: W defaults to half the slow time, in whole ms
+        self.warn_us = (args.warn_ms * 1000 if args.warn_ms is not None
+                        else self.slow_us // 2 // 1000 * 1000)
+        if not 0 < self.warn_us <= self.slow_us <= self.timeout_us:
+            raise ValueError("times must satisfy 0 < warn <= slow <= timeout")
+        if not 1 <= args.slow_level <= 99:
+            raise ValueError("--slow-level must be 1..99")
+        self.slow_level = args.slow_level
+        self.state, self.reason = STOPPED, 1
         self.last_valid: int | None = None
         self.valid_run = 0
+        self.slow_packets = 0  # valid packets since SLOWING began
         self.neutral = False
         self.ctr_b = self.ctr_s = 0
         self.n_valid = self.n_invalid = self.n_badcrc = self.n_stops = self.n_auth = 0
+        self.n_slow = 0
         self.key: bytes | None = load_key_file(args.key_file) if args.key_file else None
         self.session = int.from_bytes(os.urandom(8), "little") or 1
         self.remotes: dict[int, dict[str, int]] = {}  # remote id -> channel -> counter
         self.fail_since: int | None = None
         self.sent_brake = 0
         self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        # as estopd: a receive buffer that absorbs a flood (4 MiB asked, the kernel doubles it)
+        try:
+            self.udp.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, UDP_RCVBUF)
+        except OSError:
+            self.udp.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RCVBUF)
         self.udp.bind((args.bind, args.udp_port))
         self.udp.setblocking(False)
+        self.rx = BatchReceiver(self.udp)
         self.lsn = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         self.lsn.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         self.lsn.bind((args.bind, args.tcp_port))
@@ -75,7 +150,10 @@ class Daemon:
         self.running = True
         t = now_us()
         self.log("start", can=args.can, udp_port=args.udp_port, tcp_port=args.tcp_port,
-                 auth="key" if self.key else "none", session=f"0x{self.session:016X}")
+                 timeout_ms=args.timeout_ms, slow_ms=self.slow_us // 1000,
+                 slow_level=self.slow_level, warn_ms=self.warn_us // 1000,
+                 auth="key" if self.key else "none", session=f"0x{self.session:016X}",
+                 udp_rcvbuf=self.udp.getsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF))
         self.next_b = t
         self.next_s = t
 
@@ -97,15 +175,13 @@ class Daemon:
                 return
             if self.fail_since is None:
                 self.fail_since = t
-            elif t - self.fail_since >= FAULT_AFTER_US and self.state == 1:
+            elif t - self.fail_since >= FAULT_AFTER_US and self.state != STOPPED:
                 self.log("fault", cause="can_tx")
-                self.stop(4, t, "-")
+                self.stop(4, t, "-", "fault")
 
     def send_brake(self, t: int, periodic: bool = False) -> None:
-        flags = 0
-        if self.state == 1 and self.last_valid is not None and t - self.last_valid >= self.warn_us:
-            flags = 1
-        data = BrakeFrame.for_state(self.state, self.reason, flags, self.ctr_b).encode()
+        data = BrakeFrame.for_state(self.state, self.reason, self.flags(t), self.ctr_b,
+                                    slow_level=self.slow_level).encode()
         self.sent_brake += 1
         if "bad-crc" in self.bugs and self.sent_brake % 50 == 0:
             data = data[:7] + bytes((data[7] ^ 0x5A,))
@@ -121,23 +197,37 @@ class Daemon:
         if self.last_valid is not None and t - self.last_valid < self.timeout_us:
             age = min((t - self.last_valid) // 1000, 0xFFFE)
         data = StatusFrame(min(self.n_valid, 255), min(self.n_invalid, 255),
-                           min(self.n_auth, 255), min(self.n_stops, 255), age,
-                           self.ctr_s).encode()
-        self.n_valid = self.n_invalid = self.n_auth = 0
+                           min(self.n_auth, 255), min(self.n_stops, 15), age,
+                           self.ctr_s, min(self.n_slow, 15)).encode()
+        self.n_valid = self.n_invalid = self.n_auth = self.n_stops = self.n_slow = 0
         self.ctr_s = (self.ctr_s + 1) % 15
         self.next_s += STATUS_PERIOD_US
         self.send(0x051, data, t)
 
     # ---- state
-    def stop(self, reason: int, t: int, src: str) -> None:
+    def flags(self, t: int) -> int:
+        """Link degraded: ARMED or SLOWING and no valid packet for the warn time."""
+        return int(self.state != STOPPED and self.last_valid is not None
+                   and t - self.last_valid >= self.warn_us)
+
+    def change(self, state: int, reason: int, t: int, src: str, cause: str) -> None:
+        """A state change: logged (with its cause), and a frame at once."""
+        self.log("state", **{"from": STATES[self.state], "to": STATES[state],
+                             "reason": REASONS[reason], "src": src, "cause": cause})
+        self.state, self.reason = state, reason
+        self.send_brake(t)
+
+    def stop(self, reason: int, t: int, src: str, cause: str) -> None:
         self.valid_run = 0
-        if self.state == 0:
+        if self.state == STOPPED:
             return
         self.n_stops += 1
-        self.state, self.reason = 0, reason
-        self.log("state", **{"from": "ARMED", "to": "STOPPED", "reason": REASONS[reason],
-                             "src": src})
-        self.send_brake(t)
+        self.change(STOPPED, reason, t, src, cause)
+
+    def slow_down(self, t: int) -> None:
+        self.slow_packets = 0
+        self.n_slow += 1
+        self.change(SLOWING, 0, t, "-", "udp_silence")
 
     def live(self, t: int) -> bool:
         return (self.last_valid is not None and t - self.last_valid < self.timeout_us
@@ -172,29 +262,46 @@ class Daemon:
                                                 "udp") else None
 
     def on_udp(self, t: int) -> None:
-        while True:
-            try:
-                data = self.udp.recv(64)
-            except BlockingIOError:
+        # As estopd: datagrams in batches (recvmmsg: a system call costs tens of us under TCG),
+        # a bounded number and time per loop round, so that a backlog (a flood into the large
+        # receive buffer) never holds up the frames, the deadlines or the stop channel.
+        n = 0
+        while n < UDP_ROUND_MAX and now_us() - t < UDP_ROUND_US:
+            batch = self.rx.recv()
+            if not batch:
                 return
-            if len(data) == auth.REQUEST_SIZE and data[:4] == auth.REQUEST_MAGIC \
-                    and struct.unpack_from("<I", data, 4)[0] == self.a.stop_id:
-                self.stop(2, t, "udp")  # a stop datagram: whatever its tag says
-                continue
-            body = self.body(data)
-            if body is not None or "invalid-alive" in self.bugs:
-                self.last_valid = t
-                if body is not None:
-                    self.n_valid += 1
-                    self.valid_run += 1
-                    self.neutral = udp.decode(body).is_neutral
-            else:
-                self.n_invalid += 1
+            n += len(batch)
+            for data in batch:
+                self.on_datagram(data, t)
+
+    def on_datagram(self, data: bytes, t: int) -> None:
+        if len(data) == auth.REQUEST_SIZE and data[:4] == auth.REQUEST_MAGIC:
+            msg_id = struct.unpack_from("<I", data, 4)[0]
+            # stop and lift datagrams: whatever their tags say
+            if msg_id == self.a.stop_id:
+                self.stop(2, t, "udp", "stop_datagram")
+                return
+            if msg_id == tcp.LIFT and "no-lift" not in self.bugs:
+                self.stop(5, t, "udp", "lift_datagram")
+                return
+        body = self.body(data)
+        if body is not None or "invalid-alive" in self.bugs:
+            self.last_valid = t
+            if body is not None:
+                self.n_valid += 1
+                self.valid_run += 1
+                self.neutral = udp.decode(body).is_neutral
+                if self.state == SLOWING:
+                    self.slow_packets += 1
+                    back = 2 if "slow-back-2" in self.bugs else SLOW_BACK_PACKETS
+                    if self.slow_packets >= back:
+                        self.change(ARMED, 0, t, "udp", "link_back")
+        else:
+            self.n_invalid += 1
 
     def reply(self, sock: socket.socket, req: tcp.Request, nak: int, t: int,
               frame: bytes | None = None) -> None:
-        flags = 1 if (self.state == 1 and self.last_valid is not None
-                      and t - self.last_valid >= self.warn_us) else 0
+        flags = self.flags(t)
         if frame is None:
             rep = tcp.Reply(nak == 0, req.seq, self.state, self.reason, flags, nak)
             sock.sendall(rep.encode())
@@ -234,25 +341,32 @@ class Daemon:
                     self.close(sock)
                     return
             kind = req.kind(self.a.stop_id)
+            if kind == "lift" and "no-lift" in self.bugs:
+                kind = "unknown"
             if kind == "stop":
-                self.stop(2, t, peer)
+                self.stop(2, t, peer, "tcp_stop")
+                self.reply(sock, req, 0, t, frame)
+            elif kind == "lift":
+                self.stop(5, t, peer, "lift")
                 self.reply(sock, req, 0, t, frame)
             elif kind == "status":
                 self.reply(sock, req, 0, t, frame)
             elif kind == "release":
                 if not authed:
                     self.reply(sock, req, 4, t, frame)
-                elif self.state == 1:
+                elif self.state != STOPPED:  # while SLOWING as while ARMED
                     self.reply(sock, req, 0, t, frame)
                 elif not self.live(t):
                     self.reply(sock, req, 2, t, frame)
                 elif not self.neutral:
                     self.reply(sock, req, 3, t, frame)
                 else:
-                    self.state, self.reason = 1, 0
-                    self.log("state", **{"from": "STOPPED", "to": "ARMED", "reason": "none",
-                                         "src": peer})
-                    self.send_brake(t)
+                    # a link silent for the slow time arms straight into SLOWING
+                    silent = self.last_valid is not None and t - self.last_valid >= self.slow_us
+                    if silent:
+                        self.slow_packets = 0
+                        self.n_slow += 1
+                    self.change(SLOWING if silent else ARMED, 0, t, peer, "release")
                     self.reply(sock, req, 0, t, frame)
             else:
                 self.reply(sock, req, 1, t, frame)
@@ -263,19 +377,30 @@ class Daemon:
         sock.close()
 
     def deadline(self) -> int | None:
-        if self.state != 1 or self.last_valid is None:
+        """The next silence deadline: the slow time while ARMED (when S < T), the timeout."""
+        if self.state == STOPPED or self.last_valid is None:
             return None
+        if self.state == ARMED and self.slow_us < self.timeout_us:
+            return self.last_valid + self.slow_us
         return self.last_valid + self.timeout_us
+
+    def on_deadline(self, t: int) -> None:
+        """Act on the silence deadline that is due at ``t`` (each at its own time)."""
+        assert self.last_valid is not None
+        if self.state == ARMED and self.slow_us < self.timeout_us:
+            self.slow_down(self.last_valid + self.slow_us)
+        if self.state != STOPPED and t - self.last_valid >= self.timeout_us:
+            self.stop(3, self.last_valid + self.timeout_us, "-", "udp_timeout")
 
     def run(self) -> None:
         while self.running:
             t = now_us()
             dl = self.deadline()
             if dl is not None and t >= dl and "tick" not in self.bugs:
-                self.stop(3, dl, "-")
+                self.on_deadline(t)
             if t >= self.next_b:
                 if dl is not None and t >= dl and "tick" in self.bugs:
-                    self.stop(3, t, "-")
+                    self.on_deadline(t)
                 if t >= self.next_b:
                     self.send_brake(t, periodic=True)
             if t >= self.next_s:
@@ -315,6 +440,9 @@ def main() -> int:
     p.add_argument("--tcp-port", type=int, default=5701)
     p.add_argument("--bind", default="0.0.0.0")
     p.add_argument("--timeout-ms", type=int, default=200)
+    p.add_argument("--slow-ms", type=int, help="as estopd (default: the timeout)")
+    p.add_argument("--slow-level", type=int, default=30)
+    p.add_argument("--warn-ms", type=int, help="as estopd (default: half the slow time)")
     p.add_argument("--stop-id", type=lambda s: int(s, 0), default=tcp.DEFAULT_STOP_ID)
     p.add_argument("--log-json", action="store_true")
     keying = p.add_mutually_exclusive_group(required=True)
@@ -322,12 +450,13 @@ def main() -> int:
     keying.add_argument("--key-file", help="as estopd: the unit's key")
     p.add_argument("--bug", action="append", choices=["tick", "invalid-alive", "no-fault",
                                                         "bad-crc", "no-tag-check",
-                                                        "no-replay-check"])
+                                                        "no-replay-check", "no-lift",
+                                                        "slow-back-2"])
     args = p.parse_args()
     try:
         d = Daemon(args)
-    except KeyFileError as exc:
-        p.exit(1, f"standin_estopd: {exc}\n")
+    except (KeyFileError, ValueError) as exc:
+        p.exit(2 if isinstance(exc, ValueError) else 1, f"standin_estopd: {exc}\n")
 
     def on_signal(_sig: int, _frm: object) -> None:
         d.running = False

@@ -186,6 +186,24 @@ def test_read_candump_and_crosscheck() -> None:
     cc = crosscheck(cd, changed)
     assert not cc.ok and len(cc.data_mismatch) == 1
     assert not crosscheck([], py).ok
+    # another ID in the other frame's place is no match either
+    other = crosscheck(cd, [py[0], Frame(py[1].ts, 0x7FF, py[1].data), py[2]])
+    assert not other.ok and len(other.only_candump) == len(other.only_pycan) == 1
+
+
+def test_crosscheck_order_is_per_sender() -> None:
+    # Seen in a run: the daemon's stop frame and the harness's marker 155 us later, on two
+    # CPUs, reached candump's socket in one order and python-can's in the other.
+    stop = Frame(1795599529.515946, 0x050, bytes.fromhex("01640005000001CF"))
+    marker = Frame(1795599529.516101, 0x7FF, b"HILSYNC")
+    before = Frame(1795599529.505946, 0x050, bytes.fromhex("01640005000000E0"))
+    cc = crosscheck([before, marker, stop], [before, stop, marker], (before.ts, marker.ts))
+    assert cc.ok and cc.matched == 3
+    # within one ID the order still counts: two frames swapped do not match
+    late = Frame(stop.ts + 0.01, 0x050, bytes.fromhex("016400050000023A"))
+    swapped = crosscheck([before, stop, late], [before, Frame(stop.ts, 0x050, late.data),
+                                               Frame(late.ts, 0x050, stop.data)])
+    assert not swapped.ok and len(swapped.data_mismatch) == 2
 
 
 def test_summary_and_gaps() -> None:
@@ -230,23 +248,24 @@ def test_report_main(tmp_path: Path) -> None:
 
 
 def test_scenario_criteria_format_in_both_profiles() -> None:
+    import hilrun
     import scenarios
 
     for profile in ("strict", "tcg"):
-        lim = scenarios.Limits.for_profile(profile)
+        lim = hilrun.Limits.for_profile(profile)
         for sid, _title, crit, _fn in scenarios.SCENARIOS + scenarios.GLOBAL:
             text = crit.format(**asdict(lim))
             assert "{" not in text, sid
-    assert scenarios.Limits.for_profile("tcg").max > scenarios.Limits.for_profile("strict").max
+    assert hilrun.Limits.for_profile("tcg").max > hilrun.Limits.for_profile("strict").max
 
 
 def test_invalid_packets_really_are_invalid() -> None:
     import flood
-    import scenarios
+    import hilrig
     from estop.protocol import udp
 
     assert not any(udp.is_valid(p) for p in flood.INVALID_PACKETS)
-    assert udp.is_valid(scenarios.NEUTRAL) and udp.is_valid(scenarios.DRIVE_GAS)
+    assert udp.is_valid(hilrig.NEUTRAL) and udp.is_valid(hilrig.DRIVE_GAS)
 
 
 def test_run_command_line() -> None:
@@ -506,18 +525,19 @@ def test_keyed_rows_run_last() -> None:
 def test_attack_packets_are_made_without_the_key() -> None:
     from types import SimpleNamespace
 
-    import scenarios
+    import rows_keyed
     from estop.protocol import auth, udp
+    from hilrig import NEUTRAL
 
     key = bytes(range(32))
     remote = SimpleNamespace(remote_id=7, session=0x0123456789ABCDEF, udp_counter=41)
-    genuine = [auth.AuthControlPacket(7, remote.session, c, udp.decode(scenarios.NEUTRAL))
+    genuine = [auth.AuthControlPacket(7, remote.session, c, udp.decode(NEUTRAL))
                .encode(key) for c in (40, 41)]
-    pkts = scenarios.attack_packets(remote, key, genuine)  # type: ignore[arg-type]
+    pkts = rows_keyed.attack_packets(remote, key, genuine)  # type: ignore[arg-type]
     assert [k for k, _ in pkts] == ["plain", "wrong_key", "replay"] * 2
     for kind, data in pkts:
         if kind == "plain":
-            assert data == scenarios.NEUTRAL and udp.is_valid(data)
+            assert data == NEUTRAL and udp.is_valid(data)
         elif kind == "replay":
             assert data in genuine
         else:
@@ -526,3 +546,382 @@ def test_attack_packets_are_made_without_the_key() -> None:
                 auth.AuthControlPacket.decode(data, key)
             p = auth.AuthControlPacket.decode(data, None)
             assert p.session == remote.session and p.remote_id == 7 and p.counter > 41
+
+
+# --------------------------------------------------------------------------- graded braking (v3)
+
+SLOWING5 = bytes.fromhex("021E02000100053E")  # spec section 4 example
+
+
+def slowing(counter: int, level: int = 30, flags: int = 1) -> bytes:
+    return BrakeFrame.for_state(2, 0, flags, counter, slow_level=level).encode()
+
+
+def _bus(segments: list[tuple[float, float, str, int]], t0: float = 1000.0) -> list[Frame]:
+    """ESTOP_BRAKE every 10 ms: (start, end, state name, reason) relative to ``t0``; a change
+    of state sends at once (the period starts over), as the unit does."""
+    make = {"ARMED": lambda c, r: armed(c), "SLOWING": lambda c, r: slowing(c),
+            "STOPPED": lambda c, r: stopped(c, r)}
+    out: list[Frame] = []
+    ctr = 0
+    for start, end, state, reason in segments:
+        t = start
+        while t < end - 1e-9:
+            out.append(Frame(t0 + t, 0x050, make[state](ctr, reason)))
+            ctr = (ctr + 1) % 15
+            t += 0.010
+    return out
+
+
+def test_spec_slowing_example_grades_the_brake() -> None:
+    assert SLOWING5 == slowing(5)
+    ctl = BrakeController()
+    ctl.on_frame(Frame(0.00, 0x050, armed(4)))
+    assert ctl.share == 0.0 and not ctl.braking
+    ctl.on_frame(Frame(0.01, 0x050, SLOWING5))
+    assert ctl.share == pytest.approx(0.3) and ctl.braking and not ctl.issues
+    ctl.on_frame(Frame(0.02, 0x050, slowing(6, level=55)))  # the unit's own slow level
+    assert ctl.share == pytest.approx(0.55)
+    ctl.on_frame(Frame(0.03, 0x050, armed(7)))
+    ctl.on_frame(Frame(0.04, 0x050, stopped(8, reason=5)))  # lift
+    assert [(c.share, c.cause) for c in ctl.changes] == [
+        (0.0, "frame"), (0.3, "frame"), (0.55, "frame"), (0.0, "frame"), (1.0, "frame")]
+    assert ctl.good == 5 and not ctl.issues
+
+
+def test_unknown_brake_request_is_an_emergency_brake() -> None:
+    # right CRC, a new counter, brake_request 3: the unit said something no controller knows
+    unknown = BrakeFrame(3, 30, 2, 0, 0, 1).encode(validate=False)
+    ctl = BrakeController()
+    ctl.on_frame(Frame(0.00, 0x050, armed(0)))
+    ctl.on_frame(Frame(0.01, 0x050, unknown))
+    assert ctl.share == 1.0 and ctl.changes[-1].cause == "frame"
+    assert ctl.good == 1 and ctl.issues[-1].kind == "bad_content"  # not a good frame
+    # a frame that did not come whole from the unit commands nothing: still the emergency
+    bad = bytearray(armed(2))
+    bad[7] ^= 0xFF
+    ctl.on_frame(Frame(0.02, 0x050, bytes(bad)))
+    assert ctl.share == 1.0
+    ctl.on_frame(Frame(0.03, 0x050, armed(3)))  # a good release releases
+    assert ctl.share == 0.0
+    # the silence watchdog still counts from the last good frame, not from the unknown one
+    ctl2 = BrakeController()
+    ctl2.on_frame(Frame(0.00, 0x050, slowing(0)))
+    ctl2.on_frame(Frame(0.01, 0x050, BrakeFrame(7, 0, 1, 0, 0, 1).encode(validate=False)))
+    ctl2.on_tick(0.0499)
+    assert not ctl2.trips
+    ctl2.on_tick(0.05)
+    assert len(ctl2.trips) == 1 and ctl2.trips[0].last_good == 0.0 and ctl2.share == 1.0
+    assert [c.cause for c in ctl2.changes] == ["frame", "frame"]  # braking since the unknown
+
+
+def test_grading_starts_over_after_a_silence_and_a_new_sender() -> None:
+    ctl = BrakeController()
+    ctl.on_frame(Frame(0.00, 0x050, slowing(0)))
+    ctl.on_tick(0.06)
+    assert ctl.share == 1.0 and ctl.changes[-1].cause == "silence"
+    # 15 frames lost: the counter is back at 0, which is no repeat after a silence
+    ctl.on_frame(Frame(0.16, 0x050, slowing(0)))
+    assert ctl.share == pytest.approx(0.3) and ctl.changes[-1].cause == "frame"
+    ctl.expect_new_sender()
+    ctl.on_frame(Frame(0.17, 0x050, BOOT))  # counter 0 again: a new daemon, graded at once
+    assert ctl.share == 1.0 and ctl.changes[-1] == hilcheck.BrakeChange(0.17, 1.0, "frame")
+
+
+def test_live_and_replayed_grades_agree() -> None:
+    frames = _bus([(0.0, 0.5, "ARMED", 0), (0.5, 0.62, "SLOWING", 0), (0.62, 0.9, "ARMED", 0),
+                   (0.9, 1.0, "SLOWING", 0), (1.0, 1.2, "STOPPED", 3)])
+    live = BrakeController()
+    for f in frames:
+        live.on_frame(f)
+        live.on_tick(f.ts + 0.001)
+    off = replay(frames)
+    assert hilcheck.frame_commands(live.changes) == hilcheck.frame_commands(off.changes)
+    cmds = hilcheck.frame_commands(off.changes, 1000.4, 1001.5)
+    assert [s for _, s in cmds] == [0.3, 0.0, 0.3, 1.0]
+    assert cmds[0][0] == pytest.approx(1000.5)
+
+
+def test_share_at_and_shares_between() -> None:
+    ch = [hilcheck.BrakeChange(1.0, 0.0, "frame"), hilcheck.BrakeChange(2.0, 0.3, "frame"),
+          hilcheck.BrakeChange(2.5, 0.0, "frame"), hilcheck.BrakeChange(3.0, 1.0, "silence")]
+    assert hilcheck.share_at(ch, 0.5) == 1.0  # powers up braking
+    assert hilcheck.share_at(ch, 2.0) == 0.3 and hilcheck.share_at(ch, 2.49) == 0.3
+    assert hilcheck.share_at([], 5.0, initial=0.0) == 0.0
+    assert hilcheck.shares_between(ch, 2.0, 2.5) == [0.3]  # while SLOWING: only 0.3
+    assert hilcheck.shares_between(ch, 1.5, 2.6) == [0.0, 0.3, 0.0]
+    assert hilcheck.shares_between(ch, 2.1, 3.5) == [0.3, 0.0, 1.0]
+
+
+# --------------------------------------------------------------------------- distances (v3)
+
+def test_model_figures() -> None:
+    import hilroll
+
+    v = hilroll.speed()
+    assert v == pytest.approx(15 / 3.6)
+    assert hilroll.single_stage_distance(0.0) == pytest.approx(v * v / 16)  # 1.085 m
+    assert hilroll.single_stage_distance(0.2) == pytest.approx(0.2 * v + v * v / 16)  # 1.918
+    assert hilroll.single_stage_distance(0.2) - hilroll.single_stage_distance(0.0) == \
+        pytest.approx(0.833, abs=1e-3)
+    # two-stage, S = 150 ms, T = 600 ms, L = 30 %: 0.625 m at speed, 450 ms at 2.4 m/s^2,
+    # then a full brake from what is left
+    v1 = v - 0.45 * 2.4
+    want = 0.15 * v + 0.45 * (v + v1) / 2 + v1 * v1 / 16
+    assert hilroll.two_stage_distance(0.15, 0.6, 30) == pytest.approx(want)
+    assert hilroll.two_stage_distance(0.15, 0.6, 30) < hilroll.single_stage_distance(0.6)
+    # S = T: one stage
+    assert hilroll.two_stage_distance(0.2, 0.2, 30) == pytest.approx(
+        hilroll.single_stage_distance(0.2))
+
+
+def test_roll_from_a_lift() -> None:
+    import hilroll
+
+    # ARMED until the lift at +1.000 s; the stop frame 4 ms later; STOPPED lift from then on
+    frames = _bus([(0.0, 1.004, "ARMED", 0), (1.004, 1.5, "STOPPED", 5)])
+    r = hilroll.roll(frames, 1001.0)
+    v = hilroll.speed()
+    assert r.agree, r.disagreement()
+    assert r.bus.distance == pytest.approx(0.004 * v + v * v / 16, abs=1e-6)
+    fig = r.figures()
+    assert fig["braking_after_ms"] == pytest.approx(4.0, abs=1e-3)
+    assert fig["distance_m"] == pytest.approx(1.102, abs=1e-3)
+    assert fig["rolled_before_braking_m"] == pytest.approx(0.017, abs=1e-3)
+
+
+def test_roll_from_the_last_packet_two_stage_and_dead_man() -> None:
+    import hilroll
+
+    # two-stage: last packet at +1.0, SLOWING at +1.152 (S = 150 ms, 2 ms late), STOPPED at
+    # +1.601 (T = 600 ms)
+    frames = _bus([(0.0, 1.152, "ARMED", 0), (1.152, 1.601, "SLOWING", 0),
+                   (1.601, 2.5, "STOPPED", 3)])
+    r = hilroll.roll(frames, 1001.0)
+    assert r.agree, r.disagreement()
+    model = hilroll.two_stage_distance(0.152, 0.601, 30)
+    assert r.bus.distance == pytest.approx(model, abs=1e-6)
+    assert r.figures()["braking_after_ms"] == pytest.approx(152.0, abs=1e-3)
+    # single stage at T = 200 ms
+    dm = hilroll.roll(_bus([(0.0, 1.2005, "ARMED", 0), (1.2005, 2.0, "STOPPED", 3)]), 1001.0)
+    assert dm.agree and dm.bus.distance == pytest.approx(
+        hilroll.single_stage_distance(0.2005), abs=1e-6)
+
+
+def test_roll_disagreement_is_reported() -> None:
+    import hilroll
+
+    frames = _bus([(0.0, 1.0, "ARMED", 0), (1.0, 1.2, "STOPPED", 5)])
+    r = hilroll.roll(frames, 1000.5)
+    bad = hilroll.Roll(r.moment, r.bus, hilroll.EmulatorRoll(r.bus.distance + 0.01, None, 1.0))
+    assert r.agree and not bad.agree
+    assert "estop.rollout" in bad.disagreement()
+    never = hilroll.Roll(r.moment, r.bus, hilroll.EmulatorRoll(r.bus.distance, None, None))
+    assert not never.agree and "never stops" in never.disagreement()
+
+
+def test_speed_after_a_burst() -> None:
+    import hilroll
+
+    ch = [hilcheck.BrakeChange(0.0, 0.0, "frame"), hilcheck.BrakeChange(10.15, 0.3, "frame"),
+          hilcheck.BrakeChange(10.27, 0.0, "frame")]
+    v = hilroll.speed()
+    assert hilroll.speed_after(ch, 10.0, 11.0) == pytest.approx(v - 0.12 * 2.4)
+    assert hilroll.speed_after(ch, 10.0, 10.2) == pytest.approx(v - 0.05 * 2.4)
+
+
+# --------------------------------------------------------------------------- states and logs (v3)
+
+def test_state_changes_on_the_bus() -> None:
+    import hilstates
+
+    frames = _bus([(0.0, 0.5, "ARMED", 0), (0.5, 0.62, "SLOWING", 0), (0.62, 0.9, "ARMED", 0),
+                   (0.9, 1.0, "SLOWING", 0), (1.0, 1.2, "STOPPED", 3)])
+    bad = bytearray(stopped(3, reason=5))
+    bad[7] ^= 1
+    frames.insert(30, Frame(frames[29].ts + 0.001, 0x050, bytes(bad)))  # not a change: bad CRC
+    frames.insert(10, Frame(frames[9].ts + 0.001, 0x051, StatusFrame(0, 0, 0, 0, 5, 0).encode()))
+    ch = hilstates.state_changes(frames, 1000.45)
+    assert [(c.state, c.reason) for c in ch] == [(2, 0), (1, 0), (2, 0), (0, 3)]
+    assert ch[0].ts == pytest.approx(1000.5) and ch[0].data[:4] == bytes((2, 30, 2, 0))
+    assert ch[-1].text() == "STOPPED/udp_timeout"
+    # the state before the window counts: no change at the window's start
+    assert [(c.state, c.reason) for c in hilstates.state_changes(frames, 1000.7, 1000.95)] == \
+        [(2, 0)]
+    # with nothing before, the first frame in the window is a change
+    late = [f for f in frames if f.ts > 1000.7]
+    assert [c.text() for c in hilstates.state_changes(late, 0.0, 1000.89)] == ["ARMED/none"]
+
+
+def test_sequence_and_frame_problems() -> None:
+    import hilstates
+
+    frames = _bus([(0.0, 0.1, "ARMED", 0), (0.1, 0.2, "STOPPED", 5)])
+    ch = hilstates.state_changes(frames, 1000.05)
+    assert hilstates.sequence_problem(ch, [(0, 5)], "run 0") is None
+    text = hilstates.sequence_problem(ch, [(2, 0), (0, 5)], "run 0")
+    assert text == "run 0: the bus showed STOPPED/lift, want SLOWING/none -> STOPPED/lift"
+    assert "showed none" in str(hilstates.sequence_problem([], [(0, 5)], "x"))
+    assert hilstates.frame_problem(ch[0].data, bytes((1, 100, 0, 5)), "stop") is None
+    assert "want 01 64 00 03" in str(hilstates.frame_problem(ch[0].data, bytes((1, 100, 0, 3)),
+                                                             "stop"))
+    bad = bytearray(ch[0].data)
+    bad[7] ^= 1
+    assert "fails the frame checks" in str(hilstates.frame_problem(bytes(bad), b"", "stop"))
+
+
+def _state(frm: str, to: str, reason: str, cause: str | None, src: str = "-") -> dict:
+    rec = {"t_mono": 1.0, "event": "state", "from": frm, "to": to, "reason": reason, "src": src}
+    return rec if cause is None else {**rec, "cause": cause}
+
+
+def test_log_changes_and_problems() -> None:
+    import hilstates
+
+    recs = [{"event": "start"}, _state("ARMED", "SLOWING", "none", "udp_silence"),
+            _state("SLOWING", "ARMED", "none", "link_back", "127.0.0.1:5")]
+    got = hilstates.log_changes(recs)
+    assert [c.text() for c in got] == ["ARMED->SLOWING none cause=udp_silence",
+                                       "SLOWING->ARMED none cause=link_back"]
+    assert got[1].src == "127.0.0.1:5"
+    want = [("ARMED", "SLOWING", "none", "udp_silence"), ("SLOWING", "ARMED", "none",
+                                                          "link_back")]
+    assert hilstates.log_problem(got, want, "run 1") is None
+    text = hilstates.log_problem(got[:1], want, "run 1")
+    assert text is not None and text.startswith("run 1: log ARMED->SLOWING none cause=")
+    assert "log none" in str(hilstates.log_problem([], want[:1], "x"))
+
+
+@pytest.mark.parametrize("rec,ok", [
+    (_state("ARMED", "STOPPED", "lift", "lift_datagram"), True),
+    (_state("SLOWING", "STOPPED", "lift", "lift"), True),
+    (_state("ARMED", "STOPPED", "tcp_stop", "stop_datagram"), True),
+    (_state("SLOWING", "STOPPED", "udp_timeout", "udp_timeout"), True),
+    (_state("ARMED", "STOPPED", "fault", "clock_backwards"), True),
+    (_state("ARMED", "SLOWING", "none", "udp_silence"), True),
+    (_state("SLOWING", "ARMED", "none", "link_back"), True),
+    (_state("STOPPED", "SLOWING", "none", "release"), True),
+    (_state("ARMED", "STOPPED", "lift", "tcp_stop"), False),
+    (_state("ARMED", "STOPPED", "udp_timeout", "lift"), False),
+    (_state("ARMED", "SLOWING", "none", "link_back"), False),
+    (_state("SLOWING", "ARMED", "none", "release"), False),
+    (_state("ARMED", "ARMED", "none", "release"), False),
+    (_state("ARMED", "STOPPED", "lift", None), False),
+])
+def test_cause_fits_the_change(rec: dict, ok: bool) -> None:
+    import hilstates
+
+    (change,) = hilstates.log_changes([rec])
+    assert (hilstates.cause_problem(change) is None) is ok
+
+
+def test_bus_transitions_count_slowing() -> None:
+    import hilstates
+
+    frames = _bus([(0.0, 0.1, "STOPPED", 1), (0.1, 0.3, "ARMED", 0), (0.3, 0.4, "SLOWING", 0),
+                   (0.4, 0.5, "ARMED", 0), (0.5, 0.6, "SLOWING", 0), (0.6, 0.7, "STOPPED", 3)])
+    assert hilstates.bus_transitions(frames) == {
+        "STOPPED->ARMED": 1, "ARMED->SLOWING": 2, "SLOWING->ARMED": 1, "SLOWING->STOPPED": 1}
+
+
+def test_judge_drops() -> None:
+    assert hilcheck.judge_drops(0, 0.5, "the flood") == hilcheck.Verdict([])
+    v = hilcheck.judge_drops(12, 0.0, "the flood")
+    assert v.fails == ["the kernel dropped 12 datagrams of the flood"] and v.inconclusive is None
+    v = hilcheck.judge_drops(12, 0.004, "the flood")  # a CPU stood still: never a pass
+    assert v.inconclusive is not None and v.fails[0].startswith("kernel drops not judged")
+    assert hilcheck.judge_drops(None, 0.0, "the flood").fails
+
+
+def test_judge_rolls_and_state_lines() -> None:
+    from types import SimpleNamespace
+
+    import hiljudge
+    import hilroll
+    from hilrun import Result
+
+    frames = _bus([(0.0, 1.004, "ARMED", 0), (1.004, 1.5, "STOPPED", 5)])
+    good = hilroll.roll(frames, 1001.0)
+    bad = hilroll.Roll(good.moment, good.bus, hilroll.EmulatorRoll(2.0, None, 1.0))
+    res = Result("lift", "t", "c")
+    hiljudge.judge_rolls(res, "distance_m", "from the lift", [good, good], 1.085, "ideal",
+                         [("no lift", 1.918, 0.833)])
+    assert res.rollouts == {"from the lift": {
+        "distance_m": [1.1017, 1.1017], "braking_after_ms": [4.0, 4.0],
+        "before_braking_m": [0.0167, 0.0167], "model_m": 1.085,
+        "model": "ideal", "compare": [["no lift", 1.918, 0.833]]}}
+    assert not res.notes
+    assert res.figures["distance_m"]["p50"] == pytest.approx(1.102, abs=1e-3)
+    hiljudge.judge_rolls(res, "distance_m", "from the lift", [bad], 1.085, "ideal")
+    assert res.figures["distance_m"] == pytest.approx(1.102, abs=1e-3)
+    assert res.notes[0].startswith("FAIL: from the lift: the two ways to the distance disagree")
+    d = SimpleNamespace(events=lambda name=None, since=0.0: [
+        {**_state("STOPPED", "ARMED", "none", "release"), "t_mono": 5.0},
+        {**_state("ARMED", "STOPPED", "lift", "lift_datagram"), "t_mono": 7.0}])
+    lines = hiljudge.wait_state_lines(d, 6.0, 1, timeout=0.1)  # type: ignore[arg-type]
+    assert [c.text() for c in lines] == ["ARMED->STOPPED lift cause=lift_datagram"]
+    assert len(hiljudge.wait_state_lines(d, 6.0, 2, timeout=0.05)) == 1  # type: ignore[arg-type]
+
+
+def _doc_v3() -> dict:
+    doc = _doc(True)
+    doc["meta"]["car"] = "15 km/h, emergency deceleration 8 m/s^2, actuator delay 0 ms"
+    doc["meta"]["two_stage"] = "S 150 ms, T 600 ms, L 30 %"
+    doc["results"].append({
+        "id": "lift", "title": "Lift", "criterion": "at once", "passed": True,
+        "figures": {"lift_to_stop_frame_ms": summary([0.5, 0.6, 1.3])},
+        "samples_ms": {"lift datagram -> stop frame": [0.5, 0.6, 1.3]}, "notes": [],
+        "rollouts": {"lift datagram, from the lift": {
+            "distance_m": [1.087, 1.0874, 1.0905], "braking_after_ms": [0.5, 0.6, 1.3],
+            "before_braking_m": [0.002, 0.0025, 0.0054], "model_m": 1.0851,
+            "model": "full braking at the lift",
+            "compare": [["no lift (model)", 1.9184, 0.8333]]}}})
+    return doc
+
+
+def test_protocol_shows_the_roll_outs(tmp_path: Path) -> None:
+    text = hilreport.protocol_md(_doc_v3())
+    assert "- Two-stage daemon: S 150 ms, T 600 ms, L 30 %" in text
+    assert "- Car (vehicle model, docs/VEHICLE.md): 15 km/h" in text
+    assert "## How far the car rolls" in text
+    assert ("| lift datagram, from the lift | 3 | 0.6 (0.5-1.3) | 1.087 (1.087-1.091) | "
+            "1.085 (full braking at the lift) |") in text
+    assert "| no lift (model) | - | - | - | 1.918 |" in text
+    assert "How far the car rolls" not in hilreport.protocol_md(_doc(True))  # no v3 rows
+    assert hilreport.median([4.0, 1.0, 3.0, 2.0]) == 2.5 == summary([1.0, 2.0, 3.0, 4.0])["p50"]
+    assert hilreport.median([3.0, 1.0, 2.0]) == 2.0
+    (tmp_path / "results.json").write_text(json.dumps(_doc_v3()))
+    assert hilreport.main([str(tmp_path)]) == 0
+    for name in ("latency.png", "distance.png"):
+        assert (tmp_path / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert "Distance plot" in (tmp_path / "protocol.md").read_text()
+
+
+def test_standin_reads_datagrams_in_batches() -> None:
+    """The stand-in's recvmmsg (ctypes): in order, at most n a call, long ones cut at 64."""
+    import socket
+    import time
+
+    import standin_estopd
+
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        rx.bind(("127.0.0.1", 0))
+        rx.setblocking(False)
+        batch = standin_estopd.BatchReceiver(rx, n=8)
+        assert batch.recv() == []
+        tx.connect(rx.getsockname())
+        sent = [b"", b"a" * 19, b"b" * 20, b"c" * 100] + [bytes([i]) * 5 for i in range(10)]
+        for m in sent:
+            tx.send(m)
+        got: list[bytes] = []
+        end = time.monotonic() + 2.0
+        while len(got) < len(sent) and time.monotonic() < end:
+            more = batch.recv()
+            assert len(more) <= 8
+            got += more
+        assert got == [m[:64] for m in sent]
+    finally:
+        rx.close()
+        tx.close()

@@ -1,0 +1,199 @@
+"""Judging helpers of the rows, live: latency samples, single times, frame counts and gaps
+against the profile's limits, stall-aware (a CPU stall can only delay: what it may explain is
+inconclusive, never a pass).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+
+from estop.protocol.can import BRAKE_ID
+from hilcheck import (
+    BRAKE_SILENCE_S,
+    STALL_EXCUSE_S,
+    StatusWindow,
+    enough_frames,
+    excused,
+    judge_latencies,
+    late,
+    overlap,
+    status_windows,
+    summary,
+)
+from hilrig import NEUTRAL, Daemon, Exchange, UdpRemote
+from hilroll import Roll
+from hilrun import EARLY_TOL_MS, TIMEOUT_MS, Result, Run, ms
+from hilstates import LogChange, log_changes
+
+
+def judge(run: Run, res: Result, key: str, label: str, pairs: list[tuple[float, float]],
+          use_median: bool = True, slack_ms: float = 0.0) -> list[float]:
+    """Latency samples (reference time, frame time) against the profile's limits.
+
+    Value = frame - reference. A value before its time is never excused; for the other limits
+    (median, max: the profile's plus ``slack_ms``) see :func:`hilcheck.judge_latencies`: a
+    sample during which a CPU stood still counts only as an upper bound.
+    """
+    stalls = run.stalls()
+    vals = [ms(b - a) for a, b in pairs]
+    stalled = [overlap(stalls, a, b) >= STALL_EXCUSE_S for a, b in pairs]
+    res.samples_ms[label] = vals
+    res.figures[key] = summary(vals) if len(vals) > 1 else (vals[0] if vals else None)
+    if any(stalled):
+        res.figures[f"{key}_during_cpu_stall"] = sum(stalled)
+    if vals:
+        res.check(min(vals) >= -EARLY_TOL_MS, f"{label}: {min(vals)} ms, before its time")
+    v = judge_latencies(vals, stalled, run.lim.p50 if use_median else None, run.lim.max + slack_ms,
+                        label)
+    for f in v.fails:
+        res.check(False, f)
+    if v.inconclusive:
+        res.inconclusive = v.inconclusive
+    return vals
+
+
+def judge_spoiled(res: Result, spoiled: int, n: int, judged: int, missing: str, *,
+                  keepalive: bool) -> None:
+    """The verdict on the samples the harness itself spoiled (its own send came too late, or
+    its keepalive paused): counted; more than half of them make the row inconclusive (one
+    spoiled by a late send is also not judged); every other sample must have been judged."""
+    if spoiled:
+        if keepalive:
+            res.figures["samples_spoiled_by_keepalive_pause"] = spoiled
+        else:
+            res.figures["samples_spoiled_by_harness_delay"] = spoiled
+        if spoiled > n // 2:
+            if keepalive:
+                res.inconclusive = f"{spoiled} of {n} samples: the harness's keepalive paused"
+            else:
+                res.inconclusive = f"{spoiled} of {n} samples spoiled by the harness"
+                res.check(False, f"not judged: {res.inconclusive}")
+    res.check(judged == n - spoiled, missing)
+
+
+def judge_late(run: Run, res: Result, key: str, what: str, t0: float, t1: float,
+               limit_s: float) -> None:
+    """One time ``t0 -> t1`` against ``limit_s``. Over the limit while a CPU stood still
+    (STALL_EXCUSE_S or more of it) it cannot be judged: a failure that makes the row
+    inconclusive (it runs once more), never a pass."""
+    lt = late(t0, t1, limit_s, run.stalls())
+    res.figures[key] = ms(lt.value_s)
+    if lt.ok:
+        return
+    if lt.stall is not None:
+        why = f"a CPU stood still {ms(lt.stall)} ms of it"
+        res.figures[f"{key}_cpu_stall_ms"] = ms(lt.stall)
+        res.inconclusive = f"{what}: {ms(lt.value_s)} ms, {why}"
+        res.check(False, f"{what} {ms(lt.value_s)} ms > {ms(limit_s)} ms (not judged: {why})")
+    else:
+        res.check(False, f"{what} {ms(lt.value_s)} ms > {ms(limit_s)} ms")
+
+
+def judge_frames(run: Run, res: Result, key: str, what: str, t0: float, t1: float,
+                 want: int) -> None:
+    """At least ``want`` ESTOP_BRAKE frames in ``[t0, t1]``; fewer, with CPU stalls that could
+    explain the missing periods, is inconclusive (see :func:`hilcheck.enough_frames`)."""
+    run.mon.sync()
+    ts = [f.ts for f in run.mon.window(t0, t1) if f.can_id == BRAKE_ID]
+    n, verdict = enough_frames(ts, t0, t1, want, 0.010, run.stalls())
+    res.figures[key] = n
+    if verdict is None:
+        stall = overlap(run.stalls(), t0, t1)
+        res.inconclusive = f"{what}: {n} frames, a CPU stood still {ms(stall)} ms meanwhile"
+        res.check(False, f"{what}: {n} < {want} frames (not judged: a CPU stood still "
+                         f"{ms(stall)} ms of the {ms(t1 - t0)} ms)")
+    elif not verdict:
+        res.check(False, f"{what}: {n} < {want} frames")
+
+
+def frame_gap_check(run: Run, res: Result, key: str, t0: float, t1: float) -> None:
+    """No ESTOP_BRAKE gap of 50 ms in ``[t0, t1]``. A gap the CPU stalls explain
+    (hilcheck.excused) is not a pass either: the row is inconclusive and runs once more."""
+    run.mon.sync()
+    ts = [f.ts for f in run.mon.window(t0, t1) if f.can_id == BRAKE_ID]
+    gaps = [(a, b) for a, b in zip(ts, ts[1:], strict=False)]
+    res.figures[key] = ms(max((b - a for a, b in gaps), default=0.0))
+    for a, b in gaps:
+        if b - a < BRAKE_SILENCE_S:
+            continue
+        stall = excused(a, b, run.stalls())
+        if stall is None:
+            res.check(False, f"ESTOP_BRAKE gap of {ms(b - a)} ms at {a:.3f}")
+        else:
+            res.inconclusive = f"ESTOP_BRAKE gap of {ms(b - a)} ms, a CPU stood still " \
+                               f"{ms(stall)} ms of it"
+            res.check(False, f"ESTOP_BRAKE gap of {ms(b - a)} ms at {a:.3f} (not judged: a CPU "
+                             f"stood still {ms(stall)} ms of it)")
+
+
+def windows_in(run: Run, t0: float, t1: float) -> list[StatusWindow]:
+    """ESTOP_STATUS counting windows that end after ``t0`` and begin before ``t1``."""
+    run.mon.sync()
+    frames = run.mon.window(t0 - 0.5, t1 + 0.5)
+    return [w for w in status_windows(frames) if w.end > t0 and w.start < t1]
+
+
+def last_packet(run: Run, res: Result, remote: UdpRemote, i: int,
+                spoil_s: float = TIMEOUT_MS / 2000,
+                send: Callable[[], float] | None = None, what: str = "last packet") -> float | None:
+    """Stop ``remote``'s keepalive and send one last valid packet (or what ``send`` sends; it
+    returns the time of its first datagram) just after a periodic ARMED frame, so that a
+    deadline falls just after a 10 ms tick: a daemon that waits for its next tick overshoots by
+    nearly 10 ms. Returns the send time, or None when the harness itself was too slow: the
+    link was silent for ``spoil_s`` (most of the time to the first deadline, by default half
+    the timeout) before it (the unit may rightly have acted before it), so this is no sample."""
+    t_prev = remote.stop()
+    assert t_prev is not None
+    tick = run.brake_after(run.mon.index(), lambda b: b.state == 1, 0.1)
+    if tick is None:
+        res.check(False, f"run {i}: no periodic ARMED frame")
+        return None
+    t_last = send() if send is not None else remote.send(remote.packet(NEUTRAL))
+    if t_last - t_prev >= spoil_s:
+        res.notes.append(f"run {i}: not a sample, the harness's {what} came "
+                         f"{ms(t_last - t_prev)} ms after the packet before")
+        return None
+    return t_last
+
+
+def wait_state_lines(d: Daemon, since_mono: float, n: int,
+                     timeout: float = 2.0) -> list[LogChange]:
+    """The daemon's ``state`` lines for changes at or after ``since_mono`` (its clock,
+    CLOCK_MONOTONIC as the harness's): waits (bounded) until ``n`` are there, as a line may be
+    written a little after its frame."""
+    end = time.monotonic() + timeout
+    while True:
+        got = log_changes(r for r in d.events("state")
+                          if float(r.get("t_mono", 0.0)) >= since_mono)
+        if len(got) >= n or time.monotonic() >= end:
+            return got
+        time.sleep(0.01)
+
+
+def judge_rolls(res: Result, key: str, label: str, rolls: list[Roll], model_m: float,
+                model: str, compare: list[tuple[str, float, float]] | None = None) -> None:
+    """How far the car rolled from each moment (hilroll): the figures (metres), the samples
+    for the report (with when braking began, the model's figure for an ideal unit, ``model``
+    saying which, and model figures to ``compare`` with: (what, metres, of them before braking)),
+    and a failure where estop.rollout and the harness's emulator disagree."""
+    vals = [r.bus.distance for r in rolls]
+    res.rollouts[label] = {
+        "distance_m": [round(v, 4) for v in vals],
+        "braking_after_ms": [None if r.bus.reaction_time is None
+                             else round(r.bus.reaction_time * 1000, 3) for r in rolls],
+        "before_braking_m": [round(r.bus.distance_before_braking, 4) for r in rolls],
+        "model_m": round(model_m, 3), "model": model,
+        "compare": [[text, round(m, 4), round(b, 4)] for text, m, b in compare or []]}
+    res.figures[key] = summary(vals) if len(vals) > 1 else (round(vals[0], 3) if vals else None)
+    for r in rolls:
+        if not r.agree:
+            res.check(False, f"{label}: the two ways to the distance disagree: "
+                             f"{r.disagreement()}")
+
+
+def show_ex(ex: Exchange) -> str:
+    r = ex.reply
+    text = f"{'ACK' if r.ack else 'NAK'} state={r.state} reason={r.reason} nak={r.nak_code}"
+    return text if ex.tag_ok is None else f"{text} tag_ok={ex.tag_ok}"
+

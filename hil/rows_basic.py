@@ -1,0 +1,264 @@
+"""The basic rows: boot, RELEASE refused and accepted, the dead-man timeout, TCP STOP."""
+
+from __future__ import annotations
+
+import signal
+import time
+
+from estop.protocol.can import BRAKE_ID, STATUS_ID, BrakeFrame, StatusFrame
+from hilcheck import BRAKE_SILENCE_S, periods, summary
+from hiljudge import judge, judge_rolls, judge_spoiled, last_packet
+from hilrig import DRIVE_GAS, NEUTRAL
+from hilroll import MODEL_TEXT, Roll, roll, single_stage_distance
+from hilrun import EARLY_TOL_MS, KEEPALIVE_GAP_S, TIMEOUT_MS, WARN_MS, Result, Row, Run, ms
+
+# Boot: the mean periods are judged on stall-free stretches (hilcheck.periods); the daemon is
+# watched for at least 1 s, longer (up to BOOT_WATCH_MAX_S) until the stretches hold this many
+# gaps.
+BOOT_MIN_BRAKE_GAPS = 20
+BOOT_MIN_STATUS_GAPS = 3
+BOOT_WATCH_MAX_S = 4.0
+
+
+def sc_boot(run: Run, res: Result) -> None:
+    t_again = None
+    if run.daemons and run.daemon.alive:  # a second try: a fresh boot again
+        t_again = time.time()
+        run.daemon.signal(signal.SIGTERM)
+        if run.daemon.wait(3.0) is None:
+            run.daemon.kill_hard()
+    t0 = time.time()
+    d, first = run.start_daemon()
+    if t_again is not None:
+        run.windows.append((t_again - 0.01, first.ts + 0.1, "boot once more"))
+    b = BrakeFrame.parse(first.data)
+    res.figures["first_frame"] = first.data.hex(" ")
+    res.figures["exec_to_first_frame_ms"] = ms(first.ts - t0)
+    res.check(first.data == bytes.fromhex("016400010000009C"),
+              f"first ESTOP_BRAKE {first.data.hex(' ')} is not the boot frame "
+              "01 64 00 01 00 00 00 9c (STOPPED, boot, counter 0)")
+    res.check(b.brakes, "first frame does not request the brake")
+    ex = run.clients[0].status()
+    res.figures["status_reply"] = f"ack={ex.reply.ack} state={ex.reply.state} " \
+                                  f"reason={ex.reply.reason}"
+    res.check(ex.reply.ack and ex.reply.state == 0 and ex.reply.reason == 1,
+              "STATUS does not answer ACK STOPPED boot")
+    # The mean periods are judged on stall-free stretches only (hilcheck.periods): watch for
+    # 1 s, and on (at most BOOT_WATCH_MAX_S) until the stretches hold enough gaps.
+    end = first.ts + 1.0
+    while True:
+        time.sleep(max(0.0, end + 0.02 - time.time()))
+        run.mon.sync()
+        frames = run.mon.window(first.ts, end)
+        stalls = run.stalls()
+        bp = periods([f.ts for f in frames if f.can_id == BRAKE_ID], stalls, 0.010)
+        sp = periods([f.ts for f in frames if f.can_id == STATUS_ID], stalls, 0.100)
+        if (len(bp.judged) >= BOOT_MIN_BRAKE_GAPS and len(sp.judged) >= BOOT_MIN_STATUS_GAPS) \
+                or end - first.ts >= BOOT_WATCH_MAX_S - 1e-6:
+            break
+        end += 1.0
+    gaps = [g * 1000 for g in bp.gaps]
+    res.figures["watched_s"] = round(end - first.ts, 1)
+    res.figures["brake_period_ms"] = summary(gaps)
+    res.figures["status_period_ms"] = summary([g * 1000 for g in sp.gaps])
+    res.samples_ms["brake period"] = gaps
+    for name, pr, nominal, tol, least in (("ESTOP_BRAKE", bp, 10.0, 0.5, BOOT_MIN_BRAKE_GAPS),
+                                          ("ESTOP_STATUS", sp, 100.0, 5.0,
+                                           BOOT_MIN_STATUS_GAPS)):
+        key = "brake" if name == "ESTOP_BRAKE" else "status"
+        mean = pr.mean_judged
+        res.figures[f"{key}_period_stall_free"] = {
+            "n": len(pr.judged), "stretches": pr.stretches,
+            "mean": None if mean is None else round(mean * 1000, 3)}
+        res.figures[f"{key}_gaps_left_out"] = pr.left_out_text()
+        if len(pr.judged) < least:
+            res.inconclusive = (f"{name}: only {len(pr.judged)} gaps in stall-free stretches "
+                                f"in {res.figures['watched_s']} s")
+            res.check(False, f"mean {name} period not judged: {len(pr.judged)} < {least} gaps "
+                             "in stall-free stretches")
+        else:
+            assert mean is not None
+            res.check(abs(mean * 1000 - nominal) <= tol,
+                      f"mean {name} period {round(mean * 1000, 3)} ms (stall-free stretches) "
+                      f"not {nominal:g} +- {tol:g} ms")
+    # Spec section 4, never relaxed: no gap of 50 ms at all, stalls or not.
+    res.check(bool(gaps) and max(gaps) < BRAKE_SILENCE_S * 1000,
+              "an ESTOP_BRAKE gap reached the brake controller's 50 ms")
+    status = [f for f in frames if f.can_id == STATUS_ID]
+    res.check(bool(status) and status[0].data[6] & 0x0F == 0,
+              "first ESTOP_STATUS counter is not 0")
+    bad = [f for f in frames if f.can_id in (BRAKE_ID, STATUS_ID)
+           and (BrakeFrame if f.can_id == BRAKE_ID else StatusFrame).check(f.data)]
+    res.check(not bad, f"{len(bad)} frames fail the CRC/counter/content checks")
+    res.check(d.alive, "daemon exited")
+
+
+def sc_nak2(run: Run, res: Result) -> None:
+    start = run.mon.index()
+    ex = run.clients[1].release()
+    res.figures["no_packets"] = f"ack={ex.reply.ack} nak={ex.reply.nak_code}"
+    res.check(not ex.reply.ack and ex.reply.nak_code == 2,
+              "RELEASE with no control packets ever: not NAK 2")
+    for _ in range(3):
+        run.udp.send(NEUTRAL)
+        time.sleep(0.02)
+    ex2 = run.clients[1].release()
+    res.figures["3_packets"] = f"ack={ex2.reply.ack} nak={ex2.reply.nak_code}"
+    res.check(not ex2.reply.ack and ex2.reply.nak_code == 2,
+              "RELEASE after only 3 valid packets (5 needed): not NAK 2")
+    time.sleep(0.1)
+    run.mon.sync()
+    armed = [f for f in run.mon.since(start) if f.can_id == BRAKE_ID and f.data[2] == 1]
+    res.check(not armed, "an ARMED frame appeared on the bus")
+    res.check(ex.reply.state == 0 and ex2.reply.state == 0, "reply state not STOPPED")
+
+
+def sc_nak3(run: Run, res: Result) -> None:
+    start = run.mon.index()
+    t0 = time.time()
+    run.udp.start(DRIVE_GAS)
+    run.wait_packets(run.udp, t0)
+    ex = run.clients[2].release()
+    run.udp.stop()
+    res.figures["gas_0.3"] = f"ack={ex.reply.ack} nak={ex.reply.nak_code}"
+    res.check(not ex.reply.ack and ex.reply.nak_code == 3,
+              "RELEASE with gas 0.3 in the latest packet: not NAK 3")
+    time.sleep(0.05)
+    run.mon.sync()
+    armed = [f for f in run.mon.since(start) if f.can_id == BRAKE_ID and f.data[2] == 1]
+    res.check(not armed, "an ARMED frame appeared on the bus")
+    time.sleep(0.25)  # let the link die before the next scenario
+
+
+def sc_release(run: Run, res: Result) -> None:
+    d = run.daemon
+    since = time.time()
+    t_send, fr = run.arm(res, client=3)
+    judge(run, res, "release_to_armed_frame_ms", "release -> ARMED frame", [(t_send, fr.ts)],
+          use_median=False)
+    b = BrakeFrame.parse(fr.data)
+    res.figures["armed_frame"] = fr.data.hex(" ")
+    res.check(not b.brakes and b.brake_level == 0 and b.reason == 0,
+              "ARMED frame does not release the brake")
+    ev = d.wait_event(lambda r: r.get("event") == "state" and r.get("to") == "ARMED", since, 1.0)
+    res.figures["log_state_event"] = None if ev is None else \
+        f"{ev.get('from')}->{ev.get('to')} reason={ev.get('reason')} src={ev.get('src')}"
+    res.check(ev is not None and ev.get("from") == "STOPPED",
+              "no log line 'state STOPPED->ARMED'")
+    ex = run.clients[0].release()
+    res.check(ex.reply.ack and ex.reply.state == 1, "RELEASE while ARMED: not ACK ARMED")
+    time.sleep(0.1)
+    run.mon.sync()
+    res.check(run.mon.ctl.braking is False, "brake controller emulator still braking")
+    run.udp.stop()
+    time.sleep(0.3)
+
+
+def sc_deadman(run: Run, res: Result) -> None:
+    over: list[tuple[float, float]] = []
+    flag: list[tuple[float, float]] = []
+    phase: list[float] = []
+    rolls: list[Roll] = []
+    spoiled = 0
+    for i in range(run.args.repeat):
+        run.arm(res)
+        time.sleep(0.1)
+        start = run.mon.index()
+        t_last = last_packet(run, res, run.udp, i)
+        if t_last is None:
+            spoiled += 1
+            time.sleep(0.3)
+            continue
+        tick = run.brake_after(start, lambda b: b.state == 1, 0.1)
+        if tick is not None:
+            phase.append(ms(t_last - tick[0].ts))
+        got = run.brake_after(start, lambda b: b.state == 0, 1.0)
+        if got is None:
+            res.check(False, f"run {i}: no STOPPED frame within 1 s of the last packet")
+            continue
+        fr, b = got
+        res.check(b.reason == 3, f"run {i}: stop reason {b.reason}, want 3 udp timeout")
+        over.append((t_last + TIMEOUT_MS / 1000, fr.ts))
+        rolls.append(roll(run.mon.window(t_last - 1.0, fr.ts + 0.05), t_last))
+        frames = run.mon.since(start)
+        degraded = [f for f in frames if f.can_id == BRAKE_ID and f.data[2] == 1
+                    and f.data[4] & 1 and f.ts < fr.ts]
+        if degraded:
+            flag.append((t_last + WARN_MS / 1000, degraded[0].ts))
+        else:
+            res.check(False, f"run {i}: no ARMED frame with the link-degraded flag before "
+                             "the stop")
+        if i == 0:  # a STOP while stopped keeps the first reason
+            ex = run.clients[1].stop()
+            res.check(ex.reply.ack and ex.reply.reason == 3,
+                      "STOP after a udp timeout: reply is not ACK with reason udp_timeout")
+            time.sleep(0.03)
+            b2 = run.brake_after(run.mon.index() - 1, lambda _b: True, 0.5)
+            res.check(b2 is not None and b2[1].reason == 3,
+                      "STOP after a udp timeout changed the reason on the bus")
+    judge(run, res, "overshoot_ms", "dead-man overshoot", over)
+    # The flag may wait for the next periodic frame: up to 10 ms after the warn time.
+    judge(run, res, "degraded_flag_after_warn_ms", "degraded flag after warn time", flag,
+          use_median=False, slack_ms=10.0)
+    res.figures["last_packet_after_tick_ms"] = summary(phase)
+    # Without a lift the car rolls the whole timeout before braking even starts.
+    judge_rolls(res, "distance_from_last_packet_m", "dead-man (T 200 ms), from the last packet",
+                rolls, single_stage_distance(TIMEOUT_MS / 1000), "full braking at T")
+    res.figures["car"] = MODEL_TEXT
+    judge_spoiled(res, spoiled, run.args.repeat, len(over), "not every run stopped",
+                  keepalive=False)
+
+
+def sc_tcp_stop(run: Run, res: Result) -> None:
+    lat: list[tuple[float, float]] = []
+    rep: list[float] = []
+    spoiled = 0
+    n = run.args.repeat + 4
+    for i in range(n):
+        t_arm = time.time()
+        run.arm(res)
+        time.sleep(0.05)
+        k = i % len(run.clients)
+        start = run.mon.index()
+        ex = run.clients[k].stop()
+        got = run.brake_after(start, lambda b: b.state == 0, 1.0)
+        run.udp.stop()
+        if run.udp.max_gap(t_arm, ex.t_send) >= KEEPALIVE_GAP_S and ex.reply.reason == 3:
+            spoiled += 1  # the harness let the link die before its STOP: not a sample
+            continue
+        res.check(ex.reply.ack and ex.reply.state == 0 and ex.reply.reason == 2,
+                  f"run {i} (client {k}): reply not ACK STOPPED tcp_stop: {ex.reply}")
+        rep.append(ms(ex.t_reply - ex.t_send))
+        if got is None:
+            res.check(False, f"run {i}: no STOPPED frame within 1 s of the STOP")
+            continue
+        fr, b = got
+        res.check(b.reason == 2, f"run {i}: bus reason {b.reason}, want 2 tcp stop")
+        lat.append((ex.t_send, fr.ts))
+    judge(run, res, "stop_frame_latency_ms", "TCP STOP -> stop frame", lat)
+    res.samples_ms["TCP STOP -> reply"] = rep
+    res.figures["reply_latency_ms"] = summary(rep)
+    res.figures["clients"] = len(run.clients)
+    judge_spoiled(res, spoiled, n, len(lat), "not every STOP showed on the bus", keepalive=True)
+    time.sleep(0.25)
+
+
+ROWS: list[Row] = [
+    ("boot", "Boot: first frame, periods, STATUS",
+     "boot frame 01 64 00 01 00 00 00 9c; STATUS ACK STOPPED boot; mean periods on stall-free "
+     f"stretches (>= {BOOT_MIN_BRAKE_GAPS} / {BOOT_MIN_STATUS_GAPS} gaps): ESTOP_BRAKE 10+-0.5 "
+     "ms, ESTOP_STATUS 100+-5 ms; no ESTOP_BRAKE gap >= 50 ms at all", sc_boot),
+    ("nak2", "RELEASE refused, no live link",
+     "NAK 2 with no packets and with 3 (<5) packets; no ARMED frame", sc_nak2),
+    ("nak3", "RELEASE refused, not neutral",
+     "NAK 3 with gas 0.3; no ARMED frame", sc_nak3),
+    ("release", "RELEASE accepted",
+     "ACK ARMED, ARMED frame <= {max} ms, log STOPPED->ARMED", sc_release),
+    ("deadman", "Dead-man timeout (200 ms)",
+     f"reason udp_timeout; overshoot >= -{EARLY_TOL_MS}, " "p50 <= {p50}, max <= {max} ms; "
+     "degraded flag >= 100 ms after the last packet, <= 110 + {max} ms; the car's roll-out "
+     "from the last packet", sc_deadman),
+    ("tcp_stop", "TCP STOP latency (4 clients)",
+     "ACK STOPPED tcp_stop; stop frame p50 <= {p50}, max <= {max} ms",
+     sc_tcp_stop),
+]

@@ -206,7 +206,7 @@ class AuthRequest:
         return cls(msg_id, seq, remote_id, session, counter)
 
     def kind(self, stop_id: int = DEFAULT_STOP_ID) -> str:
-        """``"stop"``, ``"status"``, ``"release"`` or ``"unknown"`` for a unit with
+        """``"stop"``, ``"lift"``, ``"status"``, ``"release"`` or ``"unknown"`` for a unit with
         ``stop_id``."""
         return tcp.Request(self.msg_id, self.seq).kind(stop_id)
 

@@ -82,10 +82,11 @@ class Unit:
     def send_status(self) -> None:
         age = time.monotonic() - self.last_valid
         age_ms = int(age * 1000) if self.last_valid and age < self.timeout_s else 0xFFFF
+        # counts per window (since the last STATUS); stops is a nibble since version 3
         frame = can.StatusFrame(_sat(self.n_valid), _sat(self.n_invalid), 0,  # no key: no auth
-                                _sat(self.n_stops), age_ms, self.status_counter)
+                                _sat(self.n_stops, can.NIBBLE_MAX), age_ms, self.status_counter)
         self._emit(can.STATUS_ID, frame.encode())
-        self.n_valid = self.n_invalid = 0
+        self.n_valid = self.n_invalid = self.n_stops = 0
         self.status_counter = (self.status_counter + 1) % 15
         self.next_status = time.monotonic() + 0.100
 
@@ -196,6 +197,18 @@ async def run(args: argparse.Namespace, out: TextIO) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, done.set)
     task = asyncio.create_task(unit.periodic())
+    failed: list[BaseException] = []
+
+    def on_task_end(t: asyncio.Task[None]) -> None:
+        # the periodic task is the watchdog and the CAN output: if it dies, end loudly
+        # (a silent baseline made every bench trial wait for a stop frame that never came)
+        exc = None if t.cancelled() else t.exception()
+        if exc is not None:
+            failed.append(exc)
+            unit.log(f"periodic_task_failed error={exc!r}")
+            done.set()
+
+    task.add_done_callback(on_task_end)
     await done.wait()
     task.cancel()
     if unit.state == ARMED:  # shutting down while armed: the host cannot go on (a fault)
@@ -204,7 +217,7 @@ async def run(args: argparse.Namespace, out: TextIO) -> int:
     transport.close()
     server.close()
     unit.log("exit")
-    return 0
+    return 1 if failed else 0
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import json
 import random
+import re
 import select
 import signal
 import socket
 import subprocess
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -119,6 +121,32 @@ def udp_drops(port: int) -> int | None:
         if len(f) >= 13 and int(f[1].split(":")[1], 16) == port:
             return int(f[-1])
     return None
+
+
+_RCVBUF_RE = re.compile(r'\budp_rcvbuf"?\s*[=:]\s*"?(\d+)')
+_DROPS_RE = re.compile(r'\budp_drops\b.*?\btotal"?\s*[=:]\s*"?(\d+)')
+
+
+def start_rcvbuf(log_lines: Sequence[str]) -> int | None:
+    """The UDP receive buffer a daemon's start line reports (``udp_rcvbuf=N``, text or JSON;
+    estopd since version 3); None when it reports none (the kernel's default then)."""
+    for line in log_lines:
+        if re.search(r"\bstart\b", line):
+            m = _RCVBUF_RE.search(line)
+            return int(m.group(1)) if m else None
+    return None
+
+
+def reported_udp_drops(log_lines: Sequence[str]) -> int | None:
+    """The kernel drops a daemon reported itself (the ``total`` of its last ``udp_drops``
+    line); 0 when it reports its buffer but no drop, None when it reports neither (a daemon
+    that does not count them)."""
+    total: int | None = 0 if start_rcvbuf(log_lines) is not None else None
+    for line in log_lines:
+        m = _DROPS_RE.search(line)
+        if m:
+            total = int(m.group(1))
+    return total
 
 
 @dataclass

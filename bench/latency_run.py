@@ -14,9 +14,11 @@ from pathlib import Path
 
 from estop.loopback import Daemon, DaemonError, Link
 from estop.protocol import auth, tcp
-from latency_flood import Flood
+from estop.vehicle import VehicleParams
+from latency_flood import Flood, reported_udp_drops, start_rcvbuf
 from latency_machine import CpuMeter
-from latency_trials import METRICS, RunResult, Trials
+from latency_result import PLAIN_METRICS, ROLE_MAIN, RunResult
+from latency_trials import Trials
 
 
 @dataclass
@@ -39,14 +41,18 @@ def _drain(daemon: Daemon) -> None:
 
 @dataclass
 class DaemonSpec:
-    """One daemon of a run: its name in the report, its command, its key (None: --no-auth)
-    and extra options."""
+    """One daemon of a run: its name in the report, its command, its key (None: --no-auth),
+    extra options, what it is in the run (``ROLE_*``), the metrics it is measured on, and its
+    slow time S when it is a two-stage unit."""
 
     name: str
     command: list[str]
     key: bytes | None = None
     key_file: str | None = None
     extra: list[str] = field(default_factory=list)
+    role: str = ROLE_MAIN
+    metrics: tuple[str, ...] = PLAIN_METRICS
+    slow_ms: int | None = None
 
 
 def run_load(load: str, daemons: list[DaemonSpec], args: argparse.Namespace, n: int,
@@ -58,7 +64,9 @@ def run_load(load: str, daemons: list[DaemonSpec], args: argparse.Namespace, n: 
     t0 = time.monotonic()
     cons = [Contender(d.name, Daemon(d.command, timeout_ms=args.timeout_ms, extra_args=d.extra,
                                      key_file=d.key_file, reader_rt_prio=args.bench_rt_prio),
-                      RunResult(d.name, load, args.timeout_ms)) for d in daemons]
+                      RunResult(d.name, load, args.timeout_ms, metrics=d.metrics, role=d.role,
+                                slow_ms=d.slow_ms)) for d in daemons]
+    vehicle = VehicleParams(emergency_decel=args.decel)
     flood: Flood | None = None
     try:
         for c, spec in zip(cons, daemons, strict=True):
@@ -66,7 +74,9 @@ def run_load(load: str, daemons: list[DaemonSpec], args: argparse.Namespace, n: 
                 c.daemon.start()
                 c.link = Link(c.daemon.udp_port, c.daemon.tcp_port, key=spec.key)
                 c.trials = Trials(c.daemon, c.link, args.timeout_ms,
-                                  args.send_slack_ms / 1000.0, c.result)
+                                  args.send_slack_ms / 1000.0, c.result, slow_ms=spec.slow_ms,
+                                  speed_kmh=args.speed_kmh, vehicle=vehicle)
+                c.result.udp_rcvbuf = start_rcvbuf(c.daemon.log_lines)
             except (DaemonError, OSError, tcp.FrameError) as exc:
                 c.result.error = str(exc)
         live = [c for c in cons if c.trials is not None]
@@ -88,6 +98,7 @@ def run_load(load: str, daemons: list[DaemonSpec], args: argparse.Namespace, n: 
                         flood.aim(cons.index(c))
                         time.sleep(0.1)  # the daemon under test is in the flood for a while
                     _drain(c.daemon)  # frames logged while the other daemon was tested
+                    c.trials.forget_frames()
                     meter = CpuMeter()
                     for other in cons:
                         meter.watch(other.daemon.pid)
@@ -102,7 +113,7 @@ def run_load(load: str, daemons: list[DaemonSpec], args: argparse.Namespace, n: 
                         c.result.error = str(exc)
                     c.result.add_cpu(meter.finish())
                     c.result.settle(c.daemon.lines_lost)  # losses found since
-                    done = all(len(c.result.samples[m]) >= n for m in METRICS)
+                    done = all(len(c.result.samples[m]) >= n for m in c.result.trial_kinds)
                     if done or c.result.error or c.attempts > 3 * n:
                         live.remove(c)
         finally:
@@ -122,6 +133,7 @@ def run_load(load: str, daemons: list[DaemonSpec], args: argparse.Namespace, n: 
             c.result.log_gaps = len(c.daemon.loss.gaps)
             c.result.log_gap_lines = c.daemon.loss.lines_lost
             c.result.daemon_dropped = c.daemon.dropped_total
+            c.result.daemon_udp_drops = reported_udp_drops(c.daemon.log_lines)
     wall = time.monotonic() - t0
     for c in cons:
         c.result.wall_s = wall

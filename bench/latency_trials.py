@@ -1,114 +1,37 @@
-"""The trials of the stop-latency bench: what one daemon's run measured (:class:`RunResult`)
-and the driving and judging of its trials (:class:`Trials`)."""
+"""The trials of the stop-latency bench: driving one daemon and judging its stops from its
+can-log (:class:`Trials`). What they measured goes into a :class:`~latency_result.RunResult`.
+
+Three kinds of trial, each after a random pause of 0..10 ms and a RELEASE (retried if
+refused):
+
+- silence: drive 3 packets 1 ms apart and go silent; the first emergency stop frame (reason
+  udp timeout) times the overshoot past T, and on a two-stage unit the first SLOWING frame the
+  overshoot past S; the roll-out runs from the last packet;
+- TCP: drive 1 packet and send STOP over TCP;
+- lift: drive 3 packets 1 ms apart, then the remote's lift (three lift datagrams 10 ms apart,
+  ``estop.stopchannel.send_lift``); the first stop frame (reason lift) times it from the first
+  datagram, and the roll-out runs from there.
+"""
 
 from __future__ import annotations
 
 import queue
 import random
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 from estop.loopback import Daemon, DaemonError, Link, is_stop_frame, stamp
 from estop.protocol import can, tcp, udp
-from latency_flood import FloodStats
-
-METRICS = ("overshoot", "tcp_stop")
-METRIC_TITLES = {"overshoot": "timeout overshoot", "tcp_stop": "TCP stop latency"}
-LOST_LINES = "log lines lost"  # the discard reason of issue 11
-
-
-@dataclass
-class RunResult:
-    daemon: str
-    load: str
-    timeout_ms: int
-    samples: dict[str, list[float]] = field(default_factory=lambda: {m: [] for m in METRICS})
-    missed: dict[str, int] = field(default_factory=lambda: {m: 0 for m in METRICS})
-    wrong_reason: dict[str, int] = field(default_factory=lambda: {m: 0 for m in METRICS})
-    discarded: dict[str, int] = field(default_factory=lambda: {m: 0 for m in METRICS})
-    release_failures: int = 0
-    release_naks: int = 0
-    discard_reasons: dict[str, int] = field(default_factory=dict)
-    sample_times: dict[str, list[float]] = field(default_factory=lambda: {m: [] for m in METRICS})
-    blocks: list[dict[str, float]] = field(default_factory=list)  # per block: t, s, other, steal
-    status_frames: int = 0
-    status_invalid_saturated: int = 0  # STATUS frames counting >= 255 invalid packets / 100 ms
-    status_auth_saturated: int = 0  # ... >= 255 authentication failures / 100 ms
-    # per sample: ((first, last) realtime, (first, last) monotonic) of its trial, so that a
-    # loss found later (a counter, the daemon's report) can still discard it
-    spans: dict[str, list[tuple[tuple[float, float], tuple[float, float]]]] = field(
-        default_factory=lambda: {m: [] for m in METRICS})
-    log_frames: int = 0  # can-log frames whose alive counters were followed
-    log_gaps: int = 0  # counter jumps among them
-    log_gap_lines: int = 0  # frames missing by the counters
-    daemon_dropped: int = 0  # can-log lines the daemon reported dropped (its total)
-    wall_s: float = 0.0
-    flood: FloodStats | None = None
-    other_cpu: float | None = None  # cores used by other processes during the run
-    steal_cpu: float | None = None  # cores stolen by the hypervisor during the run
-    metered_s: float = 0.0
-    error: str | None = None
-
-    def early(self, metric: str) -> int:
-        return sum(1 for v in self.samples[metric] if v < 0)
-
-    def discard(self, metric: str, why: str) -> None:
-        self.discarded[metric] += 1
-        key = f"{METRIC_TITLES[metric]}: {why}"
-        self.discard_reasons[key] = self.discard_reasons.get(key, 0) + 1
-
-    def lost_discards(self, metric: str) -> int:
-        return self.discard_reasons.get(f"{METRIC_TITLES[metric]}: {LOST_LINES}", 0)
-
-    def add_sample(self, metric: str, value_ms: float,
-                   span: tuple[tuple[float, float], tuple[float, float]] | None = None) -> None:
-        self.samples[metric].append(value_ms)
-        self.sample_times[metric].append(round(time.time(), 3))
-        if span is not None:
-            self.spans[metric].append(span)
-
-    def settle(self, lines_lost: Callable[[tuple[float, float], tuple[float, float]], int]
-               ) -> int:
-        """Discard, as "log lines lost", every sample whose trial has lost lines by what is
-        known now (``lines_lost(real, mono)``, e.g. :meth:`Daemon.lines_lost`); return how
-        many. Called after every block and once the daemon has exited."""
-        moved = 0
-        for m in METRICS:
-            spans = self.spans[m]
-            if len(spans) != len(self.samples[m]):
-                continue  # samples made without spans (synthetic runs): nothing to check
-            keep = [i for i, (real, mono) in enumerate(spans) if not lines_lost(real, mono)]
-            if len(keep) == len(spans):
-                continue
-            for _ in range(len(spans) - len(keep)):
-                self.discard(m, LOST_LINES)
-                moved += 1
-            times = self.sample_times[m]
-            self.samples[m] = [self.samples[m][i] for i in keep]
-            if len(times) == len(spans):
-                self.sample_times[m] = [times[i] for i in keep]
-            self.spans[m] = [spans[i] for i in keep]
-        return moved
-
-    def add_cpu(self, measured: tuple[float, float, float] | None) -> None:
-        """Fold one block's (other, steal, seconds) into the run's time-weighted means."""
-        if measured is None:
-            return
-        other, steal, secs = measured
-        self.blocks.append({"t_end": round(time.time(), 3), "seconds": round(secs, 2),
-                            "other": round(other, 3), "steal": round(steal, 3)})
-        total = self.metered_s + secs
-        if total <= 0:
-            return
-        self.other_cpu = ((self.other_cpu or 0.0) * self.metered_s + other * secs) / total
-        self.steal_cpu = ((self.steal_cpu or 0.0) * self.metered_s + steal * secs) / total
-        self.metered_s = total
+from estop.protocol.canlog import CanLogRecord
+from estop.stopchannel import LiftDatagram, send_lift
+from estop.vehicle import DEFAULT_PARAMS, VehicleParams
+from latency_result import LOST_LINES, TIMEOUT_FIRST, RunResult, Span
+from latency_roll import DEFAULT_SPEED_KMH, roll_from_record
 
 
 @dataclass(frozen=True)
 class TimeoutSent:
-    """What a timeout trial sent: the bench's time.monotonic() when it began, time.time()
+    """What a silence trial sent: the bench's time.monotonic() when it began, time.time()
     after the RELEASE ACK and before the last packet, and whether a send call was late or the
     packets left a gap."""
 
@@ -129,19 +52,54 @@ class TcpSent:
     quick: bool = True
 
 
+@dataclass(frozen=True)
+class LiftSent:
+    """What a lift trial sent: as :class:`TimeoutSent`, with the time before the first lift
+    datagram and whether that send was quick."""
+
+    mono: float
+    t_ack: float
+    t_last: float
+    t_lift: float
+    quick: bool = True
+    gap: bool = False
+
+
+def first_slowing(record: list[CanLogRecord], after: float) -> float | None:
+    """The stamp of the first ESTOP_BRAKE frame in SLOWING stamped at or after ``after``."""
+    for rec in record:
+        if (rec.can_id == can.BRAKE_ID and len(rec.data) == can.DLC
+                and rec.data[2] == can.State.SLOWING and stamp(rec) >= after):
+            return stamp(rec)
+    return None
+
+
 class Trials:
     """Drives trials against one daemon (``link``) and measures them from its can-log
     (``daemon.frames``, checked with ``daemon.lines_lost``). The measuring half
-    (:meth:`judge_timeout`, :meth:`judge_tcp`) needs no link: it can be fed recorded lines."""
+    (:meth:`judge_timeout`, :meth:`judge_tcp`, :meth:`judge_lift`) needs no link: it can be
+    fed recorded lines. ``slow_ms``: the unit's slow time S when it is a two-stage unit;
+    distances at ``speed_kmh`` with ``vehicle``."""
 
     def __init__(self, daemon: Daemon, link: Link | None, timeout_ms: int, send_slack_s: float,
-                 result: RunResult, seed: int = 1) -> None:
+                 result: RunResult, seed: int = 1, *, slow_ms: int | None = None,
+                 speed_kmh: float = DEFAULT_SPEED_KMH,
+                 vehicle: VehicleParams = DEFAULT_PARAMS) -> None:
         self.d = daemon
         self.link = link
         self.timeout_s = timeout_ms / 1000.0
+        self.slow_s = (slow_ms if slow_ms is not None else timeout_ms) / 1000.0
+        self.two_stage = self.slow_s < self.timeout_s
         self.slack = send_slack_s
         self.r = result
         self.rng = random.Random(seed)
+        self.speed_kmh = speed_kmh
+        self.vehicle = vehicle
+        self.record: list[CanLogRecord] = []  # frames read since the last stop frame taken
+        self.last_record: list[CanLogRecord] = []  # ... up to and including that stop frame
+        self._lift: LiftDatagram | None = None
+        self._lift_sends: list[tuple[float, bool]] = []  # (time before, quick) per datagram
+        self._lift_seq = 0
 
     @property
     def _link(self) -> Link:
@@ -176,7 +134,8 @@ class Trials:
 
     def wait_stop(self, after: float, max_s: float) -> tuple[float, int] | None:
         """(stamp, reason) of the first brake frame with brake_request 1 stamped at or after
-        ``after``; None if none comes within max_s."""
+        ``after``; None if none comes within max_s. The frames read on the way, that one
+        included, are :attr:`last_record` afterwards (the roll-out's input)."""
         deadline = time.monotonic() + max_s
         while True:
             left = deadline - time.monotonic()
@@ -188,20 +147,27 @@ class Trials:
                 if not self.d.alive():
                     raise DaemonError("the daemon died") from None
                 continue
+            self.record.append(rec)
             if rec.can_id == can.STATUS_ID and len(rec.data) == can.DLC:
                 self.r.status_frames += 1
                 st = can.StatusFrame.parse(rec.data)
                 self.r.status_invalid_saturated += st.invalid_packets == 255
                 self.r.status_auth_saturated += st.auth_failures == 255
             elif is_stop_frame(rec) and stamp(rec) >= after:
+                self.last_record, self.record = self.record, []
                 return stamp(rec), can.BrakeFrame.parse(rec.data).reason
 
-    def timeout_trial(self) -> bool:
-        """One timeout trial; True when it produced a sample."""
-        mono = time.monotonic()
-        t_ack = self.release()
-        if t_ack is None:
-            return False
+    def forget_frames(self) -> None:
+        """The frames read so far are no trial's (the daemon waited while another was
+        tested, and its queue was drained)."""
+        self.record = []
+
+    def _roll(self, moment: float) -> float:
+        return roll_from_record(self.last_record, moment, self.speed_kmh,
+                                params=self.vehicle).distance
+
+    def _drive(self, t_ack: float) -> tuple[float, bool, bool]:
+        """3 drive packets 1 ms apart: (time before the last, a send was late, a gap)."""
         prev, late, gap = t_ack, False, False
         t_last = t_ack
         for i in range(3):
@@ -209,30 +175,58 @@ class Trials:
                 time.sleep(0.001)
             t_last, quick = self.send(0.3, udp.Gear.DRIVE)
             late = late or not quick
-            gap = gap or t_last - prev >= self.timeout_s / 2
+            gap = gap or t_last - prev >= min(self.slow_s, self.timeout_s) / 2
             prev = t_last
+        return t_last, late, gap
+
+    # -- silence --------------------------------------------------------------------------
+
+    def timeout_trial(self) -> bool:
+        """One silence trial; True when it produced a sample."""
+        mono = time.monotonic()
+        t_ack = self.release()
+        if t_ack is None:
+            return False
+        t_last, late, gap = self._drive(t_ack)
         return self.judge_timeout(TimeoutSent(mono, t_ack, t_last, late, gap))
 
     def judge_timeout(self, sent: TimeoutSent) -> bool:
-        """Find the timeout stop in the can-log and count it: a sample, a discard (with its
-        reason), a miss or a wrong reason. True when it produced a sample."""
+        """Find the timeout stop (and, on a two-stage unit, the slow-down before it) in the
+        can-log and count it: samples, a discard (with its reason), a miss or a wrong reason.
+        True when it produced a sample."""
+        metrics = ("overshoot", "slowing") if self.two_stage else ("overshoot",)
         stop = self.wait_stop(sent.t_ack, self.timeout_s + 2.0)
         if stop is None:
-            self.r.missed["overshoot"] += 1
+            for m in metrics:
+                self.r.missed[m] += 1
             return False
         t_stop, reason = stop
-        span = ((sent.t_ack, t_stop), (sent.mono, time.monotonic()))
+        t_slow = first_slowing(self.last_record, sent.t_ack) if self.two_stage else None
+        span: Span = ((sent.t_ack, t_stop), (sent.mono, time.monotonic()))
         why = (LOST_LINES if self.d.lines_lost(*span) else "late send" if sent.late
                else "gap between packets" if sent.gap
-               else "stop before the last packet" if t_stop < sent.t_last else None)
+               else "stop before the last packet" if t_stop < sent.t_last
+               else "slow-down before the last packet" if t_slow is not None
+               and t_slow < sent.t_last else None)
         if why is not None:
-            self.r.discard("overshoot", why)
+            for m in metrics:
+                self.r.discard(m, why)
             return False
         if reason != can.Reason.UDP_TIMEOUT:
-            self.r.wrong_reason["overshoot"] += 1
+            for m in metrics:
+                self.r.wrong_reason[m] += 1
             return False
-        self.r.add_sample("overshoot", (t_stop - (sent.t_last + self.timeout_s)) * 1000.0, span)
+        if self.two_stage:
+            if t_slow is None:
+                self.r.missed["slowing"] += 1  # straight to STOPPED: no slow-down seen
+            else:
+                self.r.add_sample("slowing", (t_slow - (sent.t_last + self.slow_s)) * 1000.0,
+                                  span)
+        self.r.add_sample("overshoot", (t_stop - (sent.t_last + self.timeout_s)) * 1000.0,
+                          span, self._roll(sent.t_last))
         return True
+
+    # -- TCP STOP -------------------------------------------------------------------------
 
     def tcp_trial(self) -> bool:
         mono = time.monotonic()
@@ -253,7 +247,7 @@ class Trials:
             self.r.missed["tcp_stop"] += 1
             return False
         t_frame, reason = stop
-        span = ((sent.t_ack, t_frame), (sent.mono, time.monotonic()))
+        span: Span = ((sent.t_ack, t_frame), (sent.mono, time.monotonic()))
         if reason == can.Reason.UDP_TIMEOUT:
             # the link timed out before the STOP was handled (the bench or the daemon was
             # held up, or the kernel dropped the drive packet): a stop, but not the TCP path
@@ -270,17 +264,79 @@ class Trials:
         self.r.add_sample("tcp_stop", (t_frame - sent.t_stop) * 1000.0, span)
         return True
 
+    # -- lift -----------------------------------------------------------------------------
+
+    def _transmit_lift(self, data: bytes) -> None:
+        link = self._link
+        t = time.time()
+        link.udp.sendto(data, link.addr)
+        self._lift_sends.append((t, time.time() - t <= self.slack))
+
+    def lift(self) -> tuple[float, bool]:
+        """The remote's lift: three lift datagrams 10 ms apart (made with the link's key and
+        session, if any; the unit honours them either way). (time before the first, that send
+        was quick)."""
+        link = self._link
+        if self._lift is None:
+            self._lift = LiftDatagram(link.addr[0], link.addr[1], key=link.key,
+                                      remote_id=link.remote_id, session=lambda: link.session,
+                                      transmit=self._transmit_lift)
+        self._lift_sends = []
+        self._lift_seq += 1
+        _sent, errors = send_lift(self._lift, self._lift_seq)
+        if errors or not self._lift_sends:
+            raise DaemonError(errors[0] if errors else "no lift datagram sent")
+        return self._lift_sends[0]
+
+    def lift_trial(self) -> bool:
+        """One lift trial; True when it produced a sample."""
+        mono = time.monotonic()
+        t_ack = self.release()
+        if t_ack is None:
+            return False
+        t_last, late, gap = self._drive(t_ack)
+        t_lift, quick = self.lift()
+        return self.judge_lift(LiftSent(mono, t_ack, t_last, t_lift, quick and not late, gap))
+
+    def judge_lift(self, sent: LiftSent) -> bool:
+        """Find the lift's stop frame in the can-log and count it (see judge_timeout)."""
+        stop = self.wait_stop(sent.t_ack, 2.0)
+        if stop is None:
+            self.r.missed["lift"] += 1
+            return False
+        t_frame, reason = stop
+        span: Span = ((sent.t_ack, t_frame), (sent.mono, time.monotonic()))
+        if reason == can.Reason.UDP_TIMEOUT:
+            # no lift datagram was handled before the deadline (all lost, or queued behind
+            # others): the silence rule stopped the car (spec section 8); not a lift latency
+            self.r.discard("lift", TIMEOUT_FIRST)
+            return False
+        if reason != can.Reason.LIFT:
+            self.r.wrong_reason["lift"] += 1
+            return False
+        why = (LOST_LINES if self.d.lines_lost(*span) else "late send" if not sent.quick
+               else "gap between packets" if sent.gap else None)
+        if why is not None:
+            self.r.discard("lift", why)
+            return False
+        self.r.add_sample("lift", (t_frame - sent.t_lift) * 1000.0, span,
+                          self._roll(sent.t_lift))
+        return True
+
+    # -------------------------------------------------------------------------------------
+
     def run(self, n: int, deadline: float, max_attempts: int) -> int:
-        """Trials until each metric has n samples, the monotonic deadline passes, or
-        max_attempts trial pairs were tried; returns the attempts made."""
+        """Trials until each kind has n samples, the monotonic deadline passes, or
+        max_attempts rounds were tried; returns the rounds made."""
+        trial = {"overshoot": self.timeout_trial, "tcp_stop": self.tcp_trial,
+                 "lift": self.lift_trial}
+        kinds = self.r.trial_kinds
         attempts = 0
         while attempts < max_attempts and time.monotonic() < deadline:
-            need = [len(self.r.samples[m]) < n for m in METRICS]
-            if not any(need):
+            need = [k for k in kinds if len(self.r.samples[k]) < n]
+            if not need:
                 break
             attempts += 1
-            if need[0]:
-                self.timeout_trial()
-            if need[1]:
-                self.tcp_trial()
+            for k in need:
+                trial[k]()
         return attempts

@@ -123,7 +123,9 @@ def test_lost_lines_are_a_column_and_settle_moves_samples(bench: ModuleType) -> 
 def test_latency_tables_from_synthetic_runs(bench: ModuleType) -> None:
     tables = load_bench_script("latency_tables")
     args = tables.argparse.Namespace(hog=2, rt_prio=50, timeout_ms=20, trials=10,
-                                     out=Path("/nonexistent"), estopd=None)
+                                     out=Path("/nonexistent"), estopd=None,
+                                     estopd_before=None, before_label="before",
+                                     two_stage_ms=(100, 200), two_stage_trials=30)
     names = [c.name for c in tables.configs(["hog", "issue11"], args)]
     assert names == ["hog-normal", "hog-rt-bench-normal", "hog-rt"]
     cmd = tables.command(tables.configs(["issue11"], args)[1], args)

@@ -72,20 +72,27 @@ def _header(results: list[RunResult], meta: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _main_table(results: list[RunResult]) -> list[str]:
-    lines = ["", "| daemon | load | metric | n | p50 | p99 | p99.9 | max | early | missed | "
-             "wrong | discarded | lines lost |",
+def floor_cell(r: RunResult, meta: dict[str, Any]) -> str:
+    """The machine's timer wake-up p50 / p99.9 beside a run: measured before each of its
+    blocks, else (older runs) once before the daemons started."""
+    floor = summarize(r.floor_ms) if r.floor_ms else (meta.get("timer_floor_ms") or {})
+    return f"{fmt_ms(floor.get('p50', math.nan))} / {fmt_ms(floor.get('p99.9', math.nan))}"
+
+
+def _main_table(results: list[RunResult], meta: dict[str, Any]) -> list[str]:
+    lines = ["", "| daemon | load | metric | n | p50 | p99 | p99.9 | max | timer floor p50 / "
+             "p99.9 | early | missed | wrong | discarded | lines lost |",
              "| --- | --- | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | "
-             "---: |"]
+             "---: | ---: |"]
     for r in results:
         for m in (m for m in METRICS if m in r.metrics):
             s = summarize(r.samples[m])
             early = str(r.early(m)) if m in ("overshoot", "slowing") else "-"
             lines.append(
                 f"| {r.daemon} | {r.load} | {METRIC_TITLES[m]} | {s['n']} | {fmt_ms(s['p50'])} |"
-                f" {fmt_ms(s['p99'])} | {fmt_ms(s['p99.9'])} | {fmt_ms(s['max'])} | {early} |"
-                f" {r.missed[m]} | {r.wrong_reason[m]} | {r.discarded[m]} |"
-                f" {r.lost_discards(m)} |")
+                f" {fmt_ms(s['p99'])} | {fmt_ms(s['p99.9'])} | {fmt_ms(s['max'])} |"
+                f" {floor_cell(r, meta)} | {early} | {r.missed[m]} | {r.wrong_reason[m]} |"
+                f" {r.discarded[m]} | {r.lost_discards(m)} |")
     return lines
 
 
@@ -101,8 +108,10 @@ def _floor_line(meta: dict[str, Any]) -> list[str]:
             f"start): p50 {fmt_ms(floor['p50'])}, p99 {fmt_ms(floor['p99'])}, p99.9 "
             f"{fmt_ms(floor['p99.9'])}, max {fmt_ms(floor['max'])} ms (other CPU "
             f"{meta.get('timer_floor_other_cpu', 'n/a')} cores, steal "
-            f"{meta.get('timer_floor_steal', 'n/a')}). A timeout stop's tail at or below "
-            f"this comes from the machine, not the daemon."]
+            f"{meta.get('timer_floor_steal', 'n/a')}). The column 'timer floor' measures the "
+            f"same again before each of the run's blocks (5 sleeps, under that load, the "
+            f"flood aimed at the daemon, at the bench's priority). A stop's tail at or below "
+            f"it comes from the machine, not the daemon."]
 
 
 def lift_table(results: list[RunResult], meta: dict[str, Any]) -> list[str]:
@@ -111,7 +120,6 @@ def lift_table(results: list[RunResult], meta: dict[str, Any]) -> list[str]:
     runs = [r for r in results if r.samples["lift"]]
     if not runs:
         return []
-    floor = meta.get("timer_floor_ms") or {}
     lines = ["", "Lift (spec sections 1, 8): first lift datagram sent -> first stop frame "
              "with reason lift; the remote's three datagrams 10 ms apart, after 3 drive "
              "packets. Beside it, this run's timer wake-up floor, the peer's p99.9 over "
@@ -129,8 +137,7 @@ def lift_table(results: list[RunResult], meta: dict[str, Any]) -> list[str]:
             ratio = f"{summarize(peer.samples['lift'])['p99.9'] / s['p99.9']:.1f}x"
         lines.append(f"| {r.daemon} | {r.load} | {s['n']} | {fmt_ms(s['p50'])} | "
                      f"{fmt_ms(s['p99'])} | {fmt_ms(s['p99.9'])} | {fmt_ms(s['max'])} | "
-                     f"{fmt_ms(floor.get('p50', math.nan))} / "
-                     f"{fmt_ms(floor.get('p99.9', math.nan))} | {ratio} | "
+                     f"{floor_cell(r, meta)} | {ratio} | "
                      f"{r.discards_for('lift', TIMEOUT_FIRST)} |")
     return lines
 
@@ -168,7 +175,7 @@ def _rcvbuf(r: RunResult) -> str:
     return "default" if r.udp_rcvbuf is None else f"{r.udp_rcvbuf:,}"
 
 
-def before_after_table(results: list[RunResult]) -> list[str]:
+def before_after_table(results: list[RunResult], meta: dict[str, Any]) -> list[str]:
     """The same unit before and after a change, per load: kernel drops, receive buffer and
     timeout overshoot side by side (one row per load)."""
     pairs = []
@@ -183,8 +190,8 @@ def before_after_table(results: list[RunResult]) -> list[str]:
              "(same machine, same flood, trials alternating in blocks). Timeout overshoot in "
              "ms.", "",
              "| load | flood/s | kernel drops | udp_rcvbuf (bytes) | overshoot n | p50 | p99 | "
-             "p99.9 | max | early | discarded |",
-             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
+             "p99.9 | max | early | discarded | timer floor p50 / p99.9 |",
+             "| --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: | ---: |"]
     for load, b, a in pairs:
         sb, sa = summarize(b.samples["overshoot"]), summarize(a.samples["overshoot"])
 
@@ -197,7 +204,8 @@ def before_after_table(results: list[RunResult]) -> list[str]:
                      f"{_rcvbuf(a)} | {sb['n']} / {sa['n']} | {both('p50')} | {both('p99')} | "
                      f"{both('p99.9')} | {both('max')} | {b.early('overshoot')} / "
                      f"{a.early('overshoot')} | {b.discarded['overshoot']} / "
-                     f"{a.discarded['overshoot']} |")
+                     f"{a.discarded['overshoot']} | {floor_cell(b, meta)} ; "
+                     f"{floor_cell(a, meta)} |")
     return lines
 
 
@@ -282,9 +290,9 @@ def _run_lines(results: list[RunResult]) -> list[str]:
 
 def markdown(results: list[RunResult], meta: dict[str, Any],
              goals: list[tuple[str, bool]]) -> str:
-    lines = _header(results, meta) + _main_table(results) + _floor_line(meta)
+    lines = _header(results, meta) + _main_table(results, meta) + _floor_line(meta)
     lines += lift_table(results, meta) + roll_table(results, meta)
-    lines += two_stage_table(results) + before_after_table(results)
+    lines += two_stage_table(results) + before_after_table(results, meta)
     lines += _flood_lines(results) + _run_lines(results)
     lines += ["", "Goals:", ""]
     lines += [f"- {'PASS' if ok else 'FAIL'}: {text}" for text, ok in goals]

@@ -77,6 +77,7 @@ class RunResult:
     log_gaps: int = 0  # counter jumps among them
     log_gap_lines: int = 0  # frames missing by the counters
     daemon_dropped: int = 0  # can-log lines the daemon reported dropped (its total)
+    floor_ms: list[float] = field(default_factory=list)  # timer wake-ups before its blocks
     udp_rcvbuf: int | None = None  # the receive buffer the daemon's start line reports
     daemon_udp_drops: int | None = None  # kernel drops the daemon itself reported (udp_drops)
     wall_s: float = 0.0

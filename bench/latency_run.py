@@ -16,9 +16,12 @@ from estop.loopback import Daemon, DaemonError, Link
 from estop.protocol import auth, tcp
 from estop.vehicle import VehicleParams
 from latency_flood import Flood, reported_udp_drops, start_rcvbuf
-from latency_machine import CpuMeter
+from latency_machine import CpuMeter, timer_floor
 from latency_result import PLAIN_METRICS, ROLE_MAIN, RunResult
 from latency_trials import Trials
+
+FLOOR_SLEEPS = 5  # timer wake-ups measured before each block
+FLOOR_PERIOD_MS = 20  # their period: the bench's timeout, at most this long
 
 
 @dataclass
@@ -67,6 +70,7 @@ def run_load(load: str, daemons: list[DaemonSpec], args: argparse.Namespace, n: 
                       RunResult(d.name, load, args.timeout_ms, metrics=d.metrics, role=d.role,
                                 slow_ms=d.slow_ms)) for d in daemons]
     vehicle = VehicleParams(emergency_decel=args.decel)
+    floor_s = min(args.timeout_ms, FLOOR_PERIOD_MS) / 1000.0
     flood: Flood | None = None
     try:
         for c, spec in zip(cons, daemons, strict=True):
@@ -96,7 +100,10 @@ def run_load(load: str, daemons: list[DaemonSpec], args: argparse.Namespace, n: 
                     assert c.trials is not None
                     if flood is not None:
                         flood.aim(cons.index(c))
-                        time.sleep(0.1)  # the daemon under test is in the flood for a while
+                    # 0.1 s before each block (the daemon under test is in the flood for a
+                    # while): the machine's timer wake-up under this load and at this hour,
+                    # the floor reported beside the block's latencies
+                    c.result.floor_ms += timer_floor(FLOOR_SLEEPS, floor_s)
                     _drain(c.daemon)  # frames logged while the other daemon was tested
                     c.trials.forget_frames()
                     meter = CpuMeter()

@@ -135,7 +135,7 @@ def table_new_rows(doc: dict[str, Any], title: str) -> list[str]:
     two-stage; the run's own report formats them the same way."""
     results, meta = _results(doc), doc["meta"]
     body = (lift_table(results, meta) + roll_table(results, meta)
-            + before_after_table(results) + two_stage_table(results))
+            + before_after_table(results, meta) + two_stage_table(results))
     if not body:
         return []
     return [f"### {title}", "", _meta_line(doc), *body, ""]

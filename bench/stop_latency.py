@@ -78,6 +78,7 @@ import json
 import os
 import platform
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -117,12 +118,13 @@ from latency_result import (  # noqa: E402
     RunResult,
 )
 from latency_roll import DEFAULT_SPEED_KMH, braking_distance, roll_from_record  # noqa: E402
-from latency_run import DaemonSpec, make_key_file, run_load  # noqa: E402
+from latency_run import FLOOR_PERIOD_MS, DaemonSpec, make_key_file, run_load  # noqa: E402
 from latency_stats import fmt_ms, log_bins, percentile, say, summarize  # noqa: E402
 from latency_trials import LiftSent, TcpSent, TimeoutSent, Trials  # noqa: E402
 
 __all__ = [  # the bench's names, for tests/test_bench_*.py (they load this script)
     "FLOOD_PAYLOADS", "KEYED", "KEYLESS", "LOST_LINES", "METRICS", "METRIC_TITLES", "CpuMeter",
+    "PLAIN_METRICS", "TWO_STAGE_METRICS", "V2_METRICS",
     "DaemonSpec", "Flood", "FloodStats", "Hogs", "LiftSent", "RunResult", "TcpSent",
     "TimeoutSent", "Trials", "braking_distance", "check_goals", "document", "fmt_ms",
     "forged_packets", "log_bins", "main", "markdown", "percentile", "plot", "roll_from_record",
@@ -130,14 +132,20 @@ __all__ = [  # the bench's names, for tests/test_bench_*.py (they load this scri
 ]
 
 BENCH_BELOW_DAEMON = 10  # default real-time priority of the bench: this far below the daemon's
-FLOOR_PERIOD_MS = 20  # the timer floor's sleeps: the bench's timeout, at most this long
 
 
 # --------------------------------------------------------------------------------------------
 
 
+def _exit_on_term(_sig: int, _frame: object) -> None:
+    # SIGTERM unwinds like an error, so the daemons, the flood and the busy loops are ended
+    # (the default action left them running)
+    raise SystemExit(128 + signal.SIGTERM)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
+    signal.signal(signal.SIGTERM, _exit_on_term)
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--trials", type=int, default=1000, help="trials per metric and run")
     ap.add_argument("--quick", action="store_true", help="smoke run: 100 trials")

@@ -161,6 +161,14 @@ def test_latency_tables_from_synthetic_runs(bench: ModuleType) -> None:
 # Version 3 rows: lift, roll-out, before / after, two-stage (synthetic can-logs, no timing)
 
 V15 = 15 / 3.6  # 15 km/h in m/s
+
+
+def _part(bench: ModuleType, name: str) -> ModuleType:
+    """One of the bench's modules, as stop_latency.py imported it (no second copy)."""
+    import importlib
+
+    assert bench.HERE.name == "bench"  # the script put its folder on sys.path
+    return importlib.import_module(name)
 BRAKING_15 = V15 * V15 / (2 * 8.0)  # full braking alone from 15 km/h at 8 m/s^2
 
 
@@ -288,7 +296,7 @@ def _v3_run(bench: ModuleType, daemon: str, load: str, role: str, overshoot: lis
 
 
 def test_lift_roll_and_before_after_rows(bench: ModuleType) -> None:
-    report = load_bench_script("latency_report")
+    report = _part(bench, "latency_report")
     after = _v3_run(bench, "estopd+key", "flood", "main", [0.05] * 99 + [0.2],
                     lift=[0.02] * 99 + [0.4], drops=0, rcvbuf=8_388_608)
     before = _v3_run(bench, "estopd+key v2", "flood", "before", [0.06] * 99 + [0.3],
@@ -347,7 +355,7 @@ def test_two_stage_rows_and_goals(bench: ModuleType) -> None:
 
 
 def test_receive_buffer_and_drops_from_the_daemon_log(bench: ModuleType) -> None:
-    flood = load_bench_script("latency_flood")
+    flood = _part(bench, "latency_flood")
     v3 = ["estopd 1.0 start udp=127.0.0.1:1 tcp=127.0.0.1:2 udp_rcvbuf=8388608 rt_prio=0",
           "estopd 11.0 udp_drops dropped=5 total=5", "estopd 21.0 udp_drops dropped=2 total=7"]
     assert flood.start_rcvbuf(v3) == 8_388_608 and flood.reported_udp_drops(v3) == 7
@@ -362,7 +370,7 @@ def test_receive_buffer_and_drops_from_the_daemon_log(bench: ModuleType) -> None
 def test_runs_come_back_from_json_for_the_tables(bench: ModuleType) -> None:
     import json
 
-    result = load_bench_script("latency_result")
+    result = _part(bench, "latency_result")
     r = _v3_run(bench, "estopd+key", "flood", "main", [0.05, 0.07], lift=[0.02, 0.03],
                 drops=0, rcvbuf=8_388_608)
     doc = json.loads(json.dumps(bench.document([r], {}, [])))

@@ -12,12 +12,11 @@ the controller brakes fully, so the record may end there.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable
 
 from estop.protocol.canlog import CanLogRecord
 from estop.rollout import RollOut, roll_out, timed_frames
 from estop.vehicle import DEFAULT_PARAMS, VehicleParams, kmh, stopping_distance
-from latency_stats import summarize
 
 DEFAULT_SPEED_KMH = 15.0  # a research car driven remotely on a test ground
 
@@ -33,11 +32,6 @@ def braking_distance(speed_kmh: float, params: VehicleParams = DEFAULT_PARAMS) -
     """Metres of full braking alone from ``speed_kmh`` (no reaction time): the floor of every
     distance in the report."""
     return stopping_distance(kmh(speed_kmh), params=params)
-
-
-def summarize_m(distances: Sequence[float]) -> dict[str, float]:
-    """n, min, p50, p99, p99.9, max and mean of distances (metres)."""
-    return summarize(distances)
 
 
 def fmt_m(v: float) -> str:

@@ -130,14 +130,18 @@ def _results(doc: dict[str, Any]) -> list[RunResult]:
     return [from_document(r) for r in doc["runs"]]
 
 
-def table_new_rows(doc: dict[str, Any], title: str) -> list[str]:
+def table_new_rows(doc: dict[str, Any], title: str, goals: bool = False) -> list[str]:
     """The version 3 rows of one run: lift (timer floor beside it), roll-out, before / after,
-    two-stage; the run's own report formats them the same way."""
+    two-stage; the run's own report formats them the same way. ``goals``: the run's goals
+    after them (for a run without a table_daemons table)."""
     results, meta = _results(doc), doc["meta"]
     body = (lift_table(results, meta) + roll_table(results, meta)
             + before_after_table(results, meta) + two_stage_table(results))
     if not body:
         return []
+    if goals:
+        body += ["", "Goals: " + "; ".join(f"{'PASS' if g['pass'] else 'FAIL'} {g['goal']}"
+                                           for g in doc["goals"])]
     return [f"### {title}", "", _meta_line(doc), *body, ""]
 
 
@@ -328,7 +332,7 @@ def main(argv: list[str] | None = None) -> int:
         md += table_issue11(docs, a)
     if "two-stage" in sets and "two-stage" in docs:
         md += table_new_rows(docs["two-stage"], "Two-stage: SLOWING at S, STOPPED at T, "
-                                                "distance rolled")
+                                                "distance rolled", goals=True)
     if failed:
         md += ["", "Runs that failed: " + ", ".join(failed), ""]
     text = "\n".join(md)

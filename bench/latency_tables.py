@@ -3,21 +3,30 @@
 Runs ``bench/stop_latency.py`` once per configuration (a fresh process each, so each sets its
 own scheduling), reads back its JSON, and prints:
 
-1. plain: estopd against the asyncio baseline, idle and under the invalid-packet flood;
+1. plain: estopd against the asyncio baseline, idle and under the invalid-packet flood; its
+   lift row (first lift datagram to the stop frame, the timer floor beside it) and the
+   roll-out at 15 km/h of the timeout and lift trials;
 2. auth (issue 8): estopd with a key against estopd without one, idle and under a flood of
-   forged authenticated packets; kernel drops and whether every trial still armed; auth-rt:
-   the same with ``--rt-prio`` (SCHED_FIFO, as deploy/estopd.service runs it);
+   forged authenticated packets; kernel drops and whether every trial still armed; with
+   ``--estopd-before PATH`` (a previous estopd, e.g. built from git history) beside them, the
+   forged-flood row before / after: drops, receive buffer, overshoot; auth-rt: the same with
+   ``--rt-prio`` (SCHED_FIFO, as deploy/estopd.service runs it);
 3. hog: estopd under CPU contention (``--hog``: busy loops at normal priority, one per core
    here), without and with ``--rt-prio``, idle and flooded: p50, p99, p99.9, max overshoot;
 4. issue11: the three rows of issue 11 under the same contention: estopd at normal priority;
    estopd ``--rt-prio`` with the bench at normal priority; both real-time (the bench a little
-   below). Each with the trials discarded because can-log lines were lost.
+   below). Each with the trials discarded because can-log lines were lost;
+5. two-stage: estopd ``--slow-ms S --timeout-ms T`` beside a single-stage estopd at the same
+   T and the baseline with S and T (--two-stage-ms S,T, default 100,200; idle, silence trials,
+   --two-stage-trials): SLOWING at S, STOPPED at T, metres rolled from the last packet.
 
 Every command run is printed first, so any one can be re-run by hand. Each run's own report
 (stop_latency.md/.json/.png) stays in --out/<name>/.
 
-    bench/latency_tables.py [--sets plain,auth,auth-rt,hog,issue11] [--trials 1000]
+    bench/latency_tables.py [--sets plain,auth,auth-rt,hog,issue11,two-stage] [--trials 1000]
                             [--timeout-ms 20] [--rt-prio 50] [--hog 2]
+                            [--estopd-before PATH [--before-label v2]]
+                            [--two-stage-ms 100,200] [--two-stage-trials 300]
                             [--out bench/out/tables] [--dry-run]
 """
 
@@ -35,8 +44,19 @@ from pathlib import Path
 from typing import Any
 
 HERE = Path(__file__).resolve().parent
+if str(HERE) not in sys.path:  # the bench's modules beside this script (also when imported)
+    sys.path.insert(0, str(HERE))
+
+from latency_report import (  # noqa: E402
+    before_after_table,
+    lift_table,
+    roll_table,
+    two_stage_table,
+)
+from latency_result import RunResult, from_document  # noqa: E402
+
 STOP_LATENCY = HERE / "stop_latency.py"
-SETS = ("plain", "auth", "auth-rt", "hog", "issue11")
+SETS = ("plain", "auth", "auth-rt", "hog", "issue11", "two-stage")
 
 
 @dataclass
@@ -44,6 +64,8 @@ class Config:
     name: str
     args: list[str]
     what: str  # how the tables call it
+    timeout_ms: int | None = None  # its own timeout (else --timeout-ms)
+    trials: int | None = None  # its own trials per cell (else --trials)
 
 
 def configs(sets: list[str], a: argparse.Namespace) -> list[Config]:
@@ -55,8 +77,11 @@ def configs(sets: list[str], a: argparse.Namespace) -> list[Config]:
     out: list[Config] = []
     if "plain" in sets:
         out.append(Config("plain", [], "estopd vs baseline"))
+    before = (["--estopd-before", a.estopd_before, "--before-label", a.before_label]
+              if a.estopd_before else [])
     if "auth" in sets:
-        out.append(Config("auth", ["--auth"], "estopd with a key vs without"))
+        out.append(Config("auth", ["--auth", *before], "estopd with a key vs without"
+                          + (f", and {a.before_label} beside them" if before else "")))
     if "auth-rt" in sets:
         out.append(Config("auth-rt", ["--auth", *rt],
                           f"estopd with a key vs without, --rt-prio {a.rt_prio} as deployed"))
@@ -71,12 +96,17 @@ def configs(sets: list[str], a: argparse.Namespace) -> list[Config]:
         out.append(Config("hog-rt", [*hog, *rt, *loads],
                           f"estopd --rt-prio {a.rt_prio}, bench also real-time "
                           f"(SCHED_FIFO {below})"))
+    if "two-stage" in sets:
+        slow, timeout = a.two_stage_ms
+        out.append(Config("two-stage", ["--slow-ms", str(slow), "--loads", "idle"],
+                          f"estopd two-stage S {slow} ms, T {timeout} ms vs single-stage",
+                          timeout_ms=timeout, trials=a.two_stage_trials))
     return out
 
 
 def command(c: Config, a: argparse.Namespace) -> list[str]:
-    cmd = [sys.executable, str(STOP_LATENCY), *c.args, "--trials", str(a.trials),
-           "--timeout-ms", str(a.timeout_ms), "--out", str(a.out / c.name)]
+    cmd = [sys.executable, str(STOP_LATENCY), *c.args, "--trials", str(c.trials or a.trials),
+           "--timeout-ms", str(c.timeout_ms or a.timeout_ms), "--out", str(a.out / c.name)]
     if a.estopd:
         cmd += ["--estopd", a.estopd]
     return cmd
@@ -91,8 +121,28 @@ def ms(v: float | None) -> str:
 
 
 def _lost(run: dict[str, Any], metric: str) -> int:
-    title = {"overshoot": "timeout overshoot", "tcp_stop": "TCP stop latency"}[metric]
+    title = {"overshoot": "timeout overshoot", "tcp_stop": "TCP stop latency",
+             "lift": "lift stop latency", "slowing": "slow-down overshoot"}[metric]
     return int(run["discard_reasons"].get(f"{title}: log lines lost", 0))
+
+
+def _results(doc: dict[str, Any]) -> list[RunResult]:
+    return [from_document(r) for r in doc["runs"]]
+
+
+def table_new_rows(doc: dict[str, Any], title: str, goals: bool = False) -> list[str]:
+    """The version 3 rows of one run: lift (timer floor beside it), roll-out, before / after,
+    two-stage; the run's own report formats them the same way. ``goals``: the run's goals
+    after them (for a run without a table_daemons table)."""
+    results, meta = _results(doc), doc["meta"]
+    body = (lift_table(results, meta) + roll_table(results, meta)
+            + before_after_table(results, meta) + two_stage_table(results))
+    if not body:
+        return []
+    if goals:
+        body += ["", "Goals: " + "; ".join(f"{'PASS' if g['pass'] else 'FAIL'} {g['goal']}"
+                                           for g in doc["goals"])]
+    return [f"### {title}", "", _meta_line(doc), *body, ""]
 
 
 def _other_discards(run: dict[str, Any], metric: str) -> int:
@@ -122,7 +172,7 @@ def table_daemons(doc: dict[str, Any], title: str) -> list[str]:
         kd = fl.get("kernel_drops")
         bad = sum(r["missed"].values()) + sum(r["wrong_reason"].values())
         disc = sum(r["discarded"].values())
-        lost = _lost(r, "overshoot") + _lost(r, "tcp_stop")
+        lost = sum(_lost(r, m) for m in r["discarded"])
         lines.append(
             f"| {r['daemon']} | {r['load']} | {o['n']} | {ms(o['p50'])} | {ms(o['p99'])} | "
             f"{ms(o['p99.9'])} | {ms(o['max'])} | {t['n']} | {ms(t['p50'])} | "
@@ -219,6 +269,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rt-prio", type=int, default=50)
     ap.add_argument("--hog", type=int, default=2, help="busy loops (one per core here)")
     ap.add_argument("--estopd", metavar="PATH")
+    ap.add_argument("--estopd-before", metavar="PATH",
+                    help="a previous estopd beside the auth run (before / after)")
+    ap.add_argument("--before-label", default="before")
+    ap.add_argument("--two-stage-ms", default="100,200", metavar="S,T",
+                    help="slow time and timeout of the two-stage set (default 100,200)")
+    ap.add_argument("--two-stage-trials", type=int, default=300,
+                    help="trials per cell of the two-stage set (each waits T: default 300)")
     ap.add_argument("--out", type=Path, default=HERE / "out" / "tables")
     ap.add_argument("--dry-run", action="store_true", help="print the commands only")
     a = ap.parse_args(argv)
@@ -229,6 +286,13 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--rt-prio takes 1..99")
     if a.hog < 1:
         ap.error("--hog takes at least 1")
+    try:
+        slow, timeout = (int(x) for x in a.two_stage_ms.split(","))
+    except ValueError:
+        ap.error("--two-stage-ms takes S,T in ms, e.g. 100,200")
+    if not 0 < slow < timeout:
+        ap.error("--two-stage-ms: 0 < S < T")
+    a.two_stage_ms = (slow, timeout)
     runs = configs(sets, a)
     print("Runs (each can be re-run alone):")
     for c in runs:
@@ -252,9 +316,12 @@ def main(argv: list[str] | None = None) -> int:
     md.append("")
     if "plain" in sets and "plain" in docs:
         md += table_daemons(docs["plain"], "Plain: estopd vs the asyncio baseline")
+        md += table_new_rows(docs["plain"], "Plain: lift and roll-out")
     if "auth" in sets and "auth" in docs:
         md += table_daemons(docs["auth"], "Auth (issue 8): estopd with a key vs without, "
                                           "flood of forged authenticated packets")
+        md += table_new_rows(docs["auth"], "Auth: forged flood before / after, lift and "
+                                           "roll-out")
     if "auth-rt" in sets and "auth-rt" in docs:
         md += table_daemons(docs["auth-rt"], f"Auth (issue 8) as deployed: both daemons "
                                              f"--rt-prio {a.rt_prio}, the bench SCHED_FIFO "
@@ -263,6 +330,9 @@ def main(argv: list[str] | None = None) -> int:
         md += table_hog(docs, a)
     if "issue11" in sets:
         md += table_issue11(docs, a)
+    if "two-stage" in sets and "two-stage" in docs:
+        md += table_new_rows(docs["two-stage"], "Two-stage: SLOWING at S, STOPPED at T, "
+                                                "distance rolled", goals=True)
     if failed:
         md += ["", "Runs that failed: " + ", ".join(failed), ""]
     text = "\n".join(md)

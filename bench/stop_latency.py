@@ -95,6 +95,7 @@ from estop.loopback import Daemon, find_estopd, set_realtime  # noqa: E402
 from estop.vehicle import VehicleParams  # noqa: E402
 from latency_flood import (  # noqa: E402
     FLOOD_PAYLOADS,
+    FORGED_REMOTE_ID,
     Flood,
     FloodStats,
     forged_packets,
@@ -123,8 +124,8 @@ from latency_stats import fmt_ms, log_bins, percentile, say, summarize  # noqa: 
 from latency_trials import LiftSent, TcpSent, TimeoutSent, Trials  # noqa: E402
 
 __all__ = [  # the bench's names, for tests/test_bench_*.py (they load this script)
-    "FLOOD_PAYLOADS", "KEYED", "KEYLESS", "LOST_LINES", "METRICS", "METRIC_TITLES", "CpuMeter",
-    "PLAIN_METRICS", "TWO_STAGE_METRICS", "V2_METRICS",
+    "FLOOD_PAYLOADS", "FORGED_REMOTE_ID", "KEYED", "KEYLESS", "LOST_LINES", "METRICS",
+    "METRIC_TITLES", "CpuMeter", "PLAIN_METRICS", "TWO_STAGE_METRICS", "V2_METRICS",
     "DaemonSpec", "Flood", "FloodStats", "Hogs", "LiftSent", "RunResult", "TcpSent",
     "TimeoutSent", "Trials", "braking_distance", "check_goals", "document", "fmt_ms",
     "forged_packets", "log_bins", "main", "markdown", "percentile", "plot", "roll_from_record",

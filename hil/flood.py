@@ -41,6 +41,7 @@ import sys
 import time
 
 from estop.protocol import udp
+from mmsg import Iovec, Mmsghdr  # this folder (run as a script)
 
 NEUTRAL = udp.ControlPacket(0.0, 0.0, udp.Gear.NEUTRAL).encode()
 
@@ -67,21 +68,6 @@ SERIES_EVERY_S = 0.005
 SOL_UDP = 17
 UDP_SEGMENT = 103  # linux/udp.h: the size of each datagram a send is cut into (UDP GSO)
 GSO_MAX_SEGMENTS = 64  # UDP_MAX_SEGMENTS of the kernels in use
-
-
-class _Iovec(ctypes.Structure):
-    _fields_ = [("iov_base", ctypes.c_void_p), ("iov_len", ctypes.c_size_t)]
-
-
-class _Msghdr(ctypes.Structure):
-    _fields_ = [("msg_name", ctypes.c_void_p), ("msg_namelen", ctypes.c_uint32),
-                ("msg_iov", ctypes.POINTER(_Iovec)), ("msg_iovlen", ctypes.c_size_t),
-                ("msg_control", ctypes.c_void_p), ("msg_controllen", ctypes.c_size_t),
-                ("msg_flags", ctypes.c_int)]
-
-
-class _Mmsghdr(ctypes.Structure):
-    _fields_ = [("msg_hdr", _Msghdr), ("msg_len", ctypes.c_uint)]
 
 
 class _GsoCmsg(ctypes.Structure):
@@ -130,10 +116,10 @@ class Ring:
         self.size = len(msgs)
         self.segs = [m[1] for m in msgs]
         self._keep: list[object] = []
-        self._msgs = (_Mmsghdr * self.size)()
+        self._msgs = (Mmsghdr * self.size)()
         for i, (payload, segs, gso) in enumerate(msgs):
             buf = ctypes.create_string_buffer(payload, max(1, len(payload)))
-            iov = _Iovec(ctypes.cast(buf, ctypes.c_void_p), len(payload))
+            iov = Iovec(ctypes.cast(buf, ctypes.c_void_p), len(payload))
             self._keep += [buf, iov]
             self._msgs[i].msg_hdr.msg_iov = ctypes.pointer(iov)
             self._msgs[i].msg_hdr.msg_iovlen = 1
@@ -145,7 +131,7 @@ class Ring:
                                                                 ctypes.c_void_p)
                 self._msgs[i].msg_hdr.msg_controllen = ctypes.sizeof(cm)
         self._base = ctypes.addressof(self._msgs)
-        self._step = ctypes.sizeof(_Mmsghdr)
+        self._step = ctypes.sizeof(Mmsghdr)
         self.pos = 0
 
     def send(self, want: int) -> tuple[int, int]:

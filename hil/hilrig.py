@@ -490,6 +490,27 @@ class Exchange:
     frame: bytes = b""  # the request as sent
 
 
+def read_reply(sock: socket.socket, asm: tcp.FrameAssembler, timeout: float,
+               what: str) -> tuple[bytes, float]:
+    """Reads exactly one reply frame (``asm`` knows its size) within ``timeout`` s: the frame
+    and the time it was whole. ``what`` names the request in the errors."""
+    end = time.monotonic() + timeout
+    while True:
+        left = end - time.monotonic()
+        if left <= 0:
+            raise RigError(f"no reply to {what} within {timeout} s")
+        sock.settimeout(left)
+        data = sock.recv(128)
+        if not data:
+            raise RigError(f"connection closed instead of a reply to {what}")
+        frames = asm.feed(data)
+        if frames:
+            t1 = time.time()
+            if len(frames) > 1 or asm.pending:
+                raise RigError("more than one reply frame to one request")
+            return frames[0], t1
+
+
 class StopClient:
     """One TCP connection of the stop channel."""
 
@@ -505,24 +526,11 @@ class StopClient:
         req = tcp.Request(msg_id, self.seq)
         t0 = time.time()
         self.sock.sendall(req.encode())
-        end = time.monotonic() + self.timeout
-        while True:
-            left = end - time.monotonic()
-            if left <= 0:
-                raise RigError(f"no reply to msg_id {msg_id:#x} within {self.timeout} s")
-            self.sock.settimeout(left)
-            data = self.sock.recv(64)
-            if not data:
-                raise RigError(f"connection closed instead of a reply to msg_id {msg_id:#x}")
-            frames = self.asm.feed(data)
-            if frames:
-                t1 = time.time()
-                rep = tcp.Reply.decode(frames[0])
-                if rep.seq != self.seq:
-                    raise RigError(f"reply seq {rep.seq}, request seq {self.seq}")
-                if len(frames) > 1 or self.asm.pending:
-                    raise RigError("more than one reply frame to one request")
-                return Exchange(rep, t0, t1)
+        raw, t1 = read_reply(self.sock, self.asm, self.timeout, f"msg_id {msg_id:#x}")
+        rep = tcp.Reply.decode(raw)
+        if rep.seq != self.seq:
+            raise RigError(f"reply seq {rep.seq}, request seq {self.seq}")
+        return Exchange(rep, t0, t1)
 
     def stop(self, stop_id: int = tcp.DEFAULT_STOP_ID) -> Exchange:
         return self.request(stop_id)
@@ -537,30 +545,16 @@ class StopClient:
         the seq and counter."""
         self.seq += 1
         frame = auth.AuthRequest(msg_id, self.seq, remote_id, 0, counter).encode(None)
-        asm = tcp.FrameAssembler(auth.REPLY_SIZE)
         t0 = time.time()
         self.sock.sendall(frame)
-        end = time.monotonic() + self.timeout
-        while True:
-            left = end - time.monotonic()
-            if left <= 0:
-                raise RigError(f"no reply to a request frame within {self.timeout} s")
-            self.sock.settimeout(left)
-            data = self.sock.recv(128)
-            if not data:
-                raise RigError("connection closed instead of a reply to a request frame")
-            frames = asm.feed(data)
-            if frames:
-                t1 = time.time()
-                if len(frames) > 1 or asm.pending:
-                    raise RigError("more than one reply frame to one request")
-                try:
-                    rep = auth.AuthReply.decode(frames[0], None)
-                except tcp.FrameError as exc:
-                    raise RigError(f"bad reply frame {frames[0].hex(' ')}: {exc}") from exc
-                ok = (frames[0][32:] == bytes(16) and rep.seq == self.seq
-                      and rep.counter == counter)
-                return Exchange(rep.reply, t0, t1, rep, ok, frame)
+        raw, t1 = read_reply(self.sock, tcp.FrameAssembler(auth.REPLY_SIZE), self.timeout,
+                             "a request frame")
+        try:
+            rep = auth.AuthReply.decode(raw, None)
+        except tcp.FrameError as exc:
+            raise RigError(f"bad reply frame {raw.hex(' ')}: {exc}") from exc
+        ok = raw[32:] == bytes(16) and rep.seq == self.seq and rep.counter == counter
+        return Exchange(rep.reply, t0, t1, rep, ok, frame)
 
     def status(self) -> Exchange:
         return self.request(tcp.STATUS)
@@ -617,35 +611,22 @@ class AuthClient:
         t0 = time.time()
         self.sock.sendall(frame)
         self.sent.append(frame)
-        asm = tcp.FrameAssembler(auth.REPLY_SIZE)
-        end = time.monotonic() + self.timeout
-        while True:
-            left = end - time.monotonic()
-            if left <= 0:
-                raise RigError(f"no reply to a request frame within {self.timeout} s")
-            self.sock.settimeout(left)
-            data = self.sock.recv(128)
-            if not data:
-                raise RigError("connection closed instead of a reply to a request frame")
-            frames = asm.feed(data)
-            if frames:
-                t1 = time.time()
-                if len(frames) > 1 or asm.pending:
-                    raise RigError("more than one reply frame to one request")
-                tag = auth.request_tag(frame)
-                try:
-                    rep = auth.AuthReply.decode(frames[0], self.unit_key, tag)
-                    ok = True
-                except auth.TagMismatch:
-                    rep = auth.AuthReply.decode(frames[0], None)
-                    ok = False
-                except tcp.FrameError as exc:
-                    raise RigError(f"bad reply frame {frames[0].hex(' ')}: {exc}") from exc
-                if rep.seq != seq:
-                    raise RigError(f"reply seq {rep.seq}, request seq {seq}")
-                if ok:
-                    self.session = rep.session
-                return Exchange(rep.reply, t0, t1, rep, ok, frame)
+        raw, t1 = read_reply(self.sock, tcp.FrameAssembler(auth.REPLY_SIZE), self.timeout,
+                             "a request frame")
+        tag = auth.request_tag(frame)
+        try:
+            rep = auth.AuthReply.decode(raw, self.unit_key, tag)
+            ok = True
+        except auth.TagMismatch:
+            rep = auth.AuthReply.decode(raw, None)
+            ok = False
+        except tcp.FrameError as exc:
+            raise RigError(f"bad reply frame {raw.hex(' ')}: {exc}") from exc
+        if rep.seq != seq:
+            raise RigError(f"reply seq {rep.seq}, request seq {seq}")
+        if ok:
+            self.session = rep.session
+        return Exchange(rep.reply, t0, t1, rep, ok, frame)
 
     def request(self, msg_id: int, counter: int | None = None) -> Exchange:
         return self.exchange(self.frame(msg_id, counter))

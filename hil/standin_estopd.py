@@ -37,6 +37,7 @@ import time
 from estop.keyfile import KeyFileError, load_key_file
 from estop.protocol import auth, tcp, udp
 from estop.protocol.can import BrakeFrame, StatusFrame
+from mmsg import Iovec, Mmsghdr  # this folder (run as a script)
 
 PERIOD_US = 10_000
 STATUS_PERIOD_US = 100_000
@@ -55,21 +56,6 @@ def now_us() -> int:
     return time.monotonic_ns() // 1000
 
 
-class _Iovec(ctypes.Structure):
-    _fields_ = [("iov_base", ctypes.c_void_p), ("iov_len", ctypes.c_size_t)]
-
-
-class _Msghdr(ctypes.Structure):
-    _fields_ = [("msg_name", ctypes.c_void_p), ("msg_namelen", ctypes.c_uint32),
-                ("msg_iov", ctypes.POINTER(_Iovec)), ("msg_iovlen", ctypes.c_size_t),
-                ("msg_control", ctypes.c_void_p), ("msg_controllen", ctypes.c_size_t),
-                ("msg_flags", ctypes.c_int)]
-
-
-class _Mmsghdr(ctypes.Structure):
-    _fields_ = [("msg_hdr", _Msghdr), ("msg_len", ctypes.c_uint)]
-
-
 class BatchReceiver:
     """``recvmmsg(2)`` through ctypes (Python's socket module has none): up to ``n`` datagrams
     of up to ``size`` bytes (longer ones cut, as ``recv(size)`` would) in one system call."""
@@ -82,8 +68,8 @@ class BatchReceiver:
                                        ctypes.c_int, ctypes.c_void_p]
         self.libc.recvmmsg.restype = ctypes.c_int
         self.bufs = [ctypes.create_string_buffer(size) for _ in range(n)]
-        self.iovs = (_Iovec * n)()
-        self.msgs = (_Mmsghdr * n)()
+        self.iovs = (Iovec * n)()
+        self.msgs = (Mmsghdr * n)()
         for i, buf in enumerate(self.bufs):
             self.iovs[i].iov_base = ctypes.cast(buf, ctypes.c_void_p)
             self.iovs[i].iov_len = size

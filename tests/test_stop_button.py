@@ -290,3 +290,39 @@ def test_lift_one_shot_without_tcp_still_sends_the_datagrams(sink: UdpSink,
                         rf"{LOCAL}:\d+: .*\n", err), err
     assert sink.settle(3, 0.1) == 3
     check_lift_datagrams(sink, 1)
+
+
+@pytest.mark.parametrize(("argv", "deadline"), [
+    (["--timeout-ms", "400", "--stop-deadline-ms", "1000"], 1.0),  # the unit in the name
+    (["--timeout", "0.4", "--stop-deadline", "1"], 1.0),  # the older spelling, in seconds
+])
+def test_stop_times_in_milliseconds(sink: UdpSink, capsys: pytest.CaptureFixture[str],
+                                    argv: list[str], deadline: float) -> None:
+    """The project's vocabulary gives times with their unit (--timeout-ms, --stop-deadline-ms);
+    the older names in seconds still mean the same."""
+    port = ScriptedStopPort("silent")
+    try:
+        t0 = time.monotonic()
+        code, _out, err = run_cli(capsys, "stop", "--host", LOCAL, "--port", str(port.port),
+                                  "--udp-port", str(sink.port), *argv)
+        took = time.monotonic() - t0
+    finally:
+        port.close()
+    assert code == 3 and f"no ACK within {deadline:g} s" in err
+    assert deadline <= took < deadline + 1.5
+
+
+def test_times_in_milliseconds_are_checked(capsys: pytest.CaptureFixture[str]) -> None:
+    for cmd, opt in (("stop", "--stop-deadline-ms"), ("lift", "--timeout-ms"),
+                     ("status", "--timeout-ms"), ("release", "--timeout-ms")):
+        for bad in ("0", "-5", "nan", "x"):
+            code, out, err = run_cli(capsys, cmd, "--host", LOCAL, opt, bad)
+            assert code == 2 and out == "" and err.count("\n") == 1, (cmd, opt, bad, err)
+    assert "--timeout-ms MS" in cli_help(capsys, "lift")
+    assert "--timeout MS" not in cli_help(capsys, "lift")  # the older name is not listed
+
+
+def cli_help(capsys: pytest.CaptureFixture[str], cmd: str) -> str:
+    code, out, _err = run_cli(capsys, cmd, "--help")
+    assert code == 0
+    return out

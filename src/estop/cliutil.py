@@ -18,6 +18,7 @@ __all__ = [
     "ErrorOnlyParser",
     "UsageError",
     "add_key_arguments",
+    "add_time_option",
     "err",
     "non_negative_float",
     "out",
@@ -118,6 +119,22 @@ def positive_float(text: str) -> float:
     if value <= 0:
         raise argparse.ArgumentTypeError(f"must be > 0: {text}")
     return value
+
+
+def positive_ms_as_seconds(text: str) -> float:
+    """A time in milliseconds (> 0), kept in seconds."""
+    return positive_float(text) / 1000.0
+
+
+def add_time_option(parser: argparse.ArgumentParser, name: str, dest: str, default_s: float,
+                    help_text: str) -> None:
+    """``--NAME-ms MS``, the project's vocabulary (the unit in the name), stored in seconds in
+    ``dest``; ``--NAME`` in seconds stays as the older, unlisted spelling of the same option."""
+    parser.add_argument(f"--{name}-ms", dest=dest, type=positive_ms_as_seconds,
+                        default=default_s, metavar="MS",
+                        help=f"{help_text} (default {default_s * 1000:g})")
+    parser.add_argument(f"--{name}", dest=dest, type=positive_float,
+                        default=argparse.SUPPRESS, help=argparse.SUPPRESS)
 
 
 def non_negative_float(text: str) -> float:

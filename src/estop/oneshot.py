@@ -10,7 +10,7 @@ Opens a connection, sends one frame, prints the decoded reply and exits with:
 
 ``stop`` is the stop button: it sends a stop datagram to the UDP control port at once (spec
 section 1; it needs no handshake), then STOP over TCP, and tries both again, each time on a
-fresh connection, until the unit answers or ``--stop-deadline`` (default 3 s) passes. The
+fresh connection, until the unit answers or ``--stop-deadline-ms`` (default 3000) passes. The
 reply line says how many tries it took (``... (after 2 attempts)``).
 
 ``lift`` does what a remote does when the last finger leaves the screen (spec section 8): three
@@ -36,10 +36,10 @@ from estop.cliutil import (
     ConnectionFailure,
     UsageError,
     add_key_arguments,
+    add_time_option,
     out,
     parse_u32,
     port,
-    positive_float,
 )
 from estop.keyfile import key_from_args
 from estop.protocol import tcp, udp
@@ -73,7 +73,8 @@ COMMANDS = {
 
 def add_arguments(parser: argparse.ArgumentParser, kind: str = "") -> None:
     """Options of ``estop KIND`` (``stop`` and ``lift`` also get ``--udp-port``, ``stop``
-    ``--stop-deadline``)."""
+    ``--stop-deadline-ms``). Times carry their unit: ``--timeout-ms``; the older ``--timeout``
+    and ``--stop-deadline`` in seconds still work."""
     parser.add_argument("--host", required=True, help="the unit's address")
     # --tcp-port as in estop remote; --port is the older name
     parser.add_argument("--tcp-port", "--port", dest="port", type=port, default=tcp.DEFAULT_PORT,
@@ -85,18 +86,15 @@ def add_arguments(parser: argparse.ArgumentParser, kind: str = "") -> None:
     else:
         parser.add_argument("--stop-id", type=parse_u32, default=tcp.DEFAULT_STOP_ID,
                             help=f"the vehicle's stop ID (default {tcp.DEFAULT_STOP_ID:#010X})")
-    parser.add_argument("--timeout", type=positive_float, default=2.0,
-                        help="seconds to wait for connect and reply (default 2)")
+    add_time_option(parser, "timeout", "timeout", 2.0, "wait this long for connect and reply")
     if kind in ("stop", "lift"):
         parser.add_argument("--udp-port", type=port, default=udp.DEFAULT_PORT,
                             help=f"the unit's UDP control port, for the {kind} datagram "
                                  f"(default {udp.DEFAULT_PORT})")
     if kind == "stop":
-        parser.add_argument("--stop-deadline", type=positive_float,
-                            default=DEFAULT_STOP_DEADLINE, metavar="S",
-                            help="try again (fresh connection, another stop datagram) until "
-                                 f"the unit answers or S seconds pass "
-                                 f"(default {DEFAULT_STOP_DEADLINE:g})")
+        add_time_option(parser, "stop-deadline", "stop_deadline", DEFAULT_STOP_DEADLINE,
+                        "try again (fresh connection, another stop datagram) until the unit "
+                        "answers or this time passes")
     add_key_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print the reply as one JSON line")
 

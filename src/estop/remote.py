@@ -27,6 +27,7 @@ from estop.cliutil import (
     ConnectionFailure,
     UsageError,
     add_key_arguments,
+    add_time_option,
     non_negative_float,
     out,
     parse_u32,
@@ -87,7 +88,7 @@ script (--script TEXT or --script-file FILE): commands separated by ';' or new l
   neutral         gas 0, steering 0, gear neutral
   rate HZ         change the send rate (0.1..1000)
   stop            the stop button: stop datagram + TCP STOP, tried again until an
-                  answer or --stop-deadline; prints the reply and the attempts
+                  answer or --stop-deadline-ms; prints the reply and the attempts
   release | status             TCP request, prints the reply
   expect W...     the last reply must match every word (ack nak stopped armed slowing
                   none boot tcp_stop udp_timeout fault lift unknown_msg_id no_live_link
@@ -104,7 +105,7 @@ n neutral, g next gear, h horn, 0-3 turn signal, q quit
 
 exit codes: 0 done, 1 an expect failed, 2 usage error or bad script,
 3 stop channel failed (refused, closed, timeout, malformed reply; for stop: no answer
-by --stop-deadline)"""
+by --stop-deadline-ms)"""
 
 
 def rate_arg(text: str) -> float:
@@ -147,12 +148,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=None, help="seed of the link model")
     parser.add_argument("--stop-id", type=parse_u32, default=tcp.DEFAULT_STOP_ID,
                         help=f"the vehicle's stop ID (default {tcp.DEFAULT_STOP_ID:#010X})")
-    parser.add_argument("--timeout", type=positive_float, default=2.0,
-                        help="seconds to wait for a TCP reply (default 2)")
-    parser.add_argument("--stop-deadline", type=positive_float, default=DEFAULT_STOP_DEADLINE,
-                        metavar="S", help="the stop button tries again (fresh connection, "
-                        f"another stop datagram) until an ACK or S seconds "
-                        f"(default {DEFAULT_STOP_DEADLINE:g})")
+    add_time_option(parser, "timeout", "timeout", 2.0, "wait this long for a TCP reply")
+    add_time_option(parser, "stop-deadline", "stop_deadline", DEFAULT_STOP_DEADLINE,
+                    "the stop button tries again (fresh connection, another stop datagram) "
+                    "until an ACK or this time passes")
     parser.add_argument("--legacy", action="store_true",
                         help="send the older 16-byte packets (no horn; not with a key)")
     add_key_arguments(parser)

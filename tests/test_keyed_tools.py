@@ -189,7 +189,7 @@ def test_a_bad_key_file_in_the_environment_is_one_line_naming_it(capsys,
                                                                  tmp_path: Path) -> None:
     monkeypatch.setenv("ESTOP_KEY_FILE", str(tmp_path / "missing.key"))
     code, out, err = run_cli(capsys, "status", "--host", LOCAL, "--port", "9")
-    assert code == 2 and out == ""
+    assert code == 4 and out == ""  # a file error (the exit-code table), naming its source
     assert len(err.strip().splitlines()) == 1 and "ESTOP_KEY_FILE" in err, err
 
 
@@ -266,12 +266,12 @@ def test_forged_ack_to_a_stop_is_not_believed(key_path: str, capsys) -> None:
     ["status", "--host", LOCAL],
     ["remote", "--host", LOCAL, "--script", "hold 0.1"],
 ])
-def test_bad_key_file_is_a_usage_error(argv: list[str], tmp_path: Path, capsys) -> None:
+def test_bad_key_file_is_a_file_error(argv: list[str], tmp_path: Path, capsys) -> None:
     p = tmp_path / "k"
     p.write_text(K.hex() + "\n")
     p.chmod(0o644)
     code, out, err = run_cli(capsys, *argv, "--key-file", str(p))
-    assert code == 2 and out == ""
+    assert code == 4 and out == ""
     assert err.count("\n") == 1 and "--key-file: key file" in err and "mode 0644" in err
 
 

@@ -504,8 +504,10 @@ def test_cli_reads_the_daemon_log_and_pcap(tmp_path: Path,
             w.writepkt(_udp_frame("10.0.0.2", "10.0.0.1", 5700, BODY20), ts=float(ts))
     code, text, err = run_cli([str(cap), "--json"], capsys)
     assert code == 0 and json.loads(text)["gaps"] == 1999
-    code, text, err = run_cli([str(cap), "--json", "--port", "5800"], capsys)
-    assert code == 2 and "fewer than 2 control packets" in err
+    code, text, err = run_cli([str(cap), "--json", "--udp-port", "5800"], capsys)
+    assert code == 4 and "fewer than 2 control packets" in err
+    code, text, err = run_cli([str(cap), "--json", "--port", "5800"], capsys)  # older name
+    assert code == 4 and "fewer than 2 control packets" in err
 
 
 def test_cli_no_loss(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -549,12 +551,12 @@ def test_cli_slow_remote_timeout_below_one_period(tmp_path: Path,
     (b"\xff\xfe\x00garbage", "log", "not a text file"),
     (b"hello\n", "pcap", "not a pcap"),
 ])
-def test_cli_bad_input_is_one_line_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str],
+def test_cli_bad_input_is_one_line_exit_4(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                           content: bytes, fmt: str, message: str) -> None:
     path = tmp_path / "bad"
     path.write_bytes(content)
     code, text, err = run_cli([str(path), "--format", fmt], capsys)
-    assert code == 2, (code, err)
+    assert code == 4, (code, err)  # a file that cannot be understood (the exit-code table)
     assert text == "" and err.count("\n") == 1 and err.startswith("estop: error: ")
     assert message in err, err
 
@@ -562,11 +564,12 @@ def test_cli_bad_input_is_one_line_exit_2(tmp_path: Path, capsys: pytest.Capture
 def test_cli_bad_options_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     ok = tmp_path / "t.txt"
     ok.write_text("0\n0.02\n0.06\n")
-    for args in ([str(tmp_path / "missing")], [str(ok), "--rate-hz", "0"],
-                 [str(ok), "--target", "-1"], [str(ok), "--max-gap", "1"],
-                 [str(ok), "--plot", str(tmp_path / "no" / "dir.png")]):
+    for args, want in (([str(tmp_path / "missing")], 4), ([str(ok), "--rate-hz", "0"], 2),
+                       ([str(ok), "--target", "-1"], 2), ([str(ok), "--max-gap", "1"], 2),
+                       ([str(ok), "--max-gap-s", "1"], 2),
+                       ([str(ok), "--plot", str(tmp_path / "no" / "dir.png")], 4)):
         code, _, err = run_cli(args, capsys)
-        assert code == 2 and err.count("\n") == 1 and err.startswith("estop"), (args, err)
+        assert code == want and err.count("\n") == 1 and err.startswith("estop"), (args, err)
 
 
 def test_poisson_bounds() -> None:

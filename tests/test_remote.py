@@ -229,7 +229,7 @@ def test_space_key_lift_shows_in_the_status_line(sink: UdpSink) -> None:
     with Remote(LOCAL, sink.port, unused_tcp_port()) as r:
         assert "[lifted]" in remoteterm._status_line(r)
         assert remoteterm.handle_key(r, " ") is None and r.held
-        assert "[HELD]" in remoteterm._status_line(r)
+        assert "[HELD (toggle: space to lift)]" in remoteterm._status_line(r)
         assert wait_controls(sink, 1)
         assert remoteterm.handle_key(r, " ") is None and not r.held
         assert r.wait_lift_sent()

@@ -313,13 +313,15 @@ def test_stop_times_in_milliseconds(sink: UdpSink, capsys: pytest.CaptureFixture
 
 
 def test_times_in_milliseconds_are_checked(capsys: pytest.CaptureFixture[str]) -> None:
-    for cmd, opt in (("stop", "--stop-deadline-ms"), ("lift", "--timeout-ms"),
-                     ("status", "--timeout-ms"), ("release", "--timeout-ms")):
+    for cmd, opt in (("stop", "--stop-deadline-ms"), ("lift", "--reply-timeout-ms"),
+                     ("status", "--reply-timeout-ms"), ("release", "--timeout-ms")):
         for bad in ("0", "-5", "nan", "x"):
             code, out, err = run_cli(capsys, cmd, "--host", LOCAL, opt, bad)
             assert code == 2 and out == "" and err.count("\n") == 1, (cmd, opt, bad, err)
-    assert "--timeout-ms MS" in cli_help(capsys, "lift")
-    assert "--timeout MS" not in cli_help(capsys, "lift")  # the older name is not listed
+    assert "--reply-timeout-ms MS" in cli_help(capsys, "lift")
+    # the older names (--timeout-ms here, --timeout in seconds) work but are not listed
+    assert "--timeout " not in cli_help(capsys, "lift")
+    assert "--timeout-ms" not in cli_help(capsys, "lift").replace("--reply-timeout-ms", "")
 
 
 def cli_help(capsys: pytest.CaptureFixture[str], cmd: str) -> str:

@@ -13,8 +13,11 @@
                                      control link (:mod:`estop.link`)
 ===================================  =======================================================
 
-Exit codes: 0 success/ACK, 1 NAK or problems found, 2 usage error (one line
-``estop: error: ...``), 3 connection, timeout or malformed reply, 130 interrupted.
+Every command takes the common settings (``--host``, ``--udp-port``, ``--tcp-port``,
+``--key-file``, ``--remote-id``, ``--stop-id``, ``--rate-hz``) from the command line, the
+environment (``ESTOP_HOST`` ...) or the configuration file (:mod:`estop.settings`), and exits
+with the codes of :data:`estop.cliutil.EXIT_CODES`, the same for every command; errors are one
+line ``estop: error: ...``.
 """
 
 from __future__ import annotations
@@ -25,19 +28,40 @@ import sys
 from collections.abc import Sequence
 
 from estop import __version__
-from estop.cliutil import EXIT_USAGE, CliError, ErrorOnlyParser, err
+from estop.cliutil import (
+    EXIT_FILE,
+    EXIT_INTERNAL,
+    EXIT_INTERRUPTED,
+    EXIT_USAGE,
+    CliError,
+    ErrorOnlyParser,
+    NotInstalled,
+    err,
+    exit_code_table,
+    resolve_settings,
+)
+from estop.settings import CONFIG_ENV
 
 __all__ = ["build_parser", "main"]
 
-_EPILOG = ("exit codes: 0 success/ACK, 1 NAK or problems found, 2 usage error, "
-           "3 connection/timeout/malformed reply")
+_EPILOG = f"""\
+settings: command line > environment (ESTOP_HOST, ESTOP_UDP_PORT, ESTOP_TCP_PORT,
+ESTOP_KEY_FILE, ESTOP_REMOTE_ID, ESTOP_STOP_ID, ESTOP_RATE_HZ) > config file
+(${CONFIG_ENV}, else $XDG_CONFIG_HOME/estop/config.toml, else ~/.config/estop/config.toml;
+TOML keys host, udp_port, tcp_port, key_file, remote_id, stop_id, rate_hz) > default.
+CAN: --interface/--channel/--bitrate over python-can's own configuration.
+
+exit codes (every command):
+{exit_code_table()}"""
+_SUB_EPILOG = "exit codes: as for every estop command (estop --help)"
 
 
 def build_parser() -> argparse.ArgumentParser:
     from estop import keyfile, link, monitor, oneshot, remote
 
     parser = ErrorOnlyParser(prog="estop", description="Tools for the estop emergency-stop "
-                             "unit (wire contract: docs/PROTOCOL.md).", epilog=_EPILOG)
+                             "unit (wire contract: docs/PROTOCOL.md).", epilog=_EPILOG,
+                             formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"estop {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
 
@@ -48,26 +72,22 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(handler=remote.run)
 
     for name, text in oneshot.COMMANDS.items():
-        last = "; for stop: no ACK by the deadline" if name == "stop" else ""
-        p = sub.add_parser(name, help=text, description=text, epilog="exit codes: 0 ACK, "
-                           f"1 NAK, 2 usage error, 3 connection/timeout/malformed reply{last}")
+        p = sub.add_parser(name, help=text, description=text, epilog=_SUB_EPILOG)
         oneshot.add_arguments(p, name)
         p.set_defaults(handler=oneshot.run)
 
     p = sub.add_parser("monitor", help="decode and check ESTOP_BRAKE / ESTOP_STATUS frames",
-                       description=monitor.DESCRIPTION,
-                       epilog="exit codes: 0 no problem, 1 problems flagged, 2 usage error "
-                              "or malformed log line, 3 bus or file cannot be opened")
+                       description=monitor.DESCRIPTION, epilog=_SUB_EPILOG)
     monitor.add_arguments(p)
     p.set_defaults(handler=monitor.run)
 
     p = sub.add_parser("keygen", help="write a fresh random key file (mode 0600)",
-                       description=keyfile.DESCRIPTION, epilog=keyfile.EPILOG)
+                       description=keyfile.DESCRIPTION, epilog=_SUB_EPILOG)
     keyfile.add_arguments(p)
     p.set_defaults(handler=keyfile.run)
     p = sub.add_parser("link", help="false stops per hour per timeout from a recording of "
                        "the control link (estopd log, arrival times or pcap)",
-                       description=link.DESCRIPTION, epilog=link.EPILOG)
+                       description=link.DESCRIPTION, epilog=f"{link.EPILOG} {_SUB_EPILOG}")
     link.add_arguments(p)
     p.set_defaults(handler=link.run)
 
@@ -83,7 +103,7 @@ def _demo(args: argparse.Namespace) -> int:
     except ModuleNotFoundError as exc:
         if exc.name != "estop.demo":
             raise
-        raise CliError("the demo is not installed (estop.demo is missing)") from None
+        raise NotInstalled("the demo is not installed (estop.demo is missing)") from None
     code = demo.main(list(args.rest))
     return int(code or 0)
 
@@ -98,19 +118,21 @@ def main(argv: Sequence[str] | None = None) -> int:
             # would not pass options such as --help through a sub-parser)
             return _demo(argparse.Namespace(rest=args_list[1:]))
         args = build_parser().parse_args(args_list)
+        resolve_settings(args)
         return int(args.handler(args))
     except CliError as exc:
         err(f"estop: error: {exc}")
         return exc.exit_code
     except KeyboardInterrupt:
         err("estop: interrupted")
-        return 130
-    except BrokenPipeError:
-        return 1
+        return EXIT_INTERRUPTED
+    except BrokenPipeError:  # the reader of our output went away
+        return EXIT_FILE
     except SystemExit as exc:
         if isinstance(exc.code, int):
             return exc.code
         return EXIT_USAGE if exc.code else 0
     except Exception as exc:  # never a traceback for the user; say what failed in one line
-        err(f"estop: error: internal error: {type(exc).__name__}: {exc}")
-        return 4
+        err(f"estop: error: internal error (a bug, please report it): "
+            f"{type(exc).__name__}: {exc}")
+        return EXIT_INTERNAL

@@ -27,7 +27,7 @@ import sys
 import tempfile
 import time
 
-from estop.cliutil import EXIT_USAGE, ErrorOnlyParser
+from estop.cliutil import EXIT_NOT_INSTALLED, EXIT_USAGE, ErrorOnlyParser
 from estop.demo_bus import BusWatch, state_lines
 from estop.demo_car import LiveCar
 from estop.demo_checks import check
@@ -104,7 +104,7 @@ def _write_key(directory: str) -> tuple[bytes, str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the demo; return its exit code (0 ok, 1 a problem, 2 usage error or no estopd).
+    """Run the demo; return its exit code (0 ok, 1 a problem, 2 usage error, 5 no estopd).
     Usage errors are one line, as for every other ``estop`` tool."""
     ap = _parser()
     try:
@@ -121,7 +121,7 @@ def main(argv: list[str] | None = None) -> int:
     if exe is None:
         sys.stderr.write("estop demo: estopd not found (run `make setup`, or build it with "
                          "`make -C firmware`, or pass --estopd PATH)\n")
-        return 2
+        return EXIT_NOT_INSTALLED
 
     live = out.isatty() and not args.plain and os.environ.get("TERM", "") != "dumb"
     started = time.monotonic()

@@ -15,7 +15,7 @@ import os
 import secrets
 import stat
 
-from estop.cliutil import CliError, UsageError, out
+from estop.cliutil import FileFailure, out, source_of
 from estop.protocol.auth import KEY_SIZE, KeyTextError, check_key, format_key, parse_key
 
 __all__ = [
@@ -37,7 +37,7 @@ _GROUP_OTHER_RW = stat.S_IRGRP | stat.S_IWGRP | stat.S_IROTH | stat.S_IWOTH
 DESCRIPTION = ("Write a fresh random key (32 bytes from the system's cryptographic source) to "
                "PATH as 64 hex digits and a newline, mode 0600. The unit (estopd --key-file) "
                "and its remotes share it.")
-EPILOG = ("exit codes: 0 written, 1 not written (PATH exists: keygen never overwrites; or it "
+EPILOG = ("exit codes: 0 written, 4 not written (PATH exists: keygen never overwrites; or it "
           "cannot be created), 2 usage error")
 
 
@@ -123,19 +123,16 @@ KEY_FILE_ENV = "ESTOP_KEY_FILE"
 
 
 def key_from_args(args: argparse.Namespace) -> bytes | None:
-    """The key of ``--key-file``, else of the file named by $ESTOP_KEY_FILE (unset or empty:
-    no key, the plain forms). A bad key file is a usage error naming where it came from."""
+    """The key of the ``key_file`` setting (``--key-file``, $ESTOP_KEY_FILE or the
+    configuration's ``key_file``; none: no key, the plain forms). A key file that cannot be
+    used is a file error (exit 4) naming where its path came from."""
     path: str | None = getattr(args, "key_file", None)
-    source = "--key-file"
-    if path is None:
-        path = os.environ.get(KEY_FILE_ENV) or None
-        source = KEY_FILE_ENV
     if path is None:
         return None
     try:
         return load_key_file(path)
     except KeyFileError as exc:
-        raise UsageError(f"{source}: {exc}") from None
+        raise FileFailure(f"{source_of(args, 'key_file')}: {exc}") from None
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -146,7 +143,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         write_key_file(args.path)
     except KeyFileError as exc:
-        raise CliError(str(exc)) from None
+        raise FileFailure(str(exc)) from None
     out(f"wrote a new key to {args.path} (mode 0600); give it to the unit with "
         f"estopd --key-file and keep it secret")
     return 0

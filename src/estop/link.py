@@ -15,7 +15,15 @@ from __future__ import annotations
 import argparse
 import json
 
-from estop.cliutil import EXIT_OK, UsageError, non_negative_float, out, port, positive_float
+from estop.cliutil import (
+    EXIT_OK,
+    UsageError,
+    add_settings,
+    non_negative_float,
+    out,
+    positive_float,
+    require_extra,
+)
 
 __all__ = ["DESCRIPTION", "EPILOG", "add_arguments", "run"]
 
@@ -26,7 +34,8 @@ DESCRIPTION = ("Estimate the control link's loss and burst structure (two-state 
                "S); recommend S and T.")
 EPILOG = ("A stop comes at the deadline: with send period P and a time D (the slow time S or "
           "the timeout T) it takes n = ceil(D/P) - 1 packets lost in a row (50 Hz, 200 ms: 9). "
-          "Exit codes: 0 report written, 2 bad input or usage.")
+          "Needs the link extra: pip install 'estop[link]'. Exit codes: 0 report written, "
+          "2 usage, 4 FILE cannot be read or understood, 5 the link extra is missing.")
 
 # --------------------------------------------------------------------------- CLI
 
@@ -36,8 +45,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="estopd --log-json log, arrival times (s, one per line) or pcap")
     parser.add_argument("--format", choices=("auto", "log", "times", "pcap"), default="auto",
                         help="kind of FILE (default: recognised from its first bytes)")
-    parser.add_argument("--rate-hz", type=positive_float, default=50.0,
-                        help="the remote's send rate (default 50)")
+    add_settings(parser, "rate_hz", "udp_port",
+                 help={"rate_hz": "the remote's send rate",
+                       "udp_port": "pcap: the unit's UDP control port"},
+                 aliases={"udp_port": ["--port"]})
     parser.add_argument("--target", type=positive_float, default=0.01,
                         help="false emergency stops per hour to stay below: chooses the "
                              "timeout T (default 0.01)")
@@ -45,11 +56,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--slow-target", type=positive_float, default=1000.0,
                         help="brief slow-downs per hour to stay below: chooses the slow time "
                              "S <= T (default 1000, one every 3.6 s)")
-    parser.add_argument("--port", type=port, default=5700,
-                        help="pcap: UDP control port (default 5700)")
-    parser.add_argument("--max-gap", type=non_negative_float, default=5.0, metavar="SECONDS",
-                        help="gaps of this many seconds or more are the sender pausing "
-                             "(finger lifted), left out of the fit (default 5; 0: none)")
+    parser.add_argument("--max-gap-s", dest="max_gap", type=non_negative_float, default=5.0,
+                        metavar="S", help="gaps of this many seconds or more are the sender "
+                        "pausing (finger lifted), left out of the fit (default 5; 0: none)")
+    parser.add_argument("--max-gap", dest="max_gap", type=non_negative_float,
+                        default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     parser.add_argument("--tail-from", type=int, default=None, metavar="K",
                         help="fit the burst law to runs of at least K losses (default: the "
                              "shortest runs that follow one geometric law; 1: every run)")
@@ -60,10 +71,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     if args.max_gap and args.max_gap < 2.0:
-        raise UsageError("--max-gap must be 0 or at least 2 s (the longest timeout)")
+        raise UsageError("--max-gap-s must be 0 or at least 2 s (the longest timeout)")
+    require_extra("link", "numpy")
+    if args.format == "pcap" or str(args.file).endswith((".pcap", ".pcapng")):
+        require_extra("link", "dpkt")
+    if args.plot:
+        require_extra("link", "matplotlib")
     from estop.linkstats import format_report, load, report, report_json, write_plot
 
-    gaps = load(args.file, args.format, args.rate_hz, args.max_gap, args.port)
+    gaps = load(args.file, args.format, args.rate_hz, args.max_gap, args.udp_port)
     rep = report(gaps, args.rate_hz, args.target, tail_from=args.tail_from,
                  slow_target=args.slow_target)
     if args.plot:

@@ -10,7 +10,8 @@ from fractions import Fraction
 
 import numpy as np
 
-from estop.linkgaps import I64, Gaps, LinkInputError, check_rate
+from estop.cliutil import UsageError
+from estop.linkgaps import I64, Gaps, check_rate
 
 __all__ = ["Fit", "choose_tail", "false_stops_per_hour", "fit", "lost_in_row"]
 
@@ -212,7 +213,7 @@ def fit(gaps: Gaps, rate_hz: float, tail_from: int | None = None) -> Fit:
         k0, note = choose_tail(gaps)
     else:
         if tail_from < 1:
-            raise LinkInputError("--tail-from must be at least 1")
+            raise UsageError("--tail-from must be at least 1")
         starts = gaps.k_lo[gaps.k_lo >= tail_from]
         k0 = int(starts.min()) if starts.size else tail_from  # binned: the next bin start
         note = f"runs of at least {k0} losses (--tail-from)"

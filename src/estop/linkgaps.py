@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 import numpy.typing as npt
 
-from estop.cliutil import UsageError
+from estop.cliutil import FileFailure, UsageError
 
 __all__ = ["F64", "I64", "U32_MAX", "Gaps", "Histogram", "LinkInputError", "UnitRecord",
            "check_rate", "gaps_from_histogram", "gaps_from_times"]
@@ -24,8 +24,8 @@ I64 = npt.NDArray[np.int64]
 F64 = npt.NDArray[np.float64]
 
 
-class LinkInputError(UsageError):
-    """Bad input file or option: one line, exit 2."""
+class LinkInputError(FileFailure):
+    """An input file that cannot be read or understood: one line, exit 4."""
 
 
 @dataclass(frozen=True)
@@ -77,7 +77,7 @@ class Gaps:
 
 def check_rate(rate_hz: float) -> None:
     if not (math.isfinite(rate_hz) and 0.0 < rate_hz <= 100_000.0):
-        raise LinkInputError(f"--rate-hz must be a send rate in Hz (0 .. 100000], got {rate_hz}")
+        raise UsageError(f"--rate-hz must be a send rate in Hz (0 .. 100000], got {rate_hz}")
 
 
 def gaps_from_times(times: Sequence[float] | F64, rate_hz: float, max_gap: float = 5.0,
@@ -136,7 +136,7 @@ def gaps_from_histogram(h: Histogram, rate_hz: float, max_gap: float = 5.0,
     edges = [Fraction(e) for e in h.edges_us]
     t_us = Fraction(1_000_000) / Fraction(rate_hz)
     if len(edges) > 1 and t_us < edges[1]:
-        raise LinkInputError(f"--rate-hz {rate_hz:g} is too fast for the daemon's histogram "
+        raise UsageError(f"--rate-hz {rate_hz:g} is too fast for the daemon's histogram "
                              f"(its first bin, below {h.edges_us[1]} us, would hold gaps of "
                              "several send periods)")
     max_us = Fraction(max_gap) * 1_000_000

@@ -1,11 +1,15 @@
 """``estop monitor``: decode ESTOP_BRAKE / ESTOP_STATUS and flag what a brake controller would.
 
-Sources: any python-can bus (``--interface socketcan --channel vcan0``, ``--interface
-virtual``, ...), or a can-utils log file, or standard input (``--log FILE`` / ``--log -``,
-e.g. ``candump -L vcan0 | estop monitor --log -``).
+Sources: any python-can bus (``--interface socketcan --channel vcan0 --bitrate 500000``,
+``--interface virtual``, ...; what is not given comes from python-can's own configuration:
+``CAN_INTERFACE``, ``~/.canrc``), or a log (``--log FILE``): can-utils lines, or any format
+python-can reads (.asc .blf .csv .db .mf4 .trc ...), or can-utils lines on standard input
+(``--log -``, e.g. ``candump -L vcan0 | estop monitor --log -``). ``--dbc`` decodes every frame
+with cantools as well (the unit's own DBC, or another) and flags a frame the DBC and estop's
+codecs read differently.
 
 Flags bad lengths, bad CRCs, illegal or repeated alive counters, counter jumps, fields that
-contradict each other, and gaps of 50 ms (``--timeout-ms``) or more between good ESTOP_BRAKE
+contradict each other, and gaps of 50 ms (``--brake-timeout-ms``) or more between good ESTOP_BRAKE
 frames (live buses also get a ``timeout`` line while the silence lasts).
 
 Each ESTOP_BRAKE line ends with what a brake controller does on it (spec section 7):
@@ -22,10 +26,11 @@ record of a log, or the start of a live watch), braking as the frames command
 Silence is a failure (spec section 7): a watch with no good ESTOP_BRAKE frame at all has not
 seen a working unit (``no_brake_frame``), and the silence at the end counts (``timeout``): in
 a log, from the last good ESTOP_BRAKE to the last line (a frame of any ID); on a live bus, up
-to the end of ``--duration`` (or Ctrl-C).
+to the end of ``--duration-s`` (or Ctrl-C).
 
-Exit code: 0 no problem flagged, 1 problems flagged (silence included), 2 usage error or a
-malformed log line, 3 the bus or file could not be opened.
+Exit code (the table of every command: :data:`estop.cliutil.EXIT_CODES`): 0 no problem
+flagged, 1 problems flagged (silence included), 2 usage error, 3 the bus could not be opened,
+4 the log or DBC cannot be read (a malformed line included), 5 python-can or cantools missing.
 """
 
 from __future__ import annotations
@@ -49,11 +54,14 @@ from estop.cliutil import (
     EXIT_PROBLEM,
     ConnectionFailure,
     UsageError,
+    add_can_options,
+    can_bus_config,
     non_negative_float,
     out,
     parse_u32,
     positive_float,
 )
+from estop.monitorsource import DbcDecoder, Record, read_records
 from estop.protocol.can import (
     BRAKE_ID,
     BRAKE_REQUEST_NAMES,
@@ -64,15 +72,15 @@ from estop.protocol.can import (
     reason_name,
     state_name,
 )
-from estop.protocol.canlog import CanLogError, read_log
 from estop.rollout import RollOutReplay
 from estop.vehicle import DEFAULT_EMERGENCY_DECEL, VehicleParams, kmh
 
-DESCRIPTION = ("Decode ESTOP_BRAKE / ESTOP_STATUS from a python-can bus or a can-utils log and "
+DESCRIPTION = ("Decode ESTOP_BRAKE / ESTOP_STATUS from a python-can bus, a can-utils log or "
+               "any log python-can reads (.asc .blf .csv .trc ...), optionally with a DBC, and "
                "flag what a brake controller would: bad length, CRC or counter, "
                "contradictory fields, counter jumps/repeats, gaps of 50 ms or more. Silence "
                "is a failure: no good ESTOP_BRAKE at all, or none for 50 ms before the end "
-               "of the log or of --duration, is flagged. Each ESTOP_BRAKE shows what the "
+               "of the log or of --duration-s, is flagged. Each ESTOP_BRAKE shows what the "
                "brake controller does on it (release, controlled N %, EMERGENCY; an unknown "
                "brake_request is an emergency brake).")
 
@@ -80,20 +88,30 @@ __all__ = ["DESCRIPTION", "Monitor", "add_arguments", "format_frame", "grade_not
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    src = parser.add_mutually_exclusive_group(required=True)
-    src.add_argument("--log", metavar="FILE", help="read a can-utils log file ('-': stdin)")
-    src.add_argument("-i", "--interface", metavar="IF",
-                     help="python-can interface (socketcan, virtual, ...)")
-    parser.add_argument("-c", "--channel", help="python-can channel (vcan0, can0, ...)")
+    parser.add_argument("--log", metavar="FILE",
+                        help="read a log instead of a bus: can-utils (candump -L), or any "
+                             "format python-can reads by its suffix (.asc .blf .csv .db .log "
+                             ".mf4 .trc); '-': can-utils lines on stdin")
+    add_can_options(parser)
+    parser.add_argument("--dbc", metavar="PATH", nargs="?", const="", default=None,
+                        help="also decode every frame with cantools from this DBC (no PATH: "
+                             "the unit's own, estop/dbc); a frame the DBC and estop's "
+                             "codecs read differently is flagged")
     parser.add_argument("--brake-id", type=parse_u32, default=BRAKE_ID,
                         help=f"ESTOP_BRAKE CAN ID (default {BRAKE_ID:#05x})")
     parser.add_argument("--status-id", type=parse_u32, default=STATUS_ID,
                         help=f"ESTOP_STATUS CAN ID (default {STATUS_ID:#05x})")
-    parser.add_argument("--timeout-ms", type=positive_float, default=50.0,
-                        help="flag gaps of this many ms between good ESTOP_BRAKE frames "
-                             "(default 50, the brake controller's limit)")
-    parser.add_argument("--duration", type=non_negative_float, default=None,
-                        help="live bus: stop after this many seconds")
+    # the brake controller's own timeout (spec section 7); --timeout-ms is its older name here
+    parser.add_argument("--brake-timeout-ms", dest="brake_timeout_ms",
+                        type=positive_float, default=50.0, metavar="MS",
+                        help="the brake controller's timeout: flag gaps of this many ms "
+                             "between good ESTOP_BRAKE frames (default 50)")
+    parser.add_argument("--timeout-ms", dest="brake_timeout_ms", type=positive_float,
+                        default=argparse.SUPPRESS, help=argparse.SUPPRESS)
+    parser.add_argument("--duration-s", dest="duration", type=non_negative_float, default=None,
+                        metavar="S", help="live bus: stop after this many seconds")
+    parser.add_argument("--duration", dest="duration", type=non_negative_float,
+                        default=argparse.SUPPRESS, help=argparse.SUPPRESS)
     parser.add_argument("--count", type=int, default=None,
                         help="stop after this many ESTOP frames")
     parser.add_argument("-q", "--quiet", action="store_true",
@@ -147,8 +165,9 @@ class Monitor:
 
     def __init__(self, checker: BrakeFrameChecker, *, quiet: bool = False,
                  stream: TextIO | None = None, speed: float | None = None,
-                 params: VehicleParams | None = None) -> None:
+                 params: VehicleParams | None = None, dbc: DbcDecoder | None = None) -> None:
         self.checker = checker
+        self.dbc = dbc
         self.quiet = quiet
         self._stream = stream
         self.speed = speed
@@ -167,7 +186,8 @@ class Monitor:
 
     def frame(self, t: float, can_id: int, data: bytes) -> Verdict | None:
         verdict = self.checker.feed(t, can_id, data)
-        if verdict is None:
+        if verdict is None:  # not an estop frame: the DBC may still know it
+            self._dbc_line(can_id, data)
             return None
         head = f"{self._stamp(t)} {can_id:03X}"
         if verdict.frame is not None and (not self.quiet or verdict.state_changed):
@@ -177,9 +197,18 @@ class Monitor:
             self._line(f"{head} {format_frame(verdict.frame)}{grade_note(verdict)}{mark}")
         elif verdict.frame is None and not self.quiet:
             self._line(f"{head} {data.hex().upper()}  [rejected]")
+        self._dbc_line(can_id, data)
         for ev in verdict.events:
             self.event(ev)
         return verdict
+
+    def _dbc_line(self, can_id: int, data: bytes) -> None:
+        if self.dbc is None:
+            return
+        before = self.dbc.mismatches
+        line = self.dbc.line(can_id, data)
+        if line is not None and (not self.quiet or self.dbc.mismatches > before):
+            self._line(line)
 
     def event(self, ev: CheckEvent) -> None:
         self._line(f"{self._stamp(ev.t)} {ev.can_id:03X} ! {ev.kind}: {ev.message}")
@@ -218,39 +247,39 @@ class Monitor:
     def summary(self) -> str:
         c = self.checker
         found = [f"{k} {c.counts[k]}" for k in EVENT_KINDS if c.counts[k]]
+        if self.dbc is not None and self.dbc.mismatches:
+            found.append(f"dbc_mismatch {self.dbc.mismatches}")
         return (f"summary: {c.frames} frames, {c.accepted} accepted; problems: "
                 + (", ".join(found) if found else "none"))
 
 
-def _run_log(monitor: Monitor, lines: Iterable[str], count: int | None) -> None:
+def _run_log(monitor: Monitor, records: Iterable[Record], count: int | None) -> None:
     """Feed the log's frames; then judge the silence up to its last line (any ID)."""
     seen = 0
     end: float | None = None
-    try:
-        for rec in read_log(lines):
-            end = rec.timestamp if end is None else max(end, rec.timestamp)
-            if rec.extended:
-                continue
-            monitor.roll(rec.timestamp, rec.can_id, rec.data)
-            if monitor.frame(rec.timestamp, rec.can_id, rec.data) is not None:
-                seen += 1
-                if count is not None and seen >= count:
-                    break
-    except CanLogError as exc:
-        raise UsageError(f"--log: {exc}") from None
+    for t, can_id, data, extended in records:
+        end = t if end is None else max(end, t)
+        if extended:
+            continue
+        monitor.roll(t, can_id, data)
+        if monitor.frame(t, can_id, data) is not None:
+            seen += 1
+            if count is not None and seen >= count:
+                break
     for ev in monitor.checker.finish(end):
         monitor.event(ev)
 
 
-def _run_bus(monitor: Monitor, interface: str, channel: str | None, duration: float | None,
+def _run_bus(monitor: Monitor, config: dict[str, object], duration: float | None,
              count: int | None) -> None:
     import can  # python-can, imported only when a bus is used
 
     try:
-        bus = can.Bus(interface=interface, channel=channel)
+        bus = can.Bus(**config)  # type: ignore[arg-type]
     except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
         why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise ConnectionFailure(f"cannot open {interface} bus {channel or ''}: {why}") from None
+        raise ConnectionFailure(f"cannot open {config.get('interface')} bus "
+                                f"{config.get('channel') or ''}: {why}") from None
     end = None if duration is None else time.monotonic() + duration
     seen = 0
     began = time.time()
@@ -285,33 +314,28 @@ def _run_bus(monitor: Monitor, interface: str, channel: str | None, duration: fl
 def run(args: argparse.Namespace) -> int:
     if args.count is not None and args.count <= 0:
         raise UsageError("--count must be > 0")
-    if args.interface is None and args.channel is not None:
-        raise UsageError("--channel needs --interface")
+    if args.log is not None and (args.interface, args.channel, args.bitrate) != (None,) * 3:
+        raise UsageError("--log reads a file: --interface, --channel and --bitrate are for a "
+                         "live bus")
     if args.brake_id > 0x7FF or args.status_id > 0x7FF:
         raise UsageError("CAN IDs must be 11-bit (0..0x7FF)")
     checker = BrakeFrameChecker(brake_id=args.brake_id, status_id=args.status_id,
-                                timeout=args.timeout_ms / 1000.0)
+                                timeout=args.brake_timeout_ms / 1000.0)
     if args.speed_kmh is None and (args.decel_ms2, args.actuator_delay_ms) != (None, None):
         raise UsageError("--decel-ms2 and --actuator-delay-ms need --speed-kmh")
     speed = None if args.speed_kmh is None else kmh(args.speed_kmh)
     params = VehicleParams(
         emergency_decel=DEFAULT_EMERGENCY_DECEL if args.decel_ms2 is None else args.decel_ms2,
         actuator_delay=(args.actuator_delay_ms or 0.0) / 1000.0)
-    monitor = Monitor(checker, quiet=args.quiet, speed=speed, params=params)
+    bus = None if args.log is not None else can_bus_config(args)
+    dbc = None if args.dbc is None else DbcDecoder(args.dbc or None)
+    monitor = Monitor(checker, quiet=args.quiet, speed=speed, params=params, dbc=dbc)
     try:
-        if args.log is not None:
-            if args.log == "-":
-                _run_log(monitor, sys.stdin, args.count)
-            else:
-                try:
-                    stream = open(args.log, encoding="utf-8", errors="replace")
-                except OSError as exc:
-                    raise ConnectionFailure(f"cannot read {args.log}: "
-                                            f"{exc.strerror or exc}") from None
-                with stream:
-                    _run_log(monitor, stream, args.count)
+        if bus is None:
+            lines = sys.stdin if args.log == "-" else None
+            _run_log(monitor, read_records(args.log, lines), args.count)
         else:
-            _run_bus(monitor, args.interface, args.channel, args.duration, args.count)
+            _run_bus(monitor, bus, args.duration, args.count)
     except KeyboardInterrupt:
         pass
     roll_out = monitor.roll_out_line()
@@ -319,4 +343,5 @@ def run(args: argparse.Namespace) -> int:
         out(roll_out)
     out(monitor.commands())
     out(monitor.summary())
-    return EXIT_PROBLEM if checker.problems else EXIT_OK
+    mismatches = dbc.mismatches if dbc is not None else 0
+    return EXIT_PROBLEM if checker.problems or mismatches else EXIT_OK

@@ -3,10 +3,15 @@
 Opens a connection, sends one frame, prints the decoded reply and exits with:
 
 - 0: ACK
-- 1: NAK (the reply line says why, e.g. ``nak=no_live_link``)
-- 2: usage error (bad options)
+- 1: NAK (the reply line says why, e.g. ``nak=no_live_link``; a ``not_authenticated`` gets a
+  second line on stderr saying what the client can tell: no key given, or the unit refused
+  this remote id's counter as a replay)
+- 2: usage error (bad options or settings)
 - 3: connection refused or closed, timeout, or a malformed reply (bad CRC, wrong seq); for
   ``stop``: no ACK by the deadline
+- 4: the key file cannot be used
+
+(the table of every command: :data:`estop.cliutil.EXIT_CODES`)
 
 ``stop`` is the stop button: it sends a stop datagram to the UDP control port at once (spec
 section 1; it needs no handshake), then STOP over TCP, and tries both again, each time on a
@@ -35,11 +40,11 @@ from estop.cliutil import (
     EXIT_NAK,
     ConnectionFailure,
     UsageError,
-    add_key_arguments,
+    add_settings,
     add_time_option,
+    err,
     out,
     parse_u32,
-    port,
 )
 from estop.keyfile import key_from_args
 from estop.protocol import tcp, udp
@@ -73,29 +78,26 @@ COMMANDS = {
 
 def add_arguments(parser: argparse.ArgumentParser, kind: str = "") -> None:
     """Options of ``estop KIND`` (``stop`` and ``lift`` also get ``--udp-port``, ``stop``
-    ``--stop-deadline-ms``). Times carry their unit: ``--timeout-ms``; the older ``--timeout``
-    and ``--stop-deadline`` in seconds still work."""
-    parser.add_argument("--host", required=True, help="the unit's address")
-    # --tcp-port as in estop remote; --port is the older name
-    parser.add_argument("--tcp-port", "--port", dest="port", type=port, default=tcp.DEFAULT_PORT,
-                        metavar="PORT", help=f"TCP stop port (default {tcp.DEFAULT_PORT})")
+    ``--stop-deadline-ms``). The older names still work, unlisted: ``--port`` for
+    ``--tcp-port``; ``--timeout-ms`` (ms) and ``--timeout`` (s) for ``--reply-timeout-ms``;
+    ``--stop-deadline`` (s) for ``--stop-deadline-ms``."""
+    keys = ["host", "tcp_port"]
+    if kind in ("stop", "lift"):
+        keys.append("udp_port")
+    if kind != "lift":
+        keys.append("stop_id")
+    else:
+        parser.set_defaults(stop_id=tcp.DEFAULT_STOP_ID)  # a LIFT does not name the vehicle
+    add_settings(parser, *keys, "key_file", "remote_id", aliases={"tcp_port": ["--port"]})
     parser.add_argument("--seq", type=parse_u32, default=1,
                         help="sequence number echoed in the reply (default 1)")
-    if kind == "lift":
-        parser.set_defaults(stop_id=tcp.DEFAULT_STOP_ID)  # a LIFT does not name the vehicle
-    else:
-        parser.add_argument("--stop-id", type=parse_u32, default=tcp.DEFAULT_STOP_ID,
-                            help=f"the vehicle's stop ID (default {tcp.DEFAULT_STOP_ID:#010X})")
-    add_time_option(parser, "timeout", "timeout", 2.0, "wait this long for connect and reply")
-    if kind in ("stop", "lift"):
-        parser.add_argument("--udp-port", type=port, default=udp.DEFAULT_PORT,
-                            help=f"the unit's UDP control port, for the {kind} datagram "
-                                 f"(default {udp.DEFAULT_PORT})")
+    add_time_option(parser, "reply-timeout", "timeout", 2.0,
+                    "wait this long for connect and reply", ms_aliases=["--timeout-ms"],
+                    s_aliases=["--timeout"])
     if kind == "stop":
         add_time_option(parser, "stop-deadline", "stop_deadline", DEFAULT_STOP_DEADLINE,
                         "try again (fresh connection, another stop datagram) until the unit "
                         "answers or this time passes")
-    add_key_arguments(parser)
     parser.add_argument("--json", action="store_true", help="print the reply as one JSON line")
 
 
@@ -110,13 +112,21 @@ def send_once(kind: str, host: str, port: int = tcp.DEFAULT_PORT, *, seq: int = 
     another session is not authenticated). Raises
     :class:`estop.stopchannel.StopChannelError` on connection/timeout/reply errors.
     """
+    return _exchange(kind, host, port, seq=seq, stop_id=stop_id, timeout=timeout, key=key,
+                     remote_id=remote_id)[0]
+
+
+def _exchange(kind: str, host: str, port: int, *, seq: int, stop_id: int, timeout: float,
+              key: bytes | None, remote_id: int) -> tuple[tcp.Reply, str | None]:
+    """:func:`send_once`, and why a NAK not_authenticated came where the client can tell."""
     msg_id = {"stop": stop_id, "lift": tcp.LIFT, "release": tcp.RELEASE,
               "status": tcp.STATUS}[kind]
     with StopChannel(host, port, timeout=timeout, stop_id=stop_id, key=key,
                      remote_id=remote_id) as channel:
         if key is not None and kind == "release":
             channel.request(tcp.STATUS, seq)
-        return channel.request(msg_id, seq)
+        reply = channel.request(msg_id, seq)
+        return reply, channel.nak_hint(reply)
 
 
 def stop_once(host: str, port: int = tcp.DEFAULT_PORT, udp_port: int = udp.DEFAULT_PORT, *,
@@ -184,19 +194,22 @@ def run(args: argparse.Namespace) -> int:
     if kind == "lift":
         return _run_lift(args, key)
     try:
-        reply = send_once(kind, args.host, args.port, seq=args.seq, stop_id=args.stop_id,
-                          timeout=args.timeout, key=key, remote_id=args.remote_id)
+        reply, hint = _exchange(kind, args.host, args.tcp_port, seq=args.seq,
+                                stop_id=args.stop_id, timeout=args.timeout, key=key,
+                                remote_id=args.remote_id)
     except StopChannelError as exc:
         raise ConnectionFailure(str(exc)) from None
     if args.json:
         out(json.dumps({"request": kind, **reply_dict(reply)}, sort_keys=True))
     else:
         out(format_reply(reply))
+    if hint is not None:
+        err(f"estop: {kind} refused: {hint}")
     return EXIT_ACK if reply.ack else EXIT_NAK
 
 
 def _run_stop(args: argparse.Namespace, key: bytes | None) -> int:
-    outcome = stop_once(args.host, args.port, args.udp_port, seq=args.seq,
+    outcome = stop_once(args.host, args.tcp_port, args.udp_port, seq=args.seq,
                         stop_id=args.stop_id, timeout=args.timeout,
                         deadline=args.stop_deadline, key=key, remote_id=args.remote_id)
     reply = outcome.reply
@@ -211,7 +224,7 @@ def _run_stop(args: argparse.Namespace, key: bytes | None) -> int:
 
 
 def _run_lift(args: argparse.Namespace, key: bytes | None) -> int:
-    outcome = lift_once(args.host, args.port, args.udp_port, seq=args.seq,
+    outcome = lift_once(args.host, args.tcp_port, args.udp_port, seq=args.seq,
                         timeout=args.timeout, key=key, remote_id=args.remote_id)
     reply = outcome.reply
     if reply is None:

@@ -11,8 +11,13 @@ The parts, one job each:
 The names of those modules are importable from here as well (``from estop.remote import
 Remote``).
 
-Exit code: 0 done, 1 an ``expect`` failed, 2 usage error or bad script, 3 the stop channel
-failed (connection refused or closed, timeout, malformed reply).
+The keyboard is NOT a dead-man switch: a terminal sees a key pressed but never released, so the
+space bar toggles the hold, and the packets go on while nobody touches anything. A real
+dead-man (held trigger, released: lift at once) is ``estop remote --gamepad``.
+
+Exit code (the table of every command: :data:`estop.cliutil.EXIT_CODES`): 0 done, 1 an
+``expect`` failed, 2 usage error or bad script, 3 the stop channel failed (connection refused
+or closed, timeout, malformed reply), 4 the script or key file cannot be read.
 """
 
 from __future__ import annotations
@@ -25,18 +30,17 @@ from estop.cliutil import (
     EXIT_OK,
     EXIT_PROBLEM,
     ConnectionFailure,
+    FileFailure,
     UsageError,
-    add_key_arguments,
+    add_settings,
     add_time_option,
     non_negative_float,
     out,
-    parse_u32,
-    port,
     positive_float,
 )
 from estop.keyfile import key_from_args
 from estop.linkmodel import IDEAL, WIFI, LinkConfig
-from estop.protocol import tcp, udp
+from estop.protocol import tcp
 from estop.remotescript import ExpectFailed, ScriptError, ScriptRunner, Step, parse_script
 from estop.remotesender import (
     MAX_RATE_HZ,
@@ -72,7 +76,10 @@ __all__ = [
 
 DESCRIPTION = ("Play the tablet: send control packets over UDP while held (a finger on the "
                "screen), and STOP/RELEASE/STATUS over the TCP stop channel; keys in a "
-               "terminal, or a script.")
+               "terminal, or a script. The keyboard's hold is a TOGGLE, NOT a dead-man: a "
+               "terminal cannot see a key being released, so packets go on until space is "
+               "pressed again; for a real dead-man (release the trigger: lift at once) use "
+               "--gamepad.")
 EPILOG = """\
 script (--script TEXT or --script-file FILE): commands separated by ';' or new lines,
 '#' starts a comment, times in seconds:
@@ -102,10 +109,12 @@ with reason lift without waiting for its timeout
 
 keys (terminal): space hold/lift, s stop, r release, t status, arrows gas/steering,
 n neutral, g next gear, h horn, 0-3 turn signal, q quit
+the space bar is a TOGGLE, NOT a dead-man: a terminal cannot see a key released, so
+the packets go on until space is pressed again; a real dead-man: --gamepad
 
-exit codes: 0 done, 1 an expect failed, 2 usage error or bad script,
-3 stop channel failed (refused, closed, timeout, malformed reply; for stop: no answer
-by --stop-deadline-ms)"""
+exit codes (as every estop command, estop --help): 0 done, 1 an expect failed,
+2 usage error or bad script, 3 stop channel failed (refused, closed, timeout,
+malformed reply; for stop: no answer by --stop-deadline-ms), 4 file cannot be read"""
 
 
 def rate_arg(text: str) -> float:
@@ -123,22 +132,16 @@ def rate_arg(text: str) -> float:
 # ------------------------------------------------------------------------------ the CLI
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--host", required=True, help="the unit's address")
-    parser.add_argument("--udp-port", type=port, default=udp.DEFAULT_PORT,
-                        help=f"control packet port (default {udp.DEFAULT_PORT})")
-    parser.add_argument("--tcp-port", type=port, default=tcp.DEFAULT_PORT,
-                        help=f"stop channel port (default {tcp.DEFAULT_PORT})")
-    # --rate-hz as the other tools name a rate; --rate is the older name
-    parser.add_argument("--rate-hz", "--rate", dest="rate", type=rate_arg, default=50.0,
-                        metavar="HZ",
-                        help=f"packets per second while held, {MIN_RATE_HZ:g}..{MAX_RATE_HZ:g} "
-                             f"(default 50)")
+    add_settings(parser, "host", "udp_port", "tcp_port", "rate_hz", "stop_id", "key_file",
+                 "remote_id", aliases={"rate_hz": ["--rate"]}, parse={"rate_hz": rate_arg},
+                 help={"rate_hz": f"control packets per second while held, {MIN_RATE_HZ:g}.."
+                                  f"{MAX_RATE_HZ:g}"})
     parser.add_argument("--wifi", action="store_true",
                         help=f"link like the original Wi-Fi: {WIFI.loss * 100:g} %% loss, "
                              f"bursts of {WIFI.burst:g}, {WIFI.delay * 1000:g}+0..."
                              f"{WIFI.jitter * 1000:g} ms delay (options below override)")
-    parser.add_argument("--loss", type=non_negative_float, default=None, metavar="PCT",
-                        help="UDP packets lost, percent (default 0)")
+    parser.add_argument("--loss-pct", "--loss", dest="loss", type=non_negative_float,
+                        default=None, metavar="PCT", help="UDP packets lost, percent (default 0)")
     parser.add_argument("--burst", type=positive_float, default=None, metavar="N",
                         help="mean number of packets lost in a row (default 1)")
     parser.add_argument("--delay-ms", type=non_negative_float, default=None,
@@ -146,15 +149,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--jitter-ms", type=non_negative_float, default=None,
                         help="extra random delay 0..N ms (default 0)")
     parser.add_argument("--seed", type=int, default=None, help="seed of the link model")
-    parser.add_argument("--stop-id", type=parse_u32, default=tcp.DEFAULT_STOP_ID,
-                        help=f"the vehicle's stop ID (default {tcp.DEFAULT_STOP_ID:#010X})")
-    add_time_option(parser, "timeout", "timeout", 2.0, "wait this long for a TCP reply")
+    add_time_option(parser, "reply-timeout", "timeout", 2.0, "wait this long for a TCP reply",
+                    ms_aliases=["--timeout-ms"], s_aliases=["--timeout"])
     add_time_option(parser, "stop-deadline", "stop_deadline", DEFAULT_STOP_DEADLINE,
                     "the stop button tries again (fresh connection, another stop datagram) "
                     "until an ACK or this time passes")
     parser.add_argument("--legacy", action="store_true",
                         help="send the older 16-byte packets (no horn; not with a key)")
-    add_key_arguments(parser)
     script = parser.add_mutually_exclusive_group()
     script.add_argument("--script", metavar="TEXT", help="run this script instead of keys")
     script.add_argument("--script-file", metavar="FILE", help="run the script in FILE")
@@ -196,8 +197,9 @@ def run(args: argparse.Namespace) -> int:
         try:
             with open(args.script_file, encoding="utf-8") as f:
                 text = f.read()
-        except OSError as exc:
-            raise UsageError(f"cannot read {args.script_file}: {exc.strerror or exc}") from None
+        except (OSError, UnicodeDecodeError) as exc:
+            why = exc.strerror if isinstance(exc, OSError) else "not UTF-8 text"
+            raise FileFailure(f"--script-file {args.script_file}: {why or exc}") from None
     steps: list[Step] | None = None
     if text is not None:
         try:
@@ -210,7 +212,7 @@ def run(args: argparse.Namespace) -> int:
     if key is not None and args.legacy:
         raise UsageError("--legacy: with --key-file the remote sends 60-byte packets")
     try:
-        remote = Remote(args.host, args.udp_port, args.tcp_port, rate_hz=args.rate, link=cfg,
+        remote = Remote(args.host, args.udp_port, args.tcp_port, rate_hz=args.rate_hz, link=cfg,
                         seed=args.seed, stop_id=args.stop_id, tcp_timeout=args.timeout,
                         stop_deadline=args.stop_deadline, legacy=args.legacy, key=key,
                         remote_id=args.remote_id)

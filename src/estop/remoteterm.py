@@ -1,6 +1,9 @@
 """The interactive terminal of ``estop remote``: one key acts at once (cbreak mode), a status
 line shows what is sent.
 
+The keyboard is a toggle, not a dead-man (a terminal never sees a key released): the screen
+says so (:data:`WARNING`) and the status line reads ``HELD (toggle: space to lift)``.
+
 Keys: space hold/lift, s stop, r release, t status, arrows gas and steering (0.1 steps),
 n neutral, g next gear, h horn, 0-3 turn signal, q quit. A lift sends the lift datagrams
 (spec section 8) and the status line says so (``lifted, lift sent x3``); q and Ctrl-C end a
@@ -21,10 +24,13 @@ from estop.protocol.udp import Gear, TurnSignal
 from estop.remotesender import Remote
 from estop.stopchannel import StopChannelError, format_reply
 
-__all__ = ["handle_key", "run_interactive"]
+__all__ = ["WARNING", "handle_key", "run_interactive"]
 
 _HELP = ("keys: space hold/lift  s stop  r release  t status  arrows gas/steer  n neutral  "
          "g gear  h horn  0-3 signal  q quit")
+WARNING = ("NOTE: the space bar is a TOGGLE, NOT a dead-man: a terminal cannot see a key "
+           "released, so packets go on until you press space again (or s, q, Ctrl-C). For a "
+           "real dead-man use estop remote --gamepad.")
 _GEAR_CYCLE = [Gear.PARK, Gear.REVERSE, Gear.NEUTRAL, Gear.DRIVE]
 
 
@@ -52,7 +58,7 @@ def _status_line(remote: Remote) -> str:
     c = remote.control
     gear = Gear(c.gear).name.lower() if c.gear in _GEAR_CYCLE else str(c.gear)
     if remote.held:
-        hold = "HELD"
+        hold = "HELD (toggle: space to lift)"
     elif remote.lift_sent:  # the latest hold ended: say that the unit was told
         hold = f"lifted, lift sent x{remote.lift_sent}"
     else:
@@ -120,6 +126,7 @@ _OPS: dict[str, Callable[[Remote], int]] = {
 def run_interactive(remote: Remote) -> None:
     """Keys from the terminal (cbreak mode, restored on exit) until q or Ctrl-C."""
     fd = sys.stdin.fileno()
+    out(WARNING)
     out(_HELP)
     with _raw_terminal(fd):
         try:

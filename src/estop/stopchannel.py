@@ -33,6 +33,7 @@ __all__ = [
     "StopDatagram",
     "StopOutcome",
     "format_reply",
+    "nak_hint",
     "press_stop",
     "reply_dict",
     "send_lift",
@@ -65,6 +66,23 @@ def format_reply(reply: Reply) -> str:
     if not reply.ack:
         text += f" nak={tcp.NAK_NAMES.get(reply.nak_code, str(reply.nak_code))}"
     return text
+
+
+def nak_hint(reply: Reply, keyed: bool, remote_id: int, *, same_session: bool = True
+             ) -> str | None:
+    """Why the unit said NAK not_authenticated, where the client can tell (spec section 5);
+    None for any other reply. With a key, the reply verified (else it raised): the unit has
+    this key, and the request carried its session, so it refused the counter (kept higher for
+    this remote id: another remote uses the same id) or had no place left for the id."""
+    if reply.ack or reply.nak_code != tcp.NakCode.NOT_AUTHENTICATED:
+        return None
+    if not keyed:
+        return "the unit has a key: give --key-file (or ESTOP_KEY_FILE, or key_file in the config)"
+    if not same_session:
+        return "the unit has a new session (it restarted since the last reply): ask again"
+    return (f"the unit has this key and this session, so it refused remote id {remote_id}'s "
+            f"counter as a replay: another remote uses remote id {remote_id} with the same "
+            f"key (give each remote its own --remote-id), or 8 remote ids are in use already")
 
 
 def reply_dict(reply: Reply) -> dict[str, object]:
@@ -112,6 +130,7 @@ class StopChannel:
         self.remote_id = remote_id
         self.counter = counter or MessageCounter()
         self.session = 0  # the unit's session as last seen in a reply (0: not known yet)
+        self.sent_session = 0  # the session the latest request carried
         self._seq = first_seq & 0xFFFFFFFF
         self._sock: socket.socket | None = None
         self._asm = FrameAssembler(auth.REPLY_SIZE if self.framed else tcp.FRAME_SIZE)
@@ -169,6 +188,11 @@ class StopChannel:
             self._seq = (seq + 1) & 0xFFFFFFFF
             return seq
 
+    def nak_hint(self, reply: Reply) -> str | None:
+        """:func:`nak_hint` for the latest reply of this channel."""
+        return nak_hint(reply, self.key is not None, self.remote_id,
+                        same_session=self.sent_session == self.session)
+
     def stop(self, seq: int | None = None) -> Reply:
         return self.request(self.stop_id, seq)
 
@@ -187,6 +211,7 @@ class StopChannel:
                 seq = self._seq
             self._seq = (seq + 1) & 0xFFFFFFFF
             if self.framed:
+                self.sent_session = self.session
                 req = auth.AuthRequest(msg_id, seq, self.remote_id, self.session,
                                        self.counter.next())
                 frame = req.encode(self.key)

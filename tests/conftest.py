@@ -12,7 +12,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from tool_util import load_bench_script  # noqa: E402 - needs the path above
 
-
 _SETTINGS_ENV = ("ESTOP_HOST", "ESTOP_UDP_PORT", "ESTOP_TCP_PORT", "ESTOP_KEY_FILE",
                  "ESTOP_REMOTE_ID", "ESTOP_STOP_ID", "ESTOP_RATE_HZ", "ESTOP_CONFIG")
 

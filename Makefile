@@ -10,11 +10,11 @@ COVDIR := build/cov
 .PHONY: setup demo test check coverage hil bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install
 setup: $(STAMP) $(VENV)/bin/estopd
 
-$(STAMP): pyproject.toml setup.py pyext/build_core.py deps/debian-packages.txt $(wildcard firmware/core/*)
+$(STAMP): pyproject.toml setup.py pyext/build_core.py pyext/estop_build_backend.py deps/debian-packages.txt $(wildcard firmware/core/*)
 	scripts/ensure-debs build
 	test -x $(VPY) || $(PYTHON) -m venv $(VENV)
 	$(VPY) -m pip install -q --upgrade pip
-	$(VPY) -m pip install -q -e '.[test]'
+	ESTOP_BUILD_CORE=1 $(VPY) -m pip install -q -e '.[test]'
 	touch $@
 
 $(VENV)/bin/estopd: $(STAMP) $(wildcard firmware/core/* firmware/estopd/*)

@@ -119,9 +119,12 @@ def require_extra(extra: str, *modules: str) -> None:
     """Raise :class:`NotInstalled` naming ``estop[extra]`` unless every module imports."""
     import importlib.util
 
-    missing = [m for m in modules if importlib.util.find_spec(m) is None]
+    missing = [_DISTRIBUTIONS.get(m, m) for m in modules if importlib.util.find_spec(m) is None]
     if missing:
         raise NotInstalled(f"this needs {', '.join(missing)}: pip install 'estop[{extra}]'")
+
+
+_DISTRIBUTIONS = {"can": "python-can"}  # import name -> the name pip knows
 
 
 def out(line: str = "") -> None:

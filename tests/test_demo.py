@@ -142,7 +142,7 @@ def test_demo_fails_against_a_unit_without_the_slow_stage(tmp_path: Path) -> Non
 
 def test_demo_without_estopd_says_so_in_one_line(capsys: pytest.CaptureFixture[str],
                                                  tmp_path: Path) -> None:
-    assert main(["--estopd", str(tmp_path / "no-such-estopd")]) == 2
+    assert main(["--estopd", str(tmp_path / "no-such-estopd")]) == 5  # not installed (the exit-code table)
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "estopd not found" in err
 
@@ -180,7 +180,7 @@ def test_demo_time_range_ends_are_accepted(tmp_path: Path,
                  ["--slow-ms", "59800", "--timeout-ms", "60000"],
                  ["--speed-kmh", "1"], ["--speed-kmh", "60"]):
         # accepted: the demo goes on and stops only at the missing daemon
-        assert main(["--estopd", str(tmp_path / "no-such-estopd"), *argv]) == 2
+        assert main(["--estopd", str(tmp_path / "no-such-estopd"), *argv]) == 5
         assert "estopd not found" in capsys.readouterr().err
 
 

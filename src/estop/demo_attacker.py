@@ -10,7 +10,7 @@ import socket
 import time
 from collections.abc import Sequence
 
-from estop.loopback import DaemonError
+from estop.daemonlog import DaemonError
 from estop.protocol import auth, tcp, udp
 
 __all__ = ["Attacker"]

@@ -9,8 +9,8 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 
 from estop.brakecheck import grade_text
+from estop.daemonlog import stamp
 from estop.demo_car import LiveCar
-from estop.loopback import stamp
 from estop.protocol import can, canlog
 
 __all__ = ["BusWatch", "Change", "StateLine", "grade", "is_state", "state_lines"]

@@ -14,7 +14,8 @@ import queue
 import threading
 
 from estop.demo_bus import BusWatch, Change
-from estop.loopback import Daemon, Link
+from estop.loopback import Daemon
+from estop.looplink import Link
 from estop.protocol import auth, tcp
 
 __all__ = ["V2_TIMEOUT_MS", "V2Twin"]

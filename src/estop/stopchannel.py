@@ -9,10 +9,11 @@ Used by ``estop stop|release|status`` (one request per connection) and by
 
 from __future__ import annotations
 
+import contextlib
 import socket
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 from estop.protocol import auth, tcp
@@ -24,6 +25,7 @@ __all__ = [
     "DEFAULT_STOP_DEADLINE",
     "LIFT_GAP",
     "LIFT_SENDS",
+    "ConnectionClosed",
     "LiftDatagram",
     "MessageCounter",
     "ReplyNotAuthentic",
@@ -48,6 +50,10 @@ _RETRY_GAPS = (0.05, 0.1, 0.2, 0.25)  # pause after the 1st, 2nd, 3rd, later fai
 
 class StopChannelError(OSError):
     """Connecting, sending or receiving failed, or the reply was malformed. One-line ``str``."""
+
+
+class ConnectionClosed(StopChannelError):
+    """The unit closed the connection before replying."""
 
 
 class ReplyNotAuthentic(StopChannelError):
@@ -135,6 +141,8 @@ class StopChannel:
         self._sock: socket.socket | None = None
         self._asm = FrameAssembler(auth.REPLY_SIZE if self.framed else tcp.FRAME_SIZE)
         self._lock = threading.Lock()
+        # requests sent and not answered yet: seq -> (frame, the framed request or None)
+        self._pending: dict[int, tuple[bytes, auth.AuthRequest | None]] = {}
 
     @property
     def connected(self) -> bool:
@@ -169,6 +177,7 @@ class StopChannel:
             self._sock.close()
             self._sock = None
         self._asm.reset()
+        self._pending.clear()  # no reply comes on a closed connection
 
     def __enter__(self) -> StopChannel:
         return self
@@ -207,56 +216,106 @@ class StopChannel:
         """Send ``Request(msg_id, seq)`` (seq: the next of this channel's own counter) and
         wait for its reply, at most ``timeout`` seconds (default: the channel's)."""
         with self._lock:
-            if seq is None:
-                seq = self._seq
-            self._seq = (seq + 1) & 0xFFFFFFFF
-            if self.framed:
-                self.sent_session = self.session
-                req = auth.AuthRequest(msg_id, seq, self.remote_id, self.session,
-                                       self.counter.next())
-                frame = req.encode(self.key)
-                sent: auth.AuthRequest | None = req
-            else:
-                frame = Request(msg_id, seq).encode()
-                sent = None
             wait = self.timeout if timeout is None else timeout
-            try:
-                sock = self._connect(wait)
-                sock.sendall(frame)
-                return self._await_reply(sock, seq, wait, frame, sent)
-            except StopChannelError:
-                self._close()
-                raise
-            except TimeoutError:
-                self._close()
-                raise StopChannelError(f"no reply from {self.host}:{self.port} within "
-                                       f"{wait:g} s") from None
-            except OSError as exc:
-                self._close()
-                raise StopChannelError(f"connection to {self.host}:{self.port} failed: "
-                                       f"{exc.strerror or exc}") from None
+            seq, _t = self._send(msg_id, seq, wait)
+            return self._receive(seq, wait, skip_others=False)
 
-    def _await_reply(self, sock: socket.socket, seq: int, timeout: float, frame: bytes,
-                     sent: auth.AuthRequest | None) -> Reply:
+    def send(self, msg_id: int, seq: int | None = None) -> tuple[int, float]:
+        """Send a request without waiting: (its seq, ``time.time()`` just before sending).
+        :meth:`receive` collects the reply (the benchmarks time the two apart)."""
+        with self._lock:
+            return self._send(msg_id, seq, self.timeout)
+
+    def receive(self, seq: int, *, timeout: float | None = None) -> Reply:
+        """The reply to the request sent with ``seq``; replies to other requests sent before it
+        are read and dropped."""
+        with self._lock:
+            return self._receive(seq, self.timeout if timeout is None else timeout,
+                                 skip_others=True)
+
+    def _send(self, msg_id: int, seq: int | None, wait: float) -> tuple[int, float]:
+        if seq is None:
+            seq = self._seq
+        self._seq = (seq + 1) & 0xFFFFFFFF
+        if self.framed:
+            self.sent_session = self.session
+            req = auth.AuthRequest(msg_id, seq, self.remote_id, self.session,
+                                   self.counter.next())
+            frame = req.encode(self.key)
+            self._pending[seq] = (frame, req)
+        else:
+            frame = Request(msg_id, seq).encode()
+            self._pending[seq] = (frame, None)
+        with self._failures(wait):
+            sock = self._connect(wait)
+            t = time.time()
+            sock.sendall(frame)
+        return seq, t
+
+    def _receive(self, seq: int, wait: float, *, skip_others: bool) -> Reply:
+        with self._failures(wait):
+            if self._sock is None:
+                raise StopChannelError(f"connection to {self.host}:{self.port} lost before "
+                                       f"the reply to seq {seq}")
+            return self._await_reply(self._sock, seq, wait, skip_others)
+
+    @contextlib.contextmanager
+    def _failures(self, wait: float) -> Iterator[None]:
+        """Any failure closes the connection and is one :class:`StopChannelError`."""
+        try:
+            yield
+        except StopChannelError:
+            self._close()
+            raise
+        except TimeoutError:
+            self._close()
+            raise StopChannelError(f"no reply from {self.host}:{self.port} within "
+                                   f"{wait:g} s") from None
+        except OSError as exc:
+            self._close()
+            raise StopChannelError(f"connection to {self.host}:{self.port} failed: "
+                                   f"{exc.strerror or exc}") from None
+
+    def _await_reply(self, sock: socket.socket, seq: int, timeout: float,
+                     skip_others: bool) -> Reply:
         deadline = time.monotonic() + timeout
         while True:
+            for raw in self._asm.feed(b""):  # a reply already read with an earlier one
+                reply = self._decode(raw, seq, skip_others)
+                if reply is not None:
+                    return reply
             left = deadline - time.monotonic()
             if left <= 0:
                 raise TimeoutError
             sock.settimeout(left)
             chunk = sock.recv(4096)
             if not chunk:
-                raise StopChannelError(f"{self.host}:{self.port} closed the connection "
+                raise ConnectionClosed(f"{self.host}:{self.port} closed the connection "
                                        f"before replying")
             for raw in self._asm.feed(chunk):
-                if sent is None:
-                    reply = self._decode_plain(raw)
-                else:
-                    reply = self._decode_framed(raw, frame, sent)
-                if reply.seq != seq:
-                    raise StopChannelError(f"reply seq {reply.seq} does not match request "
-                                           f"seq {seq}")
-                return reply
+                reply = self._decode(raw, seq, skip_others)
+                if reply is not None:
+                    return reply
+
+    def _decode(self, raw: bytes, seq: int, skip_others: bool) -> Reply | None:
+        """The reply in ``raw`` if it answers ``seq``; None for a reply to another request of
+        ours when ``skip_others``; else :class:`StopChannelError`. A framed reply is verified
+        against the request it names."""
+        if self.framed:
+            got = int.from_bytes(raw[8:12], "little")
+            frame, sent = self._pending.pop(got, (b"", None))
+            if sent is None:
+                raise StopChannelError(f"a reply to seq {got}, which was never asked")
+            reply = self._decode_framed(raw, frame, sent)
+            ours = True
+        else:
+            reply = self._decode_plain(raw)
+            ours = self._pending.pop(reply.seq, None) is not None
+        if reply.seq == seq:
+            return reply
+        if skip_others and ours:
+            return None
+        raise StopChannelError(f"reply seq {reply.seq} does not match request seq {seq}")
 
     def _decode_plain(self, raw: bytes) -> Reply:
         try:
@@ -294,6 +353,12 @@ class MessageCounter:
     def next(self) -> int:
         with self._lock:
             self._last = (self._last + 1) & 0xFFFFFFFFFFFFFFFF
+            return self._last
+
+    @property
+    def last(self) -> int:
+        """The counter most recently handed out."""
+        with self._lock:
             return self._last
 
 

@@ -142,7 +142,7 @@ def test_demo_fails_against_a_unit_without_the_slow_stage(tmp_path: Path) -> Non
 
 def test_demo_without_estopd_says_so_in_one_line(capsys: pytest.CaptureFixture[str],
                                                  tmp_path: Path) -> None:
-    assert main(["--estopd", str(tmp_path / "no-such-estopd")]) == 5  # not installed (the exit-code table)
+    assert main(["--estopd", str(tmp_path / "no-such-estopd")]) == 5  # not installed
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "estopd not found" in err
 

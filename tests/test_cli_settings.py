@@ -252,3 +252,19 @@ def test_config_path_follows_xdg(monkeypatch: pytest.MonkeyPatch, tmp_path: Path
     monkeypatch.setenv("ESTOP_CONFIG", str(tmp_path / "x.toml"))
     assert config_path() == tmp_path / "x.toml"
     assert os.environ["ESTOP_CONFIG"].endswith("x.toml")
+
+
+def test_estopd_names_its_bus_as_python_can_does() -> None:
+    """estopd's CAN interface is python-can's --channel; --can stays as its older name."""
+    import subprocess
+
+    exe = estopd_or_skip()
+    for flag in ("--channel", "--can"):
+        res = subprocess.run([exe, "--no-auth", flag, ""], capture_output=True, text=True,
+                             timeout=10, check=False)
+        assert res.returncode == 2
+        assert res.stderr.strip() == ("estopd: error: invalid value '' for --channel "
+                                      "(expected a network interface name)")
+    usage = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=10,
+                           check=True).stdout
+    assert "[--channel IFACE]" in usage and "--can " not in usage

@@ -27,7 +27,8 @@ enum {
 };
 
 static const struct option long_opts[] = {
-    { "can", required_argument, NULL, OPT_CAN },
+    { "channel", required_argument, NULL, OPT_CAN }, /* python-can's name for the bus */
+    { "can", required_argument, NULL, OPT_CAN },     /* its older name, unlisted */
     { "can-log", required_argument, NULL, OPT_CAN_LOG },
     { "udp-port", required_argument, NULL, OPT_UDP_PORT },
     { "tcp-port", required_argument, NULL, OPT_TCP_PORT },
@@ -50,7 +51,7 @@ static const struct option long_opts[] = {
 static void usage(void)
 {
     (void)printf(
-        "usage: estopd (--key-file PATH | --no-auth) [--can IFACE] [--can-log PATH|-]\n"
+        "usage: estopd (--key-file PATH | --no-auth) [--channel IFACE] [--can-log PATH|-]\n"
         "              [--udp-port 5700] [--tcp-port 5701] [--bind 0.0.0.0]\n"
         "              [--timeout-ms 200] [--slow-ms T] [--slow-level 30] [--warn-ms S/2]\n"
         "              [--stop-id 0xE570E570]\n"
@@ -63,8 +64,8 @@ static void usage(void)
         "flag (default: half the slow time, in whole ms). 0 < warn <= slow <= timeout.\n"
         "--key-file: only packets and RELEASEs made with this key (64 hex digits, mode 0600)\n"
         "keep the unit alive or release it; anyone may stop. --no-auth: a unit without a key.\n"
-        "Without --can, frames go to the can-log (stdout). Port 0 picks a free port; the\n"
-        "start event on stderr shows the ports.\n"
+        "Without --channel (a SocketCAN interface), frames go to the can-log (stdout).\n"
+        "Port 0 picks a free port; the start event on stderr shows the ports.\n"
         "--rt-prio: SCHED_FIFO for the watchdog loop; --mlock: mlockall (no paging stalls).\n");
 }
 
@@ -135,7 +136,7 @@ static int set_one(int c, const char *arg, opts_t *o, given_t *given, char *err,
     switch (c) {
     case OPT_CAN:
         if (arg[0] == '\0' || strlen(arg) >= IF_NAMESIZE || strchr(arg, '/') != NULL) {
-            return bad_value("can", arg, "a network interface name", err, n);
+            return bad_value("channel", arg, "a network interface name", err, n);
         }
         o->can_iface = arg;
         return 0;

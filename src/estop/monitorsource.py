@@ -52,13 +52,10 @@ def _python_can(name: str) -> Iterator[Record]:
     require_extra("bus", "can")
     import can
 
+    # python-can's readers raise many kinds of error on a malformed file (BLFParseError,
+    # ValueError, struct.error, ...): whatever they raise, the file is what cannot be read
     try:
         reader = can.LogReader(name)
-    except ValueError as exc:  # a suffix python-can does not know
-        raise FileFailure(f"--log {name}: {exc}") from None
-    except OSError as exc:
-        raise FileFailure(f"--log {name}: {exc.strerror or exc}") from None
-    try:
         with reader:
             for msg in reader:
                 if msg.is_error_frame or msg.is_remote_frame:
@@ -67,9 +64,10 @@ def _python_can(name: str) -> Iterator[Record]:
                     bool(msg.is_extended_id)
     except OSError as exc:
         raise FileFailure(f"--log {name}: {exc.strerror or exc}") from None
-    except (ValueError, IndexError, KeyError, can.CanError) as exc:
+    except Exception as exc:
+        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise FileFailure(f"--log {name}: not a readable {Path(name).suffix} log: "
-                          f"{exc}") from None
+                          f"{why}") from None
 
 
 def _estop_fields(can_id: int, data: bytes) -> dict[str, int] | None:

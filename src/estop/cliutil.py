@@ -89,8 +89,11 @@ EXIT_CONNECTION = EXIT_UNREACHABLE
 
 
 def exit_code_table() -> str:
-    """The exit codes, one per line (``estop --help``)."""
-    return "\n".join(f"  {code:>3}  {text}" for code, text in EXIT_CODES)
+    """The exit codes, one per entry, wrapped to 88 columns (``estop --help``)."""
+    import textwrap
+
+    return "\n".join(textwrap.fill(text, 88, initial_indent=f"  {code:>3}  ",
+                                   subsequent_indent=" " * 7) for code, text in EXIT_CODES)
 
 
 class CliError(Exception):
@@ -287,7 +290,7 @@ def add_settings(parser: argparse.ArgumentParser, *keys: str,
         chosen[key] = s
         text = (help or {}).get(key, _HELP[key])
         if s.default is not None:
-            shown = f"{s.default:#010X}" if key == "stop_id" else f"{s.default:g}" \
+            shown = f"0x{s.default:08X}" if key == "stop_id" else f"{s.default:g}" \
                 if isinstance(s.default, float) else str(s.default)
             text += f"; default {shown}"
         parser.add_argument(s.flag, dest=key, type=s.parse, default=None,

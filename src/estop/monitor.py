@@ -89,17 +89,17 @@ __all__ = ["DESCRIPTION", "Monitor", "add_arguments", "format_frame", "grade_not
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--log", metavar="FILE",
-                        help="read a log instead of a bus: can-utils (candump -L), or any "
-                             "format python-can reads by its suffix (.asc .blf .csv .db .log "
-                             ".mf4 .trc); '-': can-utils lines on stdin")
+                        help="read a log instead of a bus: python-can's formats by their "
+                             "suffix (.asc .blf .csv .db .mf4 .trc), any other file as "
+                             "can-utils lines (candump -L); '-': can-utils lines on stdin")
     add_can_options(parser)
     parser.add_argument("--dbc", metavar="PATH", nargs="?", const="", default=None,
                         help="also decode every frame with cantools from this DBC (no PATH: "
                              "the unit's own, estop/dbc); a frame the DBC and estop's "
                              "codecs read differently is flagged")
-    parser.add_argument("--brake-id", type=parse_u32, default=BRAKE_ID,
+    parser.add_argument("--brake-id", type=parse_u32, default=BRAKE_ID, metavar="ID",
                         help=f"ESTOP_BRAKE CAN ID (default {BRAKE_ID:#05x})")
-    parser.add_argument("--status-id", type=parse_u32, default=STATUS_ID,
+    parser.add_argument("--status-id", type=parse_u32, default=STATUS_ID, metavar="ID",
                         help=f"ESTOP_STATUS CAN ID (default {STATUS_ID:#05x})")
     # the brake controller's own timeout (spec section 7); --timeout-ms is its older name here
     parser.add_argument("--brake-timeout-ms", dest="brake_timeout_ms",
@@ -112,17 +112,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         metavar="S", help="live bus: stop after this many seconds")
     parser.add_argument("--duration", dest="duration", type=non_negative_float,
                         default=argparse.SUPPRESS, help=argparse.SUPPRESS)
-    parser.add_argument("--count", type=int, default=None,
+    parser.add_argument("--count", type=int, default=None, metavar="N",
                         help="stop after this many ESTOP frames")
     parser.add_argument("-q", "--quiet", action="store_true",
                         help="print only problems, state changes and the summary")
-    parser.add_argument("--speed-kmh", type=non_negative_float, default=None,
+    parser.add_argument("--speed-kmh", type=non_negative_float, default=None, metavar="KMH",
                         help="also print how far a car at this speed when the watch began "
                              "rolls, braking as the frames command (docs/VEHICLE.md)")
-    parser.add_argument("--decel-ms2", type=positive_float, default=None,
+    parser.add_argument("--decel-ms2", type=positive_float, default=None, metavar="MS2",
                         help="with --speed-kmh: the car's emergency deceleration, m/s^2 "
                              f"(default {DEFAULT_EMERGENCY_DECEL:g})")
     parser.add_argument("--actuator-delay-ms", type=non_negative_float, default=None,
+                        metavar="MS",
                         help="with --speed-kmh: the brake acts this long after the controller "
                              "(default 0)")
 

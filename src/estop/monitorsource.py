@@ -1,9 +1,9 @@
 """What ``estop monitor`` reads besides a live bus, and the DBC decoding of what it reads.
 
-- :func:`read_records`: a recorded log as ``(t, can_id, data, extended)``; can-utils lines
-  (``candump -L``, estop's own can-log, standard input) are read by
-  :mod:`estop.protocol.canlog`, every other format python-can knows by its suffix (.asc .blf
-  .csv .db .mf4 .trc ...) by ``can.LogReader``.
+- :func:`read_records`: a recorded log as ``(t, can_id, data, extended)``; the formats
+  python-can knows by their suffix (.asc .blf .csv .db .mf4 .trc, also gzipped) are read by
+  ``can.LogReader``, everything else as can-utils lines (``candump -L``, estop's own can-log,
+  standard input) by :mod:`estop.protocol.canlog`.
 - :class:`DbcDecoder`: decodes frames with cantools from a DBC (the unit's own by default,
   estop/dbc/estop.dbc) and says where the DBC and estop's codecs read a frame differently.
 """
@@ -18,19 +18,21 @@ from estop.cliutil import FileFailure, require_extra
 from estop.protocol import can as estop_can
 from estop.protocol.canlog import CanLogError, read_log
 
-__all__ = ["CANUTILS_SUFFIXES", "DbcDecoder", "Record", "read_records"]
+__all__ = ["PYTHON_CAN_SUFFIXES", "DbcDecoder", "Record", "read_records"]
 
 Record = tuple[float, int, bytes, bool]  # timestamp (s), CAN ID, data, extended ID
-CANUTILS_SUFFIXES = ("", ".log", ".txt", ".candump")
+# the formats python-can reads and can-utils does not (python-can's .log is can-utils' own)
+PYTHON_CAN_SUFFIXES = (".asc", ".blf", ".csv", ".db", ".mf4", ".trc")
 
 
 def read_records(name: str, lines: Iterable[str] | None = None) -> Iterator[Record]:
     """The frames of the log ``name`` (``lines``: an open text stream of can-utils lines, e.g.
     stdin). Raises :class:`FileFailure` (one line naming the file) when it cannot be read."""
-    if lines is not None or Path(name).suffix.lower() in CANUTILS_SUFFIXES:
-        yield from _canutils(name, lines)
-    else:
+    suffixes = [x.lower() for x in Path(name).suffixes[-2:]]
+    if lines is None and any(x in PYTHON_CAN_SUFFIXES for x in suffixes):  # a.asc, a.asc.gz
         yield from _python_can(name)
+    else:
+        yield from _canutils(name, lines)
 
 
 def _canutils(name: str, lines: Iterable[str] | None) -> Iterator[Record]:

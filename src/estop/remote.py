@@ -74,12 +74,13 @@ __all__ = [
     "run_interactive",
 ]
 
-DESCRIPTION = ("Play the tablet: send control packets over UDP while held (a finger on the "
-               "screen), and STOP/RELEASE/STATUS over the TCP stop channel; keys in a "
-               "terminal, or a script. The keyboard's hold is a TOGGLE, NOT a dead-man: a "
-               "terminal cannot see a key being released, so packets go on until space is "
-               "pressed again; for a real dead-man (release the trigger: lift at once) use "
-               "--gamepad.")
+DESCRIPTION = """\
+Play the tablet: send control packets over UDP while held (a finger on the screen), and
+STOP/RELEASE/STATUS over the TCP stop channel; keys in a terminal, or a script.
+
+The keyboard's hold is a TOGGLE, NOT a dead-man: a terminal cannot see a key being
+released, so packets go on until space is pressed again. For a real dead-man (let go
+of the trigger: lift at once) use --gamepad."""
 EPILOG = """\
 script (--script TEXT or --script-file FILE): commands separated by ';' or new lines,
 '#' starts a comment, times in seconds:
@@ -140,14 +141,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"link like the original Wi-Fi: {WIFI.loss * 100:g} %% loss, "
                              f"bursts of {WIFI.burst:g}, {WIFI.delay * 1000:g}+0..."
                              f"{WIFI.jitter * 1000:g} ms delay (options below override)")
-    parser.add_argument("--loss-pct", "--loss", dest="loss", type=non_negative_float,
-                        default=None, metavar="PCT", help="UDP packets lost, percent (default 0)")
+    parser.add_argument("--loss-pct", dest="loss", type=non_negative_float, default=None,
+                        metavar="PCT", help="UDP packets lost, percent (default 0)")
+    parser.add_argument("--loss", dest="loss", type=non_negative_float,
+                        default=argparse.SUPPRESS, help=argparse.SUPPRESS)  # the older name
     parser.add_argument("--burst", type=positive_float, default=None, metavar="N",
                         help="mean number of packets lost in a row (default 1)")
-    parser.add_argument("--delay-ms", type=non_negative_float, default=None,
-                        help="one-way delay, ms (default 0)")
-    parser.add_argument("--jitter-ms", type=non_negative_float, default=None,
-                        help="extra random delay 0..N ms (default 0)")
+    parser.add_argument("--delay-ms", type=non_negative_float, default=None, metavar="MS",
+                        help="one-way delay (default 0)")
+    parser.add_argument("--jitter-ms", type=non_negative_float, default=None, metavar="MS",
+                        help="extra random delay 0..MS (default 0)")
     parser.add_argument("--seed", type=int, default=None, help="seed of the link model")
     add_time_option(parser, "reply-timeout", "timeout", 2.0, "wait this long for a TCP reply",
                     ms_aliases=["--timeout-ms"], s_aliases=["--timeout"])

@@ -114,3 +114,31 @@ def test_a_log_python_can_cannot_read_is_a_file_error(tmp_path: Path,
     assert len(lines) == 1 and lines[0].startswith("estop: error: --log ") and str(bad) in err
     code, _, err = monitor(capsys, "--log", str(bad.with_suffix(".xyz")))
     assert code == 4 and err.count("\n") == 1
+
+
+@pytest.mark.parametrize("where", ["environment", "canrc"])
+def test_the_bus_comes_from_python_cans_own_configuration(where: str, tmp_path: Path,
+                                                          monkeypatch: pytest.MonkeyPatch,
+                                                          capsys: pytest.CaptureFixture[str]
+                                                          ) -> None:
+    """No --interface: python-can's CAN_INTERFACE/CAN_CHANNEL, or its ~/.canrc, name the bus
+    (here python-can's virtual bus, with nothing on it: a silent bus is a failure, exit 1)."""
+    channel = f"estop_cfg_{where}_{id(tmp_path)}"
+    for name in ("CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE", "CAN_CONFIG"):
+        monkeypatch.delenv(name, raising=False)
+    monkeypatch.chdir(tmp_path)  # python-can also reads ./can.ini
+    monkeypatch.setenv("HOME", str(tmp_path))
+    if where == "environment":
+        monkeypatch.setenv("CAN_INTERFACE", "virtual")
+        monkeypatch.setenv("CAN_CHANNEL", channel)
+    else:
+        (tmp_path / ".canrc").write_text(f"[default]\ninterface = virtual\nchannel = {channel}\n")
+    code, out, err = monitor(capsys, "--duration-s", "0.2")
+    assert (code, err) == (1, ""), err
+    assert "no_brake_frame" in out.splitlines()[-1]
+    # with none of them, the one-line error says where a bus is named
+    monkeypatch.delenv("CAN_INTERFACE", raising=False)
+    monkeypatch.delenv("CAN_CHANNEL", raising=False)
+    (tmp_path / ".canrc").unlink(missing_ok=True)
+    code, out, err = monitor(capsys, "--duration-s", "0.2")
+    assert code == 2 and out == "" and "--interface" in err and "~/.canrc" in err

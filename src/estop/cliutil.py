@@ -120,9 +120,14 @@ class NotInstalled(CliError):
 
 def require_extra(extra: str, *modules: str) -> None:
     """Raise :class:`NotInstalled` naming ``estop[extra]`` unless every module imports."""
-    import importlib.util
+    import importlib
 
-    missing = [_DISTRIBUTIONS.get(m, m) for m in modules if importlib.util.find_spec(m) is None]
+    missing = []
+    for m in modules:
+        try:
+            importlib.import_module(m)  # the command imports it next anyway
+        except ImportError:
+            missing.append(_DISTRIBUTIONS.get(m, m))
     if missing:
         raise NotInstalled(f"this needs {', '.join(missing)}: pip install 'estop[{extra}]'")
 
@@ -386,11 +391,14 @@ def can_bus_config(args: argparse.Namespace) -> dict[str, object]:
 
     given = {k: v for k, v in (("interface", args.interface), ("channel", args.channel),
                                ("bitrate", args.bitrate)) if v is not None}
+    nowhere = UsageError("no CAN bus: give --interface (and --channel), or set them in "
+                         "python-can's configuration (CAN_INTERFACE, ~/.canrc)")
     try:
         cfg = dict(can.util.load_config(config=given))
     except (can.CanError, ValueError, NotImplementedError) as exc:
+        if '"None"' in str(exc):  # python-can's words for no interface named anywhere
+            raise nowhere from None
         raise UsageError(f"python-can configuration: {exc}") from None
     if not cfg.get("interface"):
-        raise UsageError("no CAN bus: give --interface (and --channel), or set them in "
-                         "python-can's configuration (CAN_INTERFACE, ~/.canrc)")
+        raise nowhere
     return cfg

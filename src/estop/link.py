@@ -72,9 +72,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.max_gap and args.max_gap < 2.0:
         raise UsageError("--max-gap-s must be 0 or at least 2 s (the longest timeout)")
-    require_extra("link", "numpy")
-    if args.format == "pcap" or str(args.file).endswith((".pcap", ".pcapng")):
-        require_extra("link", "dpkt")
+    require_extra("link", "numpy", "dpkt")  # dpkt: a pcap is recognised by its first bytes
     if args.plot:
         require_extra("link", "matplotlib")
     from estop.linkstats import format_report, load, report, report_json, write_plot

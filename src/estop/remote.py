@@ -152,7 +152,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--jitter-ms", type=non_negative_float, default=None, metavar="MS",
                         help="extra random delay 0..MS (default 0)")
     parser.add_argument("--seed", type=int, default=None, help="seed of the link model")
-    add_time_option(parser, "reply-timeout", "timeout", 2.0, "wait this long for a TCP reply",
+    add_time_option(parser, "reply-timeout", "timeout", 2.0,
+                    "wait this long for connect and reply",
                     ms_aliases=["--timeout-ms"], s_aliases=["--timeout"])
     add_time_option(parser, "stop-deadline", "stop_deadline", DEFAULT_STOP_DEADLINE,
                     "the stop button tries again (fresh connection, another stop datagram) "

@@ -268,3 +268,21 @@ def test_estopd_names_its_bus_as_python_can_does() -> None:
     usage = subprocess.run([exe, "--help"], capture_output=True, text=True, timeout=10,
                            check=True).stdout
     assert "[--channel IFACE]" in usage and "--can " not in usage
+
+
+def test_a_command_may_take_an_optional_host(tmp_path: Path) -> None:
+    """add_settings(host_required=False): the host stays None when nothing names one (the
+    dashboard runs without a unit), and still comes from the environment when set."""
+    import argparse
+
+    from estop.cliutil import add_settings
+
+    p = argparse.ArgumentParser()
+    add_settings(p, "host", "tcp_port", host_required=False)
+    none = tmp_path / "none.toml"
+    a = p.parse_args([])
+    resolve_settings(a, {}, ConfigFile(none, COMMON_SETTINGS))
+    assert a.host is None and a.tcp_port == tcp.DEFAULT_PORT
+    a = p.parse_args([])
+    resolve_settings(a, {"ESTOP_HOST": "10.1.2.3"}, ConfigFile(none, COMMON_SETTINGS))
+    assert a.host == "10.1.2.3"

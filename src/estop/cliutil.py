@@ -276,17 +276,21 @@ _METAVAR = {"host": "HOST", "udp_port": "PORT", "tcp_port": "PORT", "key_file": 
             "remote_id": "N", "stop_id": "ID", "rate_hz": "HZ"}
 _SETTINGS_ATTR = "_estop_settings"
 _SOURCES_ATTR = "_estop_sources"
+_HOST_REQUIRED_ATTR = "_estop_host_required"
 
 
 def add_settings(parser: argparse.ArgumentParser, *keys: str,
                  aliases: Mapping[str, Sequence[str]] | None = None,
                  parse: Mapping[str, Callable[[str], object]] | None = None,
                  help: Mapping[str, str] | None = None,
-                 default: Mapping[str, object] | None = None) -> None:
+                 default: Mapping[str, object] | None = None,
+                 host_required: bool = True) -> None:
     """Add the common settings ``keys`` (see :data:`COMMON_SETTINGS`) to ``parser``, each with
     its option, environment variable and configuration key; ``aliases`` gives a command's
     older, unlisted option names, ``parse``/``help``/``default`` a command's own reading,
-    text or default. :func:`resolve_settings` fills them in after parsing."""
+    text or default; ``host_required=False`` for a command that may run without a unit (its
+    ``host`` stays None when no source names one). :func:`resolve_settings` fills them in after
+    parsing."""
     chosen: dict[str, Setting] = {}
     for key in keys:
         base = COMMON_SETTINGS[key]
@@ -306,6 +310,8 @@ def add_settings(parser: argparse.ArgumentParser, *keys: str,
     known = dict(parser.get_default(_SETTINGS_ATTR) or {})
     known.update(chosen)
     parser.set_defaults(**{_SETTINGS_ATTR: known})
+    if "host" in chosen:
+        parser.set_defaults(**{_HOST_REQUIRED_ATTR: host_required})
 
 
 def add_key_arguments(parser: argparse.ArgumentParser) -> None:
@@ -359,7 +365,7 @@ def resolve_settings(args: argparse.Namespace, environ: Mapping[str, str] | None
                 args.remote_id, sources["remote_id"] = 1, "default"
     except SettingError as exc:
         raise UsageError(str(exc)) from None
-    if "host" in settings and args.host is None:
+    if "host" in settings and args.host is None and getattr(args, _HOST_REQUIRED_ATTR, True):
         raise UsageError(f"no unit address: give --host, or set ESTOP_HOST or host in "
                          f"{cfg.path}")
     setattr(args, _SOURCES_ATTR, sources)

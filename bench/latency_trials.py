@@ -9,7 +9,7 @@ refused):
   overshoot past S; the roll-out runs from the last packet;
 - TCP: drive 1 packet and send STOP over TCP;
 - lift: drive 3 packets 1 ms apart, then the remote's lift (three lift datagrams 10 ms apart,
-  ``estop.stopchannel.send_lift``); the first stop frame (reason lift) times it from the first
+  ``estop.stopbutton.send_lift``); the first stop frame (reason lift) times it from the first
   datagram, and the roll-out runs from there.
 """
 
@@ -23,7 +23,7 @@ from dataclasses import dataclass
 from estop.loopback import Daemon, DaemonError, Link, is_stop_frame, stamp
 from estop.protocol import can, tcp, udp
 from estop.protocol.canlog import CanLogRecord
-from estop.stopchannel import LiftDatagram, send_lift
+from estop.stopbutton import LiftDatagram, send_lift
 from estop.vehicle import DEFAULT_PARAMS, VehicleParams
 from latency_result import LOST_LINES, TIMEOUT_FIRST, RunResult, Span
 from latency_roll import DEFAULT_SPEED_KMH, roll_from_record

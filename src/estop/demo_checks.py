@@ -9,7 +9,7 @@ import signal
 from estop.demo_bus import BusWatch
 from estop.demo_result import Result, StopMeasure
 from estop.protocol import can, tcp
-from estop.stopchannel import LIFT_SENDS
+from estop.stopbutton import LIFT_SENDS
 
 __all__ = ["check"]
 

@@ -30,7 +30,7 @@ from estop.demo_twin import V2Twin
 from estop.demo_view import View, reply_text
 from estop.loopback import Daemon, DaemonError
 from estop.protocol import can
-from estop.stopchannel import LIFT_GAP
+from estop.stopbutton import LIFT_GAP
 
 __all__ = ["Story", "finish_run", "run_story"]
 

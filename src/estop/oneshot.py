@@ -48,19 +48,21 @@ from estop.cliutil import (
 )
 from estop.keyfile import key_from_args
 from estop.protocol import tcp, udp
-from estop.stopchannel import (
-    DEFAULT_REMOTE_ID,
+from estop.stopbutton import (
     DEFAULT_STOP_DEADLINE,
     LiftDatagram,
+    StopDatagram,
+    StopOutcome,
+    press_stop,
+    send_lift,
+)
+from estop.stopchannel import (
+    DEFAULT_REMOTE_ID,
     MessageCounter,
     StopChannel,
     StopChannelError,
-    StopDatagram,
-    StopOutcome,
     format_reply,
-    press_stop,
     reply_dict,
-    send_lift,
 )
 
 __all__ = ["COMMANDS", "LiftOutcome", "add_arguments", "lift_once", "run", "send_once",
@@ -133,7 +135,7 @@ def stop_once(host: str, port: int = tcp.DEFAULT_PORT, udp_port: int = udp.DEFAU
               seq: int = 1, stop_id: int = tcp.DEFAULT_STOP_ID, timeout: float = 2.0,
               deadline: float = DEFAULT_STOP_DEADLINE, key: bytes | None = None,
               remote_id: int = DEFAULT_REMOTE_ID) -> StopOutcome:
-    """Press the stop button once (see :func:`estop.stopchannel.press_stop`): stop datagrams
+    """Press the stop button once (see :func:`estop.stopbutton.press_stop`): stop datagrams
     to ``udp_port`` and STOP with ``seq`` on fresh connections until an answer or
     ``deadline`` (with ``key``: 48-byte frames, replies that must verify)."""
     counter = MessageCounter()

@@ -51,7 +51,8 @@ from estop.remotesender import (
     lift_line,
 )
 from estop.remoteterm import handle_key, run_interactive
-from estop.stopchannel import DEFAULT_STOP_DEADLINE, StopChannelError
+from estop.stopbutton import DEFAULT_STOP_DEADLINE
+from estop.stopchannel import StopChannelError
 
 __all__ = [
     "DESCRIPTION",

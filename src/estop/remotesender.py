@@ -45,19 +45,16 @@ from estop.protocol import tcp, udp
 from estop.protocol.auth import AuthControlPacket
 from estop.protocol.tcp import Reply
 from estop.protocol.udp import ControlPacket
-from estop.stopchannel import (
-    DEFAULT_REMOTE_ID,
+from estop.stopbutton import (
     DEFAULT_STOP_DEADLINE,
     LIFT_GAP,
     LIFT_SENDS,
     LiftDatagram,
-    MessageCounter,
-    StopChannel,
-    StopChannelError,
     StopDatagram,
     StopOutcome,
     press_stop,
 )
+from estop.stopchannel import DEFAULT_REMOTE_ID, MessageCounter, StopChannel, StopChannelError
 
 __all__ = [
     "MAX_RATE_HZ",
@@ -229,8 +226,8 @@ class Remote:
         :meth:`hold`.
 
         When this ends a hold, the unit is told at once (spec section 8): a lift datagram goes
-        out before this returns, and :data:`~estop.stopchannel.LIFT_SENDS` - 1 more follow
-        from the sender thread, each :data:`~estop.stopchannel.LIFT_GAP` after the previous
+        out before this returns, and :data:`~estop.stopbutton.LIFT_SENDS` - 1 more follow
+        from the sender thread, each :data:`~estop.stopbutton.LIFT_GAP` after the previous
         (:meth:`wait_lift_sent` waits for them, :meth:`close` always does). With a key they
         carry the tag, the known session and the remote's counter, like its other requests.
         Returns the number of lift datagrams this lift sends: LIFT_SENDS, or 0 when the remote
@@ -301,7 +298,7 @@ class Remote:
     def press_stop(self) -> StopOutcome:
         """The stop button: STOP with the vehicle's stop ID, tried again on a fresh connection
         until the unit answers or ``stop_deadline`` passes, with a stop datagram on the UDP
-        port at the first try and each retry (see :func:`estop.stopchannel.press_stop`)."""
+        port at the first try and each retry (see :func:`estop.stopbutton.press_stop`)."""
         linked = self.link.config.delay > 0 or self.link.config.jitter > 0
         outcome = press_stop(self.channel, deadline=self.stop_deadline,
                              datagram=self.datagram, delay=self._tcp_delay if linked else None)

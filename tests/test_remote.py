@@ -273,3 +273,14 @@ def test_ctrl_c_while_held_ends_the_hold_with_the_lift_datagrams(
     assert sink.wait_for(controls(sink) + 3)
     time.sleep(0.1)
     check_lift_datagrams(sink.received())
+
+
+def test_the_keyboard_says_it_is_a_toggle_not_a_dead_man(capsys: pytest.CaptureFixture[str]
+                                                         ) -> None:
+    """A terminal never sees a key released: --help and the screen say the space bar is a
+    toggle, and point at the gamepad, the real dead-man."""
+    assert cli.main(["remote", "--help"]) == 0
+    text = " ".join(capsys.readouterr().out.split())
+    assert "TOGGLE, NOT a dead-man" in text and "--gamepad" in text
+    warning = " ".join(remoteterm.WARNING.split())
+    assert "TOGGLE, NOT a dead-man" in warning and "--gamepad" in warning

@@ -286,3 +286,20 @@ def test_a_command_may_take_an_optional_host(tmp_path: Path) -> None:
     a = p.parse_args([])
     resolve_settings(a, {"ESTOP_HOST": "10.1.2.3"}, ConfigFile(none, COMMON_SETTINGS))
     assert a.host == "10.1.2.3"
+
+
+def test_first_uses_at_once_agree_on_one_remote_id(tmp_path: Path) -> None:
+    """Several processes using a key for the first time at the same moment keep one id."""
+    import subprocess
+    import sys
+
+    cfg = tmp_path / "cfg" / "config.toml"
+    prog = ("import sys; from estop.settings import ConfigFile, installation_remote_id; "
+            "from estop.cliutil import COMMON_SETTINGS; from pathlib import Path; "
+            "print(installation_remote_id(ConfigFile(Path(sys.argv[1]), COMMON_SETTINGS)))")
+    procs = [subprocess.Popen([sys.executable, "-c", prog, str(cfg)], stdout=subprocess.PIPE,
+                              text=True) for _ in range(6)]
+    ids = {int(p.communicate(timeout=30)[0]) for p in procs}
+    assert len(ids) == 1
+    assert cfg.read_text().count("remote_id =") == 1
+    assert f"remote_id = {ids.pop()}" in cfg.read_text()

@@ -24,6 +24,7 @@ CAN settings are python-can's own (its configuration file and ``CAN_INTERFACE`` 
 from __future__ import annotations
 
 import argparse
+import fcntl
 import os
 import secrets
 import tomllib
@@ -125,29 +126,47 @@ def parse_from(setting: Setting, text: str, source: str) -> object:
 
 def installation_remote_id(config: ConfigFile) -> int:
     """This installation's remote id: the configuration's ``remote_id``, else a new random one
-    written there (the file and its directory made if missing). Two installations that share
-    a key then never pick the same id by accident (spec section 5: the unit keeps one counter
-    per remote id, so two remotes with one id refuse each other's counters as replays).
-    Raises :class:`SettingError` when the file cannot be written."""
+    written there (the file and its directory made if missing; two first uses at once agree on
+    one, under a lock on the directory). Random in 32 bits, two installations that share a key
+    practically never pick the same id (spec section 5: the unit keeps one counter per remote
+    id, so two remotes with one id refuse each other's counters as replays). Raises
+    :class:`SettingError` when the file cannot be written."""
     lo, hi = INSTALLATION_ID_RANGE
-    rid = lo + secrets.randbelow(hi - lo + 1)
     path = config.path
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
+        lock = os.open(path.parent, os.O_RDONLY | os.O_DIRECTORY | os.O_CLOEXEC)
         try:
-            old = path.read_text(encoding="utf-8")
-        except FileNotFoundError:
-            old = ""
-        if old and not old.endswith("\n"):
-            old += "\n"
-        tmp = path.with_name(path.name + ".tmp")
-        tmp.write_text(f"{old}# made by estop on first use with a key: this installation's "
-                       f"own id among the remotes sharing the key\nremote_id = {rid}\n",
-                       encoding="utf-8")
-        os.replace(tmp, path)
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            try:
+                old = path.read_text(encoding="utf-8")
+            except FileNotFoundError:
+                old = ""
+            made = _remote_id_in(old)
+            if made is not None:  # another first use made it while we waited
+                rid = made
+            else:
+                rid = lo + secrets.randbelow(hi - lo + 1)
+                if old and not old.endswith("\n"):
+                    old += "\n"
+                tmp = path.with_name(path.name + ".tmp")
+                tmp.write_text(f"{old}# made by estop on first use with a key: this "
+                               f"installation's own id among the remotes sharing the key\n"
+                               f"remote_id = {rid}\n", encoding="utf-8")
+                os.replace(tmp, path)
+        finally:
+            os.close(lock)
     except OSError as exc:
         raise SettingError(f"{path}: cannot keep this installation's remote id "
                            f"({exc.strerror or exc}); give --remote-id N or set "
                            f"ESTOP_REMOTE_ID") from None
     config._values = None  # read again, with the new id
     return rid
+
+
+def _remote_id_in(text: str) -> int | None:
+    try:
+        value = tomllib.loads(text).get("remote_id")
+    except tomllib.TOMLDecodeError:
+        return None
+    return value if isinstance(value, int) and not isinstance(value, bool) else None

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import secrets
 import sys
 import tempfile
 import time
@@ -36,8 +35,9 @@ from estop.demo_result import TIME_MS_MAX, TIME_MS_MIN, Result, Settings
 from estop.demo_story import finish_run, run_story
 from estop.demo_twin import V2_TIMEOUT_MS, V2Twin
 from estop.demo_view import View
+from estop.keyfile import write_key_file
 from estop.loopback import Daemon, DaemonError, find_estopd
-from estop.protocol import auth, tcp
+from estop.protocol import tcp
 from estop.vehicle import kmh
 
 __all__ = ["find_estopd", "main"]
@@ -94,15 +94,6 @@ def _parser() -> ErrorOnlyParser:
     return ap
 
 
-def _write_key(directory: str) -> tuple[bytes, str]:
-    key = secrets.token_bytes(auth.KEY_SIZE)
-    path = os.path.join(directory, "key")
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    with os.fdopen(fd, "wb") as fh:
-        fh.write(auth.format_key(key))
-    return key, path
-
-
 def main(argv: list[str] | None = None) -> int:
     """Run the demo; return its exit code (0 ok, 1 a problem, 2 usage error, 5 no estopd).
     Usage errors are one line, as for every other ``estop`` tool."""
@@ -133,7 +124,8 @@ def main(argv: list[str] | None = None) -> int:
               f"(T = {V2_TIMEOUT_MS} ms, one stage); the car at {args.speed_kmh:g} km/h; CAN "
               f"frames logged to a pipe (no CAN hardware, no root)\n")
     keydir = tempfile.TemporaryDirectory(prefix="estop-demo-")
-    key, key_path = _write_key(keydir.name)
+    key_path = os.path.join(keydir.name, "key")
+    key = write_key_file(key_path)  # a fresh key, mode 0600
     unit = Daemon([exe], timeout_ms=settings.timeout_ms, extra_args=settings.unit_args(),
                   key_file=key_path)
     twin = V2Twin(exe, key_path, key)

@@ -464,21 +464,21 @@ def test_keygen_refuses_to_overwrite(tmp_path: Path, capsys: pytest.CaptureFixtu
                                      ) -> None:
     path = tmp_path / "k"
     path.write_text("precious\n")
-    assert cli.main(["keygen", str(path)]) == 1
+    assert cli.main(["keygen", str(path)]) == 4  # a file error (the exit-code table)
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("estop: error: ")
     assert "already exists" in err
     assert path.read_text() == "precious\n"
     link = tmp_path / "link"
     link.symlink_to(tmp_path / "target")  # a dangling link is refused, not followed
-    assert cli.main(["keygen", str(link)]) == 1
+    assert cli.main(["keygen", str(link)]) == 4
     assert not (tmp_path / "target").exists()
     capsys.readouterr()
 
 
 def test_keygen_errors_are_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]
                                     ) -> None:
-    assert cli.main(["keygen", str(tmp_path / "no" / "such" / "dir" / "k")]) == 1
+    assert cli.main(["keygen", str(tmp_path / "no" / "such" / "dir" / "k")]) == 4
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "cannot create" in err
     assert cli.main(["keygen"]) == 2

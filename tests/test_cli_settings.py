@@ -172,6 +172,8 @@ def test_remote_id_is_made_once_per_installation_with_a_key(config: Path, tmp_pa
         base = ["status", "--host", LOCAL, "--tcp-port", str(d.tcp_port)]
         code, _, err = run_cli(capsys, *base)  # without a key: no id needed, none made
         assert code == 0 and not config.exists()
+        code, _, err = run_cli(capsys, *base, "--key-file", str(tmp_path / "missing"))
+        assert code == 4 and not config.exists()  # a failing key file: nothing made
         code, _, err = run_cli(capsys, *base, "--key-file", str(key_path))
         assert code == 0
         made = re.search(r"remote id is (\d+), made now and kept in (.+)$", err.strip())

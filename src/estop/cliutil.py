@@ -356,7 +356,9 @@ def resolve_settings(args: argparse.Namespace, environ: Mapping[str, str] | None
                     value, sources[key] = s.default, "default"
             setattr(args, key, value)
         if "remote_id" in settings and args.remote_id is None:
-            if getattr(args, "key_file", None) is not None:
+            key_file = getattr(args, "key_file", None)
+            # only for a key that is there: a command failing on its key file changes nothing
+            if key_file is not None and os.path.isfile(key_file):
                 args.remote_id = installation_remote_id(cfg)
                 sources["remote_id"] = f"{cfg.path}: remote_id"
                 err(f"estop: note: this installation's remote id is {args.remote_id}, made "

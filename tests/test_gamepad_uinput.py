@@ -99,7 +99,8 @@ def button(ui: Any, name: str) -> None:
 
 
 class RemoteProc:
-    """``estop remote --gamepad DEVICE`` as a process; its output lines on a thread."""
+    """``estop remote --gamepad DEVICE`` as a process; its output lines on a thread. The waits
+    are long: the process starts in an emulated VM on a loaded host (a startup of 20 s seen)."""
 
     def __init__(self, device: str, udp_port: int, tcp_port: int, *extra: str) -> None:
         argv = [sys.executable, "-m", "estop", "remote", "--host", "127.0.0.1",
@@ -117,7 +118,7 @@ class RemoteProc:
         for line in self.proc.stdout:
             self.lines.append(line.rstrip("\n"))
 
-    def wait_line(self, start: str, timeout: float = 20.0) -> str:
+    def wait_line(self, start: str, timeout: float = 90.0) -> str:
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             for line in list(self.lines):

@@ -7,7 +7,7 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 COVDIR := build/cov
 
-.PHONY: setup demo test check coverage hil bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install
+.PHONY: setup demo test check coverage hil gamepad-vm bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install
 setup: $(STAMP) $(VENV)/bin/estopd
 
 $(STAMP): pyproject.toml setup.py pyext/build_core.py deps/debian-packages.txt $(wildcard firmware/core/*)
@@ -30,6 +30,7 @@ test: setup
 	$(MAKE) mutants-changed
 	$(MAKE) coverage
 	$(MAKE) hil
+	$(MAKE) gamepad-vm
 
 check: setup
 	scripts/ensure-debs check
@@ -53,6 +54,11 @@ coverage: setup
 
 hil: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" hil/run
+
+# estop remote --gamepad driven by a virtual game controller (uinput); in a virtme-ng VM where
+# this kernel has no uinput (tools/vm-pytest). Prints the lift latency it measured.
+gamepad-vm: setup
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" tools/vm-pytest tests/test_gamepad_uinput.py
 
 # Benchmarks (not part of `make test`): stop latency vs the asyncio baseline, memory soak,
 # instructions per input (host and Cortex-M). Reports land in bench/out/.

@@ -209,7 +209,7 @@ def test_trigger_is_the_deadman_and_its_release_lifts_at_once(pad: Any,
         _report(f"lift latency (uinput release -> first lift datagram received): "
                 f"{latency * 1000:.2f} ms; lift gaps {[round(g * 1000, 1) for g in gaps]} ms; "
                 f"{first} control packets before it")
-        assert 0 <= latency < 0.2, latency
+        assert 0 <= latency < 0.4, latency  # see test_lift_latency_beside_a_minimal_reader
         remote.wait_line("dead-man released: lift sent x3")
     finally:
         remote.close()
@@ -273,3 +273,67 @@ def test_keyed_pad_arms_a_real_estopd_and_its_release_stops_it(pad: Any,
                                            for s in remote.lines)), remote.lines
         finally:
             remote.close()
+
+
+MINIMAL_READER = """
+import select, socket, sys
+import evdev
+dev = evdev.InputDevice(sys.argv[1])
+out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+print("ready", flush=True)
+while True:
+    select.select([dev.fd], [], [])
+    for ev in dev.read():
+        if ev.type == 3 and ev.code == 2 and ev.value == 0:  # EV_ABS ABS_Z released
+            out.sendto(b"x", ("127.0.0.1", int(sys.argv[2])))
+"""
+
+
+def _latencies(pad: Any, sink: UdpSink, is_first: Any, cycles: int) -> list[float]:
+    """Press and release the trigger ``cycles`` times; per release, from the write to the
+    kernel's receive time of the first datagram ``is_first`` picks after it."""
+    out = []
+    for _ in range(cycles):
+        trigger(pad, 1023)
+        time.sleep(0.15)
+        seen = sink.count
+        t0 = trigger(pad, 0)
+        assert _wait_until(lambda n=seen: any(is_first(d) for _, d in sink.received()[n:]))
+        t1 = next(t for t, d in sink.received()[seen:] if is_first(d))
+        out.append(t1 - t0)
+        time.sleep(0.1)
+    return out
+
+
+def test_lift_latency_beside_a_minimal_reader(pad: Any, sink: UdpSink) -> None:
+    """The figure to judge the remote's lift latency by, measured in the same run: a process
+    that does nothing but wait for the trigger's release on the same device and send one
+    datagram. The remote's extra is its own work (mapping, the engine's lock, the log line).
+    The checks are loose (the VM is emulated, on a shared host): the lift is not left to a
+    poll period (0.5 s), and the remote is not slower than the bare reader by more than that.
+    """
+    cycles = 5
+    remote = RemoteProc(pad.device.path, sink.port, 9)
+    try:
+        remote.wait_line("gamepad ")
+        ours = _latencies(pad, sink, lambda d: len(d) == REQUEST_SIZE, cycles)
+    finally:
+        remote.close()
+    env = {**os.environ, "PYTHONPATH": str(ROOT / "src")}
+    bare = subprocess.Popen([sys.executable, "-c", MINIMAL_READER, pad.device.path,
+                             str(sink.port)], stdin=subprocess.DEVNULL,
+                            stdout=subprocess.PIPE, text=True, env=env)
+    try:
+        assert bare.stdout is not None and bare.stdout.readline().strip() == "ready"
+        floor = _latencies(pad, sink, lambda d: d == b"x", cycles)
+    finally:
+        bare.kill()
+        bare.wait(timeout=10)
+    ours.sort()
+    floor.sort()
+    _report(f"lift latency over {cycles} releases, median (min..max): estop remote --gamepad "
+            f"{ours[cycles // 2] * 1000:.2f} ms ({ours[0] * 1000:.2f}..{ours[-1] * 1000:.2f}); "
+            f"a bare evdev reader sending one datagram {floor[cycles // 2] * 1000:.2f} ms "
+            f"({floor[0] * 1000:.2f}..{floor[-1] * 1000:.2f})")
+    assert ours[cycles // 2] < 0.4
+    assert ours[cycles // 2] - floor[cycles // 2] < 0.4

@@ -158,3 +158,12 @@ def test_cli_missing_device_is_one_line_exit_3() -> None:
 def test_cli_gamepad_and_script_exclude_each_other() -> None:
     r = _estop("remote", "--host", "127.0.0.1", "--gamepad", "--script", "hold")
     assert r.returncode == 2 and "not allowed with" in r.stderr
+
+
+def test_cli_no_pad_found_is_one_line_exit_3() -> None:
+    pytest.importorskip("evdev", reason="python-evdev not installed")
+    if any(Path("/dev/input").glob("event*")):
+        pytest.skip("this machine has input devices; the VM test finds a pad among them")
+    r = _estop("remote", "--host", "127.0.0.1", "--gamepad")
+    assert r.returncode == 3, r
+    assert r.stderr.count("\n") == 1 and "no game controller found" in r.stderr

@@ -64,9 +64,9 @@ def _layout(device: Any, deadman: str | None) -> PadLayout:
 
 
 def _is_pad(device: Any) -> bool:
-    caps = device.capabilities()
+    caps = device.capabilities(absinfo=False)
     keys = set(caps.get(EV_KEY, []))
-    axes = {code for code in caps.get(EV_ABS, [])}
+    axes = set(caps.get(EV_ABS, []))
     if ABS_NAMES["ABS_X"] not in axes:
         return False
     try:

@@ -167,3 +167,8 @@ def test_cli_no_pad_found_is_one_line_exit_3() -> None:
     r = _estop("remote", "--host", "127.0.0.1", "--gamepad")
     assert r.returncode == 3, r
     assert r.stderr.count("\n") == 1 and "no game controller found" in r.stderr
+
+
+def test_cli_deadman_needs_gamepad() -> None:
+    r = _estop("remote", "--host", "127.0.0.1", "--deadman", "BTN_TL", "--script", "hold")
+    assert r.returncode == 2 and "--deadman: only with --gamepad" in r.stderr, r

@@ -215,7 +215,8 @@ def test_trigger_is_the_deadman_and_its_release_lifts_at_once(pad: Any,
         remote.close()
 
 
-def test_deadman_held_at_start_sends_nothing_until_let_go(pad: Any, sink: UdpSink) -> None:
+def test_deadman_held_at_start_sends_nothing_until_let_go_and_sigterm_lifts(
+        pad: Any, sink: UdpSink) -> None:
     trigger(pad, 1023)
     remote = RemoteProc(None, sink.port, 9)  # the pad found without naming it
     try:
@@ -227,6 +228,11 @@ def test_deadman_held_at_start_sends_nothing_until_let_go(pad: Any, sink: UdpSin
         time.sleep(0.1)
         trigger(pad, 1023)
         assert sink.wait_for(3), remote.lines
+        remote.proc.terminate()  # SIGTERM while held: the run ends with a lift, as on Ctrl-C
+        assert remote.proc.wait(timeout=30) == 130
+        time.sleep(0.2)
+        kinds = [k for _, k, _ in _kinds(sink.received())]
+        assert kinds[kinds.index("lift"):] == ["lift"] * LIFT_SENDS, kinds
     finally:
         remote.close()
 

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import queue
 import select
+import signal
 import threading
 from collections.abc import Callable
 from types import ModuleType
@@ -214,11 +215,19 @@ class _PadRun:
         return EXIT_CONNECTION
 
 
+def _interrupt(signum: int, _frame: object) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
+
+
 def run_gamepad(remote: Remote, path: str | None, deadman: str | None, log: Log) -> int:
     """Drive ``remote`` from the pad until it goes away (exit code 3) or Ctrl-C (the caller
     lifts a hold still on)."""
     evdev = load_evdev()
     device, layout = open_pad(evdev, path, deadman)
+    # SIGTERM and SIGHUP (a closed terminal, a session ending) end the run like Ctrl-C: the
+    # caller's clean-up lifts a hold still on, rather than the unit waiting for its timeout.
+    for sig in (signal.SIGTERM, signal.SIGHUP):
+        signal.signal(sig, _interrupt)
     try:
         if remote.key is not None:
             try:

@@ -219,6 +219,8 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"script: {exc}") from None
     elif args.gamepad is None and not sys.stdin.isatty():
         raise UsageError("interactive mode needs a terminal; use --script or --script-file")
+    if args.deadman is not None and args.gamepad is None:
+        raise UsageError("--deadman: only with --gamepad")
     key = key_from_args(args)
     if key is not None and args.legacy:
         raise UsageError("--legacy: with --key-file the remote sends 60-byte packets")

@@ -6,13 +6,16 @@ The parts, one job each:
   (the library the demo, benchmarks and HIL harness use);
 - :mod:`estop.remotescript` -- the script language (``--script``, ``--script-file``);
 - :mod:`estop.remoteterm` -- the interactive terminal (keys, status line);
+- :mod:`estop.gamepad` -- a game controller with a real dead-man (``--gamepad``; the mapping
+  of its events in :mod:`estop.gamepadmap`);
 - this module -- the command line: options, the link model from them, the run and its summary.
 
 The names of those modules are importable from here as well (``from estop.remote import
 Remote``).
 
 Exit code: 0 done, 1 an ``expect`` failed, 2 usage error or bad script, 3 the stop channel
-failed (connection refused or closed, timeout, malformed reply).
+failed (connection refused or closed, timeout, malformed reply), or the game controller was
+not found or went away.
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 COVDIR := build/cov
 
-.PHONY: setup demo test check coverage hil bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install
+.PHONY: setup demo test check coverage hil gamepad-vm bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install
 setup: $(STAMP) $(VENV)/bin/estopd
 
 $(STAMP): pyproject.toml setup.py pyext/build_core.py pyext/estop_build_backend.py deps/debian-packages.txt $(wildcard firmware/core/*)
@@ -30,6 +30,7 @@ test: setup
 	$(MAKE) mutants-changed
 	$(MAKE) coverage
 	$(MAKE) hil
+	$(MAKE) gamepad-vm
 
 check: setup
 	scripts/ensure-debs check
@@ -53,6 +54,11 @@ coverage: setup
 
 hil: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" hil/run
+
+# estop remote --gamepad driven by a virtual game controller (uinput); in a virtme-ng VM where
+# this kernel has no uinput (tools/vm-pytest). Prints the lift latency it measured.
+gamepad-vm: setup
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" tools/vm-pytest tests/test_gamepad_uinput.py
 
 # Benchmarks (not part of `make test`): stop latency vs the asyncio baseline, memory soak,
 # instructions per input (host and Cortex-M). Reports land in bench/out/.
@@ -119,23 +125,36 @@ clean:
 
 # Installation on a car (README: "Run it on a car"). PREFIX and SYSCONFDIR as usual; DESTDIR
 # for staging. A key is made only where none exists (never overwritten), mode 0600; the same
-# for the config; the sysctl.d file raises net.core.rmem_max for estopd's UDP buffer. Then:
-# sysctl --system && systemctl daemon-reload && systemctl enable --now estopd.
+# for the config and the systemd-networkd file of the CAN interface; the sysctl.d file raises
+# net.core.rmem_max for estopd's UDP buffer. Then (docs/DEPLOY.md): sysctl --system &&
+# systemctl enable --now systemd-networkd && systemctl daemon-reload &&
+# systemctl enable --now estopd.
 PREFIX     ?= /usr/local
 SYSCONFDIR ?= /etc
 BINDIR     := $(PREFIX)/bin
 UNITDIR    ?= $(PREFIX)/lib/systemd/system
 DOCDIR     := $(PREFIX)/share/doc/estop
+# The CAN interface the unit is bound to and the bitrate systemd-networkd brings it up at.
+CAN_IFACE   ?= can0
+CAN_BITRATE ?= 500000
+NETWORKDIR := $(SYSCONFDIR)/systemd/network
+SUBST = sed -e 's|@BINDIR@|$(BINDIR)|g' -e 's|@SYSCONFDIR@|$(SYSCONFDIR)|g' \
+  -e 's|@DOCDIR@|$(DOCDIR)|g' -e 's|@CAN_IFACE@|$(CAN_IFACE)|g' -e 's|@CAN_BITRATE@|$(CAN_BITRATE)|g'
 install: firmware/build/estopd
 	install -D -m 0755 firmware/build/estopd $(DESTDIR)$(BINDIR)/estopd
-	install -d -m 0755 $(DESTDIR)$(UNITDIR) $(DESTDIR)$(DOCDIR)
-	sed -e 's|@BINDIR@|$(BINDIR)|g' -e 's|@SYSCONFDIR@|$(SYSCONFDIR)|g' -e 's|@DOCDIR@|$(DOCDIR)|g' \
-	  deploy/estopd.service.in > $(DESTDIR)$(UNITDIR)/estopd.service
+	install -d -m 0755 $(DESTDIR)$(UNITDIR) $(DESTDIR)$(DOCDIR) $(DESTDIR)$(NETWORKDIR)
+	$(SUBST) deploy/estopd.service.in > $(DESTDIR)$(UNITDIR)/estopd.service
 	chmod 0644 $(DESTDIR)$(UNITDIR)/estopd.service
-	install -m 0644 docs/PROTOCOL.md deploy/estopd.conf.example $(DESTDIR)$(DOCDIR)/
+	install -m 0644 docs/PROTOCOL.md docs/DEPLOY.md docs/REMOTE.md deploy/estopd.conf.example \
+	  $(DESTDIR)$(DOCDIR)/
+	test -e $(DESTDIR)$(NETWORKDIR)/80-estop-can.network || \
+	  { $(SUBST) deploy/80-estop-can.network.in > $(DESTDIR)$(NETWORKDIR)/80-estop-can.network \
+	    && chmod 0644 $(DESTDIR)$(NETWORKDIR)/80-estop-can.network; }
 	install -d -m 0700 $(DESTDIR)$(SYSCONFDIR)/estop
 	test -e $(DESTDIR)$(SYSCONFDIR)/estop/estopd.conf || \
-	  install -m 0644 deploy/estopd.conf.example $(DESTDIR)$(SYSCONFDIR)/estop/estopd.conf
+	  { sed -e 's|--can can0|--can $(CAN_IFACE)|' deploy/estopd.conf.example \
+	    > $(DESTDIR)$(SYSCONFDIR)/estop/estopd.conf \
+	    && chmod 0644 $(DESTDIR)$(SYSCONFDIR)/estop/estopd.conf; }
 	install -D -m 0644 deploy/90-estopd.conf $(DESTDIR)$(SYSCONFDIR)/sysctl.d/90-estopd.conf
 	test -e $(DESTDIR)$(SYSCONFDIR)/estop/key || scripts/new-key $(DESTDIR)$(SYSCONFDIR)/estop/key
 

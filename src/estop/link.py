@@ -14,6 +14,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import shutil
+import subprocess
+import tempfile
 
 from estop.cliutil import (
     EXIT_OK,
@@ -41,8 +45,12 @@ EPILOG = ("A stop comes at the deadline: with send period P and a time D (the sl
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("file", metavar="FILE",
-                        help="estopd --log-json log, arrival times (s, one per line) or pcap")
+    parser.add_argument("file", metavar="FILE", nargs="?",
+                        help="estopd --log-json log (as written, or journalctl's plain, cat "
+                             "or json output), arrival times (s, one per line) or pcap")
+    parser.add_argument("--journal", nargs="?", const="estopd", metavar="UNIT",
+                        help="read the log from the systemd journal instead of FILE: "
+                             "journalctl -u UNIT -o json (default unit estopd)")
     parser.add_argument("--format", choices=("auto", "log", "times", "pcap"), default="auto",
                         help="kind of FILE (default: recognised from its first bytes)")
     add_settings(parser, "rate_hz", "udp_port",
@@ -69,6 +77,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="write a PNG: false stops per hour against timeout")
 
 
+def read_journal(unit: str, path: str) -> str:
+    """Write ``journalctl -u UNIT -o json`` (every boot the journal keeps) to ``path``; a
+    one-line error when journalctl is missing or fails."""
+    from estop.linkgaps import LinkInputError
+
+    exe = shutil.which("journalctl")
+    if exe is None:
+        raise UsageError("--journal: journalctl not found (record with estopd --log-json and "
+                         "give the file instead)")
+    with open(path, "wb") as f:
+        try:
+            res = subprocess.run([exe, "-u", unit, "-o", "json", "--no-pager"], stdout=f,
+                                 stderr=subprocess.PIPE, stdin=subprocess.DEVNULL,
+                                 timeout=300, check=False)
+        except subprocess.TimeoutExpired:
+            raise LinkInputError("--journal: journalctl took more than 300 s") from None
+    if res.returncode != 0:
+        why = res.stderr.decode(errors="replace").strip().splitlines()
+        raise LinkInputError(f"--journal: journalctl -u {unit} failed (exit {res.returncode})"
+                             f"{': ' + why[-1] if why else ''}")
+    return path
+
+
 def run(args: argparse.Namespace) -> int:
     if args.max_gap and args.max_gap < 2.0:
         raise UsageError("--max-gap-s must be 0 or at least 2 s (the longest timeout)")
@@ -77,7 +108,14 @@ def run(args: argparse.Namespace) -> int:
         require_extra("link", "matplotlib")
     from estop.linkstats import format_report, load, report, report_json, write_plot
 
-    gaps = load(args.file, args.format, args.rate_hz, args.max_gap, args.udp_port)
+    if (args.file is None) == (args.journal is None):
+        raise UsageError("give FILE or --journal (not both)")
+    if args.journal is not None:
+        with tempfile.TemporaryDirectory(prefix="estop-link-") as tmp:
+            path = read_journal(args.journal, os.path.join(tmp, "journal.json"))
+            gaps = load(path, "log", args.rate_hz, args.max_gap, args.udp_port)
+    else:
+        gaps = load(args.file, args.format, args.rate_hz, args.max_gap, args.udp_port)
     rep = report(gaps, args.rate_hz, args.target, tail_from=args.tail_from,
                  slow_target=args.slow_target)
     if args.plot:

@@ -125,6 +125,7 @@ class Histogram:
     saturated: bool
     unit: UnitRecord | None = None  # the runs' slow-downs and timeouts, when all have them
     unit_note: str = ""  # why there is no unit record although some events have the keys
+    skipped_note: str = ""  # lines of the log that held no event: how many, the first
 
 
 def gaps_from_histogram(h: Histogram, rate_hz: float, max_gap: float = 5.0,
@@ -185,6 +186,8 @@ def gaps_from_histogram(h: Histogram, rate_hz: float, max_gap: float = 5.0,
         notes.append("some histogram counts are saturated (u32): the rates are too low")
     if h.unit_note:
         notes.append(h.unit_note)
+    if h.skipped_note:
+        notes.append(h.skipped_note)
     extra: dict[str, Any] = {"valid": h.valid, "invalid": h.invalid, "silences": h.silences,
                              "warn_us": h.warn_us, "runs": h.runs}
     if h.unit is not None:

@@ -1,17 +1,72 @@
 """estopd's ``--log-json`` log as ``estop link`` reads it: the ``link_histogram`` events (the
 gaps between valid control packets, binned), summed over the daemon's runs, and, from a
-version 3 daemon, its own count of slow-downs and timeouts with the time it spent moving."""
+version 3 daemon, its own count of slow-downs and timeouts with the time it spent moving.
+
+The log may come as estopd wrote it (or ``journalctl -u estopd -o cat``), as plain
+``journalctl`` lines (``Nov 25 10:00:00 car estopd[812]: {...}``, any prefix ending in
+``name[pid]: ``), or as ``journalctl -o json`` (the line is the entry's MESSAGE). Lines that
+hold no estopd event are counted, and the report says how many and shows the first; only
+journalctl's own ``-- ...`` marker lines and blank lines pass unremarked.
+"""
 
 from __future__ import annotations
 
 import json
 import math
+import re
 from dataclasses import dataclass, field
 from typing import Any
 
 from estop.linkgaps import U32_MAX, Histogram, LinkInputError, UnitRecord
 
 __all__ = ["UNIT_KEYS", "open_text", "read_histogram_log"]
+
+# syslog-style prefix of plain journalctl output (short, short-iso, short-precise,
+# short-monotonic ...): anything, then `identifier[pid]: ` right before the message
+_PREFIX = re.compile(r"^.*?\S\[\d+\]: (?=\{)")
+
+
+def _event(line: str) -> dict[str, Any] | None:
+    """The estopd event on one line of the log, or None."""
+    if not line.startswith("{"):
+        m = _PREFIX.match(line)
+        if m is None:
+            return None
+        line = line[m.end():]
+    try:
+        ev = json.loads(line)
+    except ValueError:
+        return None
+    if not isinstance(ev, dict):
+        return None
+    if "event" not in ev and "MESSAGE" in ev:  # journalctl -o json: the entry around it
+        msg = ev["MESSAGE"]
+        if isinstance(msg, list) and all(isinstance(b, int) for b in msg):
+            msg = bytes(b & 0xFF for b in msg).decode("utf-8", "replace")
+        return _event(msg.strip()) if isinstance(msg, str) else None
+    return ev if isinstance(ev.get("event"), str) else None
+
+
+class _Skipped:
+    """Lines that held no estopd event: how many, and the first."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.first = ""
+
+    def add(self, no: int, line: str) -> None:
+        if not line or line.startswith("-- "):  # journalctl's `-- Boot ... --` markers
+            return
+        self.count += 1
+        if self.count == 1:
+            self.first = f"line {no}: {line[:60]!r}"
+
+    def note(self) -> str:
+        if not self.count:
+            return ""
+        return (f"skipped {self.count} line(s) that hold no estopd --log-json event (first, "
+                f"{self.first})")
+
 
 # the keys a version 3 daemon adds to link_histogram (PROTOCOL.md 3): counted since its start
 UNIT_KEYS = ("slowdowns", "timeouts", "slow_us", "timeout_us")
@@ -102,6 +157,7 @@ def read_histogram_log(path: str) -> Histogram:
     run = _Run()
     edges: list[int] | None = None
     dropped = False
+    skipped = _Skipped()
 
     def finish() -> None:
         run.close()
@@ -112,13 +168,9 @@ def read_histogram_log(path: str) -> Histogram:
         with open_text(path) as f:
             for no, raw in enumerate(f, 1):
                 line = raw.strip()
-                if not line.startswith("{"):
-                    continue
-                try:
-                    ev = json.loads(line)
-                except ValueError:
-                    continue
-                if not isinstance(ev, dict):
+                ev = _event(line)
+                if ev is None:
+                    skipped.add(no, line)
                     continue
                 kind = ev.get("event")
                 t = _t_mono(ev)
@@ -154,7 +206,9 @@ def read_histogram_log(path: str) -> Histogram:
             from None
     finish()
     if not runs or edges is None:
-        raise LinkInputError(f"{path}: no link_histogram event (is it estopd's --log-json log?)")
+        why = f"; {skipped.note()}" if skipped.count else ""
+        raise LinkInputError(f"{path}: no link_histogram event (is it estopd's --log-json "
+                             f"log?){why}")
     total = [0] * len(edges)
     valid = invalid = silences = 0
     saturated = False
@@ -167,7 +221,7 @@ def read_histogram_log(path: str) -> Histogram:
         silences += ev["silences"]
     unit, note = _unit_record(runs, dropped)
     return Histogram(tuple(edges), tuple(total), valid, invalid, silences,
-                     runs[-1][1]["warn_us"], len(runs), saturated, unit, note)
+                     runs[-1][1]["warn_us"], len(runs), saturated, unit, note, skipped.note())
 
 
 def _unit_record(runs: list[tuple[_Run, dict[str, Any]]],

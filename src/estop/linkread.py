@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import struct
 from typing import Any
 
@@ -18,6 +19,7 @@ from estop.linklog import open_text, read_histogram_log
 __all__ = ["detect_format", "load", "read_pcap_times", "read_times"]
 
 CONTROL_LENGTHS = frozenset({20, 16, 60})
+_JOURNAL_LINE = re.compile(rb"^.*?\S\[\d+\]: ")  # `... estopd[812]: message`
 
 
 def read_times(path: str) -> F64:
@@ -136,12 +138,13 @@ def detect_format(path: str) -> str:
     if head[:4] in (b"\xd4\xc3\xb2\xa1", b"\xa1\xb2\xc3\xd4", b"\x4d\x3c\xb2\xa1",
                     b"\xa1\xb2\x3c\x4d", b"\x0a\x0d\x0d\x0a"):
         return "pcap"
-    for line in head.splitlines():
-        s = line.strip()
-        if not s or s.startswith(b"#"):
-            continue
-        return "log" if s.startswith(b"{") else "times"
-    raise LinkInputError(f"{path}: empty file")
+    lines = [s for s in (line.strip() for line in head.splitlines())
+             if s and not s.startswith(b"#") and not s.startswith(b"-- ")]
+    if not lines:
+        raise LinkInputError(f"{path}: empty file")
+    if any(s.startswith(b"{") or _JOURNAL_LINE.match(s) for s in lines):
+        return "log"  # estopd's JSON (also among systemd's lines: -o cat), -o json, plain
+    return "times"
 
 
 def load(path: str, fmt: str, rate_hz: float, max_gap: float, udp_port: int) -> Gaps:

@@ -6,6 +6,8 @@ The parts, one job each:
   (the library the demo, benchmarks and HIL harness use);
 - :mod:`estop.remotescript` -- the script language (``--script``, ``--script-file``);
 - :mod:`estop.remoteterm` -- the interactive terminal (keys, status line);
+- :mod:`estop.gamepad` -- a game controller with a real dead-man (``--gamepad``; the mapping
+  of its events in :mod:`estop.gamepadmap`);
 - this module -- the command line: options, the link model from them, the run and its summary.
 
 The names of those modules are importable from here as well (``from estop.remote import
@@ -17,7 +19,8 @@ dead-man (held trigger, released: lift at once) is ``estop remote --gamepad``.
 
 Exit code (the table of every command: :data:`estop.cliutil.EXIT_CODES`): 0 done, 1 an
 ``expect`` failed, 2 usage error or bad script, 3 the stop channel failed (connection refused
-or closed, timeout, malformed reply), 4 the script or key file cannot be read.
+or closed, timeout, malformed reply) or the game controller was not found or went away, 4 the
+script or key file cannot be read, 5 a needed extra (evdev for --gamepad) is not installed.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from estop.cliutil import (
     out,
     positive_float,
 )
+from estop.gamepad import run_gamepad
 from estop.keyfile import key_from_args
 from estop.linkmodel import IDEAL, WIFI, LinkConfig
 from estop.protocol import tcp
@@ -109,6 +113,10 @@ the end of a hold (lift, the space key, the end of the script, q, Ctrl-C) sends 
 lift datagram at once and twice more 10 ms apart (spec section 8): the unit stops
 with reason lift without waiting for its timeout
 
+gamepad (--gamepad): hold the dead-man (left trigger) to send, let go: lift at once;
+left stick steering, right stick gas (up) / brake (down), B stop, START release,
+SELECT status, Y next gear, X horn, D-pad turn signal; a pad unplugged lifts (exit 3)
+
 keys (terminal): space hold/lift, s stop, r release, t status, arrows gas/steering,
 n neutral, g next gear, h horn, 0-3 turn signal, q quit
 the space bar is a TOGGLE, NOT a dead-man: a terminal cannot see a key released, so
@@ -164,6 +172,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     script = parser.add_mutually_exclusive_group()
     script.add_argument("--script", metavar="TEXT", help="run this script instead of keys")
     script.add_argument("--script-file", metavar="FILE", help="run the script in FILE")
+    script.add_argument("--gamepad", nargs="?", const="", metavar="DEVICE",
+                        help="a game controller is the remote, with a real dead-man (hold "
+                             "the left trigger to drive; needs the gamepad extra): "
+                             "/dev/input/eventN, or the first one found")
+    parser.add_argument("--deadman", metavar="CONTROL", default=None,
+                        help="--gamepad: the dead-man control, e.g. BTN_TL (default: the "
+                             "first of ABS_Z, BTN_TL2, BTN_TL the pad has)")
     parser.add_argument("-q", "--quiet", action="store_true",
                         help="script mode: print only replies and the summary")
 
@@ -211,8 +226,10 @@ def run(args: argparse.Namespace) -> int:
             steps = parse_script(text)
         except ScriptError as exc:
             raise UsageError(f"script: {exc}") from None
-    elif not sys.stdin.isatty():
+    elif args.gamepad is None and not sys.stdin.isatty():
         raise UsageError("interactive mode needs a terminal; use --script or --script-file")
+    if args.deadman is not None and args.gamepad is None:
+        raise UsageError("--deadman: only with --gamepad")
     key = key_from_args(args)
     if key is not None and args.legacy:
         raise UsageError("--legacy: with --key-file the remote sends 60-byte packets")
@@ -232,7 +249,9 @@ def run(args: argparse.Namespace) -> int:
 
     with remote:
         try:
-            if steps is None:
+            if args.gamepad is not None:
+                code = run_gamepad(remote, args.gamepad or None, args.deadman, log)
+            elif steps is None:
                 run_interactive(remote)
             else:
                 code = _run_script(remote, steps, log)

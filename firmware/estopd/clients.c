@@ -233,7 +233,7 @@ static void listener_events(daemon_t *d, uint32_t events)
  * while (the loop keeps serving everything else) and say so once per episode. */
 static void pause_accept(daemon_t *d, int e)
 {
-    uint64_t now = clock_mono_us();
+    uint64_t now = clock_unit_us();
     if (d->accept_failures++ == 0u) {
         char ebuf[16];
         log_kv_t kv[] = { KV_STR("err", log_errno_name(e, ebuf, sizeof ebuf)),
@@ -284,18 +284,18 @@ void clients_accept(daemon_t *d)
             } else if (errno != EAGAIN) {
                 char ebuf[16];
                 log_kv_t kv[] = { KV_STR("err", log_errno_name(errno, ebuf, sizeof ebuf)) };
-                log_limited(LOG_CLASS_NET, clock_mono_us(), "accept_error", kv, 1u);
+                log_limited(LOG_CLASS_NET, clock_unit_us(), "accept_error", kv, 1u);
             }
             return;
         }
         if (d->accept_failures != 0u) {
             log_kv_t kv[] = { KV_NUM("pauses", d->accept_failures) };
-            log_event(clock_mono_us(), "accept_ok", NULL, kv, 1u);
+            log_event(clock_unit_us(), "accept_ok", NULL, kv, 1u);
             d->accept_failures = 0u;
         }
         slot = pick_slot(d, &evict);
         if (evict) {
-            log_client(clock_mono_us(), "client_evict", slot, &d->clients[slot].peer,
+            log_client(clock_unit_us(), "client_evict", slot, &d->clients[slot].peer,
                        "make_room", 0u);
             retire(d, (uint32_t)slot, "evicted");
         }
@@ -322,7 +322,7 @@ int clients_reply(daemon_t *d, uint32_t slot, const uint8_t *reply, size_t len)
          * client that needs one (the quietest makes room). */
         unsigned off = 0u;
         (void)setsockopt(c->fd, IPPROTO_TCP, TCP_USER_TIMEOUT, &off, sizeof off);
-        log_client(clock_mono_us(), "reply_dropped", (int)slot, &c->peer, "not_reading", 1u);
+        log_client(clock_unit_us(), "reply_dropped", (int)slot, &c->peer, "not_reading", 1u);
     }
     return res == REPLY_SENT ? 0 : -1;
 }
@@ -358,7 +358,7 @@ void clients_event(daemon_t *d, uint32_t slot)
 void clients_close_all(daemon_t *d, const char *why)
 {
     uint32_t i;
-    uint64_t now = clock_mono_us();
+    uint64_t now = clock_unit_us();
     for (i = 0; i < ESTOP_MAX_SLOTS; i++) {
         if (d->clients[i].fd >= 0) {
             (void)close(d->clients[i].fd);

@@ -156,7 +156,7 @@ void cio_fault(daemon_t *d, uint64_t now, const char *cause)
 
 int cio_boot(daemon_t *d)
 {
-    uint64_t now = clock_mono_us();
+    uint64_t now = clock_unit_us();
     estop_err_t err = estop_init(&d->core, &d->opt.cfg, (uint32_t)now);
 
     if (err != ESTOP_OK) {
@@ -199,7 +199,7 @@ void cio_udp(daemon_t *d, const uint8_t *data, size_t len, const struct sockaddr
 
 uint64_t cio_prepare(daemon_t *d)
 {
-    uint64_t t0 = clock_mono_us();
+    uint64_t t0 = clock_unit_us();
     uint64_t now;
     const char *cause;
 

@@ -19,7 +19,8 @@
 #define MAX_EVENTS 16
 #define EXIT_FLUSH_US 1000000u
 
-/* Arms the timerfd (absolute CLOCK_MONOTONIC) for the next wakeup, when it changed. */
+/* Arms the timerfd (absolute, on the unit's clock: CLOCK_BOOTTIME) for the next wakeup, when it
+ * changed. */
 static void arm_timer(daemon_t *d)
 {
     struct itimerspec its;
@@ -37,7 +38,7 @@ static void arm_timer(daemon_t *d)
     if (timerfd_settime(d->timerfd, TFD_TIMER_ABSTIME, &its, NULL) != 0) {
         char ebuf[16];
         log_kv_t kv[] = { KV_STR("err", log_errno_name(errno, ebuf, sizeof ebuf)) };
-        log_event(clock_mono_us(), "timer_error", NULL, kv, 1u);
+        log_event(clock_unit_us(), "timer_error", NULL, kv, 1u);
         d->armed_us = 0u; /* the epoll timeout below still wakes us */
         return;
     }
@@ -111,7 +112,7 @@ static const char *signal_name(int sig)
 static void last_frame(daemon_t *d)
 {
     uint32_t before = d->frames_out;
-    uint64_t now = d->fatal ? clock_mono_us() : cio_prepare(d);
+    uint64_t now = d->fatal ? clock_unit_us() : cio_prepare(d);
     estop_can_frame_t f;
     uint8_t reason;
 
@@ -140,18 +141,18 @@ static int finish(daemon_t *d)
         can_close(&d->can);
     }
     clients_close_all(d, "exit");
-    stats_final(d, clock_mono_us());
-    log_report(clock_mono_us()); /* what is left to say about lost lines, before the exit line */
+    stats_final(d, clock_unit_us());
+    log_report(clock_unit_us()); /* what is left to say about lost lines, before the exit line */
     {
         log_kv_t kv[] = { KV_NUM("code", code), KV_STR("signal", signal_name(d->stop_signal)) };
-        log_event(clock_mono_us(), "exit", NULL, kv, 2u);
+        log_event(clock_unit_us(), "exit", NULL, kv, 2u);
     }
     {
         /* Whatever the readers do, the exit is bounded: the outputs share one deadline. */
-        uint64_t start = clock_mono_us();
+        uint64_t start = clock_unit_us();
         uint64_t spent;
         canlog_close(&d->canlog, EXIT_FLUSH_US);
-        spent = clock_mono_us() - start;
+        spent = clock_unit_us() - start;
         log_flush(spent < EXIT_FLUSH_US ? EXIT_FLUSH_US - spent : 0u);
     }
     return code;
@@ -182,7 +183,7 @@ int loop_run(daemon_t *d)
             {
                 char ebuf[16];
                 log_kv_t kv[] = { KV_STR("err", log_errno_name(errno, ebuf, sizeof ebuf)) };
-                log_event(clock_mono_us(), "epoll_error", NULL, kv, 1u);
+                log_event(clock_unit_us(), "epoll_error", NULL, kv, 1u);
             }
             d->fatal = 1;
             break;

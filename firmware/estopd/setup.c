@@ -68,7 +68,7 @@ static int setup_fds(daemon_t *d, char *err, size_t n)
     if (d->epfd < 0) {
         return fail("epoll_create1", err, n);
     }
-    d->timerfd = timerfd_create(CLOCK_MONOTONIC, TFD_NONBLOCK | TFD_CLOEXEC);
+    d->timerfd = timerfd_create(CLOCK_UNIT, TFD_NONBLOCK | TFD_CLOEXEC);
     if (d->timerfd < 0) {
         return fail("timerfd_create", err, n);
     }
@@ -190,7 +190,7 @@ static void log_start_line(const daemon_t *d)
             KV_NUM("version_major", ESTOP_VERSION_MAJOR),
             KV_NUM("version_minor", ESTOP_VERSION_MINOR),
         };
-        log_event(clock_mono_us(), "start", NULL, kv, sizeof kv / sizeof kv[0]);
+        log_event(clock_unit_us(), "start", NULL, kv, sizeof kv / sizeof kv[0]);
     }
     if (d->udp_rcvbuf < d->udp_rcvbuf_wanted) {
         /* Without CAP_NET_ADMIN the buffer stops at net.core.rmem_max (README: receive
@@ -200,7 +200,7 @@ static void log_start_line(const daemon_t *d)
             KV_NUM("wanted", d->udp_rcvbuf_wanted),
             KV_STR("hint", "net.core.rmem_max"),
         };
-        log_event(clock_mono_us(), "udp_rcvbuf_small", NULL, kv, 3u);
+        log_event(clock_unit_us(), "udp_rcvbuf_small", NULL, kv, 3u);
     }
 }
 

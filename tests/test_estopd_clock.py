@@ -98,3 +98,26 @@ def test_a_suspend_changes_nothing_for_a_fresh_run_after_it(tmp_path: Path,
         time.sleep(0.1)
         reply = d.arm()
         assert reply.msg == ACK and reply.state == ARMED, reply
+
+
+def test_a_clock_that_fails_is_a_fault(tmp_path: Path, clock_shim: Path) -> None:
+    """CLOCK_BOOTTIME failing while ARMED: the daemon reports a fault to the core (STOPPED,
+    reason fault, cause clock), and frames keep going out on the stand-in clock. Before, the
+    clock read as 0 and was clamped: time stood still, no deadline passed and frames stopped."""
+    d, clock = shimmed(tmp_path, clock_shim)
+    with d, Heartbeat(d.udp_port):
+        d.arm()
+        clock.set(0, fail=True)
+        fault = d.wait_log(lambda s: " fault " in s, timeout=3)
+        assert "cause=clock" in fault, fault
+        state = d.wait_log(lambda s: " state " in s and "ARMED->STOPPED" in s, timeout=3)
+        assert "reason=fault" in state and "cause=fault" in state, state
+        n = len(d.frames())
+        time.sleep(0.3)
+        later = d.frames()[n:]
+        assert len(later) >= 5, later  # brake frames every brake period, the clock or not
+        assert all(f.state == STOPPED for f in later if f.is_brake()), later
+        clock.set(0, fail=False)
+        time.sleep(0.1)
+        assert status(d) == (STOPPED, R_FAULT)  # latched: a clock back is no release
+        assert sum(" fault " in s for s in d.log()) == 1, d.log()  # once per episode

@@ -199,9 +199,12 @@ void cio_udp(daemon_t *d, const uint8_t *data, size_t len, const struct sockaddr
 
 uint64_t cio_prepare(daemon_t *d)
 {
-    uint64_t t0 = clock_unit_us();
+    uint64_t t0;
     uint64_t now;
     const char *cause;
+    /* A clock that cannot be read gives a stand-in time (clock.h) and is a fault: the core
+     * stops and latches, reported once per episode. */
+    int clock_bad = clock_read_us(&t0) != 0;
 
     if (t0 < d->last_call_us) {
         t0 = d->last_call_us; /* time handed to the core never goes backwards */
@@ -215,6 +218,10 @@ uint64_t cio_prepare(daemon_t *d)
     if (!d->fatal && now >= d->deadline_us) {
         cio_tick(d, now);
     }
+    if (!d->fatal && clock_bad && !d->clock_fault) {
+        cio_fault(d, now, "clock");
+    }
+    d->clock_fault = (uint8_t)clock_bad;
     clients_service(d, now);
     log_housekeeping(now);
     if (!d->fatal && d->can_on) {

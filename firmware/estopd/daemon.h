@@ -56,6 +56,7 @@ typedef struct {
     uint8_t reason;
     estop_can_frame_t last_brake; /* latest brake frame the core produced */
     uint8_t have_brake;
+    uint8_t clock_fault;      /* the unit's clock failed at its latest read (reported once) */
     uint32_t frames_out;      /* frames handed out so far */
     estop_can_frame_t last_frame;
     uint64_t stats_last_us;   /* the latest periodic read-out (stats.c) */

@@ -14,19 +14,8 @@
 
 #define ACCEPT_BATCH 16
 #define TCP_READ_MAX 256u  /* per wakeup and client: a firehose gets no more than its share */
-/* Before a close, what the peer has sent is read and handled up to this much: more than the
- * receive buffer set below can hold, so every complete frame received is handled. */
-#define DRAIN_MAX 65536u
-#define TCP_RCVBUF 8192    /* the kernel doubles it */
-/* Replies a client has not read yet stay below this (the kernel doubles it): an honest
- * client has one or two outstanding; for one that never reads, replies are dropped soon. */
-#define TCP_SNDBUF 4096
-/* A peer that vanished without a FIN is found within about KEEP_IDLE + KEEP_CNT * KEEP_INTVL
- * seconds; one that stops acknowledging replies within USER_TIMEOUT_MS. */
-#define KEEP_IDLE 2
-#define KEEP_INTVL 1
-#define KEEP_CNT 3
-#define USER_TIMEOUT_MS 5000u
+/* The drain's bound when the socket's receive buffer cannot be read back. */
+#define DRAIN_FALLBACK 262144u
 /* accept() failing for want of descriptors or memory: stop watching the listener this long
  * instead of spinning on it (it stays readable while the backlog is full). */
 #define ACCEPT_PAUSE_US 100000u
@@ -147,47 +136,41 @@ static int feed(daemon_t *d, uint32_t slot, const uint8_t *buf, size_t len)
     return 0;
 }
 
+/* How much the drain before a close reads at most. Every byte the kernel has taken on this
+ * connection is charged, with its bookkeeping, against the receive buffer (SO_RCVBUF as read
+ * back, the doubled value), and the window it advertises never exceeds what is free of it: so
+ * what is queued when the drain starts is at most that many bytes. Bytes that arrive while the
+ * drain runs (reading opens the window) may add as much again: twice the buffer covers both,
+ * and the drain stops earlier, at EAGAIN, when the socket is empty. The bound is there only so
+ * a peer that sends as fast as we read cannot hold the loop. */
+static size_t drain_bound(int fd)
+{
+    int rcvbuf = 0;
+    socklen_t len = sizeof rcvbuf;
+    if (getsockopt(fd, SOL_SOCKET, SO_RCVBUF, &rcvbuf, &len) != 0 || rcvbuf <= 0) {
+        return DRAIN_FALLBACK;
+    }
+    return 2u * (size_t)rcvbuf;
+}
+
 /* Handles everything the peer has sent so far, then closes the connection. */
 static void retire(daemon_t *d, uint32_t slot, const char *why)
 {
     uint8_t buf[TCP_READ_MAX];
     size_t total = 0;
+    size_t bound = d->clients[slot].fd >= 0 ? drain_bound(d->clients[slot].fd) : 0u;
 
-    while (d->clients[slot].fd >= 0 && total < DRAIN_MAX) {
+    while (d->clients[slot].fd >= 0 && total < bound) {
         ssize_t n = recv(d->clients[slot].fd, buf, sizeof buf, MSG_DONTWAIT);
         if (n < 0 && errno == EINTR) {
             continue;
         }
         if (n <= 0 || feed(d, slot, buf, (size_t)n) != 0) {
-            break;
+            break; /* EAGAIN (all read), end of file, an error, or the core closed it */
         }
         total += (size_t)n;
     }
     close_now(d, slot, why);
-}
-
-static void set_client_options(int fd)
-{
-    /* Replies are single small frames: send them at once, and keep few unread ones. Dead
-     * peers are found by keepalive. Failing here only costs latency or memory, or a slot
-     * held longer (until it is the quietest and a new client needs it), so results are not
-     * checked. */
-    int one = 1;
-    int sndbuf = TCP_SNDBUF;
-    int rcvbuf = TCP_RCVBUF;
-    int idle = KEEP_IDLE;
-    int intvl = KEEP_INTVL;
-    int cnt = KEEP_CNT;
-    unsigned user_timeout = USER_TIMEOUT_MS;
-
-    (void)setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
-    (void)setsockopt(fd, SOL_SOCKET, SO_SNDBUF, &sndbuf, sizeof sndbuf);
-    (void)setsockopt(fd, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);
-    (void)setsockopt(fd, SOL_SOCKET, SO_KEEPALIVE, &one, sizeof one);
-    (void)setsockopt(fd, IPPROTO_TCP, TCP_KEEPIDLE, &idle, sizeof idle);
-    (void)setsockopt(fd, IPPROTO_TCP, TCP_KEEPINTVL, &intvl, sizeof intvl);
-    (void)setsockopt(fd, IPPROTO_TCP, TCP_KEEPCNT, &cnt, sizeof cnt);
-    (void)setsockopt(fd, IPPROTO_TCP, TCP_USER_TIMEOUT, &user_timeout, sizeof user_timeout);
 }
 
 /* Hands a fresh connection to the core and to epoll. Returns 0, or -1 (fd left open). */
@@ -299,7 +282,7 @@ void clients_accept(daemon_t *d)
                        "make_room", 0u);
             retire(d, (uint32_t)slot, "evicted");
         }
-        set_client_options(fd);
+        net_stop_socket_options(fd); /* inherited from the listener; set again all the same */
         if (client_start(d, fd, slot, &peer) != 0) {
             (void)close(fd);
         }

@@ -1,0 +1,83 @@
+"""What estopd reads before it lets a stop-port connection go (firmware/estopd/README.md,
+choices): every byte the unit's kernel has taken is handled, whether the connection is evicted
+(issue 16, defect 3), never read its replies (defect 4) or is still open at SIGTERM (defect 5).
+
+Real loopback sockets; the daemon is held with SIGSTOP where a test needs connections to queue
+in the listen backlog.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import os
+import signal
+import socket
+import struct
+import termios
+import time
+from pathlib import Path
+
+import pytest
+
+from daemon_util import (
+    MSG_STATUS,
+    R_TCP_STOP,
+    STOP_ID,
+    STOPPED,
+    Daemon,
+    tcp_frame,
+)
+from test_estopd_attacks import Heartbeat, status
+
+pytestmark = pytest.mark.timeout(120)
+
+SLOTS = 8
+
+
+def unacked(s: socket.socket) -> int:
+    """Bytes of s's send queue the peer's kernel has not acknowledged yet (SIOCOUTQ)."""
+    return int(struct.unpack("i", fcntl.ioctl(s, termios.TIOCOUTQ, b"\0" * 4))[0])
+
+
+def test_a_stop_a_backlogged_connection_queued_counts_when_it_is_evicted(
+        tmp_path: Path) -> None:
+    """A client connects while the daemon cannot run, so its connection waits in the listen
+    backlog, and sends 96 KiB of STATUS requests and a STOP; eight more connect behind it, and
+    the ninth evicts it before it was ever read. Whatever the unit's kernel acknowledged must be
+    handled: if it took the STOP, the unit stops; if it did not, the client sees its connection
+    reset, never a STOP taken and dropped.
+
+    Before, the backlogged connection had the listener's default buffer (128 KiB here), so the
+    kernel took all of it, and the drain before the close read 64 KiB: the STOP was lost."""
+    with Daemon(tmp_path) as d, Heartbeat(d.udp_port):
+        d.arm()
+        assert d.proc is not None
+        os.kill(d.proc.pid, signal.SIGSTOP)
+        others: list[socket.socket] = []
+        try:
+            v = socket.socket()
+            v.setsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF, 1 << 20)
+            v.connect(("127.0.0.1", d.tcp_port))
+            v.setblocking(False)
+            data = tcp_frame(MSG_STATUS, 1) * (96 * 1024 // 16) + tcp_frame(STOP_ID, 99)
+            sent = v.send(data)
+            assert sent == len(data), sent  # all in the client's own send buffer
+            time.sleep(0.3)
+            taken = sent - unacked(v)  # what the unit's kernel holds for the daemon
+            for _ in range(SLOTS):
+                others.append(socket.create_connection(("127.0.0.1", d.tcp_port), timeout=5))
+        finally:
+            os.kill(d.proc.pid, signal.SIGCONT)
+        d.wait_log(lambda s: " client_evict " in s, timeout=5)
+        time.sleep(0.3)
+        if taken == len(data):
+            assert status(d) == (STOPPED, R_TCP_STOP), (taken, d.log())
+        else:
+            v.settimeout(3)
+            with pytest.raises(ConnectionResetError):  # noqa: PT012 - drain the replies first
+                while v.recv(65536):
+                    pass
+            assert unacked(v) > 0  # the STOP never reached the unit: the client knows
+        v.close()
+        for s in others:
+            s.close()

@@ -81,3 +81,27 @@ def test_a_stop_a_backlogged_connection_queued_counts_when_it_is_evicted(
         v.close()
         for s in others:
             s.close()
+
+
+def test_a_stop_behind_3000_unread_replies_stops_every_time(tmp_path: Path) -> None:
+    """Issue 16's case of defect 4, as it was reported: 3,000 STATUS requests and then a STOP
+    on one connection, no reply ever read, ten tries: every one stops the unit (it lost 7 of
+    10 when the unit closed a client whose replies blocked; version 3 drops and counts the
+    replies instead, reply.c). The client's receive buffer is the kernel's minimum, so the
+    replies do block."""
+    with Daemon(tmp_path) as d, Heartbeat(d.udp_port):
+        for attempt in range(10):
+            d.arm()
+            with socket.socket() as s:
+                s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 1)
+                s.settimeout(10)
+                s.connect(("127.0.0.1", d.tcp_port))
+                s.sendall(b"".join(tcp_frame(MSG_STATUS, i) for i in range(3000)) +
+                          tcp_frame(STOP_ID, 3001))
+                deadline = time.monotonic() + 5
+                while status(d) != (STOPPED, R_TCP_STOP):
+                    assert time.monotonic() < deadline, (attempt, d.log()[-20:])
+                    time.sleep(0.02)
+        lines = d.log()
+        assert sum("reason=tcp_stop" in s for s in lines) == 10, lines
+        assert not any("why=reply_blocked" in s for s in lines), lines

@@ -20,11 +20,13 @@ from pathlib import Path
 import pytest
 
 from daemon_util import (
+    ACK,
     MSG_STATUS,
     R_TCP_STOP,
     STOP_ID,
     STOPPED,
     Daemon,
+    parse_reply,
     tcp_frame,
 )
 from test_estopd_attacks import Heartbeat, status
@@ -105,3 +107,39 @@ def test_a_stop_behind_3000_unread_replies_stops_every_time(tmp_path: Path) -> N
         lines = d.log()
         assert sum("reason=tcp_stop" in s for s in lines) == 10, lines
         assert not any("why=reply_blocked" in s for s in lines), lines
+
+
+def test_a_stop_already_in_a_socket_at_sigterm_is_handled_and_answered(tmp_path: Path) -> None:
+    """SIGTERM arrives while a client's 20 STATUS requests (more than one 256-byte read) and
+    its STOP wait in its socket (the daemon held with SIGSTOP meanwhile): the exit handles them
+    all before the last frame, answers the STOP, and the last frame says why the unit stopped.
+    Before, the loop read one 256-byte piece of the client's input, left for the exit and
+    closed the rest unread (a reset): the STOP was neither handled nor answered."""
+    with Daemon(tmp_path) as d, Heartbeat(d.udp_port):
+        d.arm()
+        assert d.proc is not None
+        s = d.connect()
+        s.settimeout(5)
+        d.wait_log(lambda line: " client_open " in line)
+        os.kill(d.proc.pid, signal.SIGSTOP)
+        try:
+            d.proc.send_signal(signal.SIGTERM)
+            s.sendall(b"".join(tcp_frame(MSG_STATUS, i) for i in range(20)) +
+                      tcp_frame(STOP_ID, 777))
+            time.sleep(0.1)
+        finally:
+            os.kill(d.proc.pid, signal.SIGCONT)
+        assert d.proc.wait(timeout=10) == 0
+        replies = b""
+        while chunk := s.recv(65536):
+            replies += chunk
+        s.close()
+        parsed = [parse_reply(replies[i:i + 16]) for i in range(0, len(replies), 16)]
+        stop = [r for r in parsed if r.seq == 777]
+        assert stop and stop[0].msg == ACK and stop[0].state == STOPPED, parsed[-3:]
+        lines = d.log()
+        at_stop = next(i for i, line in enumerate(lines) if "reason=tcp_stop" in line)
+        at_exit = next(i for i, line in enumerate(lines) if " exit " in line)
+        assert at_stop < at_exit, lines
+        last = [f for f in d.frames() if f.is_brake()][-1]
+        assert last.state == STOPPED and last.reason == R_TCP_STOP, last

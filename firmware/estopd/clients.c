@@ -153,14 +153,16 @@ static size_t drain_bound(int fd)
     return 2u * (size_t)rcvbuf;
 }
 
-/* Handles everything the peer has sent so far, then closes the connection. */
-static void retire(daemon_t *d, uint32_t slot, const char *why)
+/* Handles everything the peer has sent so far (drain_bound), and until host time `until`
+ * at most (0: no time limit). The slot may be closed on the way (bad crc, core error). */
+static void drain(daemon_t *d, uint32_t slot, uint64_t until)
 {
     uint8_t buf[TCP_READ_MAX];
     size_t total = 0;
     size_t bound = d->clients[slot].fd >= 0 ? drain_bound(d->clients[slot].fd) : 0u;
 
-    while (d->clients[slot].fd >= 0 && total < bound) {
+    while (d->clients[slot].fd >= 0 && total < bound &&
+           (until == 0u || clock_unit_us() < until)) {
         ssize_t n = recv(d->clients[slot].fd, buf, sizeof buf, MSG_DONTWAIT);
         if (n < 0 && errno == EINTR) {
             continue;
@@ -170,6 +172,12 @@ static void retire(daemon_t *d, uint32_t slot, const char *why)
         }
         total += (size_t)n;
     }
+}
+
+/* Handles everything the peer has sent so far, then closes the connection. */
+static void retire(daemon_t *d, uint32_t slot, const char *why)
+{
+    drain(d, slot, 0u);
     close_now(d, slot, why);
 }
 
@@ -335,6 +343,15 @@ void clients_event(daemon_t *d, uint32_t slot)
         /* The connection broke under a reply: what the client sent is handled, then it goes. */
         char ebuf[16];
         retire(d, slot, log_errno_name(d->clients[slot].reply.hard_err, ebuf, sizeof ebuf));
+    }
+}
+
+void clients_drain_all(daemon_t *d, uint64_t max_us)
+{
+    uint64_t until = clock_unit_us() + max_us;
+    uint32_t i;
+    for (i = 0; i < ESTOP_MAX_SLOTS; i++) {
+        drain(d, i, until);
     }
 }
 

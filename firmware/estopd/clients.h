@@ -26,6 +26,9 @@ void clients_event(daemon_t *d, uint32_t slot);
  * does not read: counted, the client stays) or the connection broke (the client is closed
  * once the input it sent has been handled). */
 int clients_reply(daemon_t *d, uint32_t slot, const uint8_t *reply, size_t len);
+/* Exit, before the last frame: what every client has sent is handled and answered (a STOP
+ * already in a socket counts), within max_us for all of them together. */
+void clients_drain_all(daemon_t *d, uint64_t max_us);
 /* Exit: closes every client (the core is not told any more). */
 void clients_close_all(daemon_t *d, const char *why);
 

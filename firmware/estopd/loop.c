@@ -18,6 +18,10 @@
 
 #define MAX_EVENTS 16
 #define EXIT_FLUSH_US 1000000u
+/* At exit, what the clients have sent is handled within this long (all of them together): a
+ * STOP already in a socket counts and is answered; a client that sends as fast as it is read
+ * cannot hold the exit. */
+#define EXIT_DRAIN_US 100000u
 
 /* Arms the timerfd (absolute, on the unit's clock: CLOCK_BOOTTIME) for the next wakeup, when it
  * changed. */
@@ -135,6 +139,9 @@ static int finish(daemon_t *d)
 
     notify_send(&d->notify, "STOPPING=1");
     udp_round(d);
+    if (!d->fatal) {
+        clients_drain_all(d, EXIT_DRAIN_US);
+    }
     last_frame(d);
     if (d->can_on) {
         can_drain(&d->can, d->opt.cfg.brake_period_us); /* a refused last frame gets a period */

@@ -65,7 +65,8 @@ static void usage(void)
         "keep the unit alive or release it; anyone may stop. --no-auth: a unit without a key.\n"
         "Without --can, frames go to the can-log (stdout). Port 0 picks a free port; the\n"
         "start event on stderr shows the ports.\n"
-        "--rt-prio: SCHED_FIFO for the watchdog loop; --mlock: mlockall (no paging stalls).\n");
+        "--rt-prio: SCHED_FIFO for the watchdog loop; --mlock: mlockall, no paging stalls,\n"
+        "and the core's MAC state (as good as the key) is never written to swap.\n");
 }
 
 /* Strict unsigned number: digits only (no sign, no spaces), optional 0x prefix when

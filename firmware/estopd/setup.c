@@ -7,6 +7,7 @@
 #include <sched.h>
 #include <sys/epoll.h>
 #include <sys/mman.h>
+#include <sys/prctl.h>
 #include <sys/random.h>
 #include <sys/signalfd.h>
 #include <sys/timerfd.h>
@@ -208,6 +209,12 @@ int setup(daemon_t *d, char *err, size_t errlen)
 {
     int rc;
 
+    /* The core's MAC state is as good as the key: no core dump, and no process of our own
+     * user may ptrace us or read our memory (/proc/PID/mem) for it. */
+    if (prctl(PR_SET_DUMPABLE, 0L, 0L, 0L, 0L) != 0) {
+        return fail("prctl(PR_SET_DUMPABLE)", err, errlen);
+    }
+
     d->epfd = d->timerfd = d->sigfd = d->udp_fd = d->tcp_fd = -1;
     d->canlog.fd = -1;
     d->can.fd = -1;
@@ -225,7 +232,7 @@ int setup(daemon_t *d, char *err, size_t errlen)
     log_start_line(d);
     rc = cio_boot(d);
     /* The core keeps only the state after the key block; no other copy of the key stays. */
-    memset(d->opt.cfg.key, 0, sizeof d->opt.cfg.key);
+    explicit_bzero(d->opt.cfg.key, sizeof d->opt.cfg.key);
     if (rc != 0) {
         (void)snprintf(err, errlen, "the core failed to start");
         return -1;

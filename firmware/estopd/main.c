@@ -31,7 +31,7 @@ static int hold_std_fds(void)
 
 int main(int argc, char **argv)
 {
-    char err[256];
+    char err[512];
 
     if (hold_std_fds() != 0) {
         return 1;

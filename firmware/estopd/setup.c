@@ -9,6 +9,7 @@
 #include <sys/mman.h>
 #include <sys/prctl.h>
 #include <sys/random.h>
+#include <sys/resource.h>
 #include <sys/signalfd.h>
 #include <sys/timerfd.h>
 #include <unistd.h>
@@ -138,23 +139,51 @@ static int setup_auth(daemon_t *d, char *err, size_t n)
     return 0;
 }
 
-/* --rt-prio and --mlock, for hosts without systemd's CPUSchedulingPolicy= and friends. The
- * output threads were started with explicit normal priority, so only the loop gets it. */
+/* --rt-prio N: SCHED_FIFO at N for the loop. A process that already runs under SCHED_FIFO at N
+ * or higher keeps what it has: the shipped service (deploy/estopd.service.in) sets SCHED_FIFO
+ * with CPUSchedulingResetOnFork and gives no capability, and the kernel lets an unprivileged
+ * process neither raise its priority nor clear SCHED_RESET_ON_FORK. Otherwise it asks with
+ * SCHED_RESET_ON_FORK (children start at normal priority, and an unprivileged process may not
+ * ask without it when it already has it). The output threads were started with explicit
+ * normal priority, so only the loop gets it. Returns 0, or -1 with the real cause in err. */
+static int setup_rt_prio(int prio, char *err, size_t n)
+{
+    struct sched_param sp;
+    struct rlimit rl;
+    int policy = sched_getscheduler(0);
+    int e;
+
+    memset(&sp, 0, sizeof sp);
+    if (policy >= 0 && (policy & ~SCHED_RESET_ON_FORK) == SCHED_FIFO &&
+        sched_getparam(0, &sp) == 0 && sp.sched_priority >= prio) {
+        return 0;
+    }
+    memset(&sp, 0, sizeof sp);
+    sp.sched_priority = prio;
+    if (sched_setscheduler(0, SCHED_FIFO | SCHED_RESET_ON_FORK, &sp) == 0) {
+        return 0;
+    }
+    e = errno;
+    if (e == EPERM && getrlimit(RLIMIT_RTPRIO, &rl) == 0) {
+        (void)snprintf(err, n, "--rt-prio %d: sched_setscheduler(SCHED_FIFO): %s: needs "
+                       "CAP_SYS_NICE, or RLIMIT_RTPRIO >= %d (it is %llu), or starting under "
+                       "SCHED_FIFO at %d or higher (systemd: CPUSchedulingPolicy=fifo, "
+                       "CPUSchedulingPriority=%d)", prio, strerror(e), prio,
+                       (unsigned long long)rl.rlim_cur, prio, prio);
+    } else {
+        (void)snprintf(err, n, "--rt-prio %d: sched_setscheduler(SCHED_FIFO): %s", prio,
+                       strerror(e));
+    }
+    return -1;
+}
+
+/* --rt-prio and --mlock, for hosts without systemd's CPUSchedulingPolicy= and friends. */
 static int setup_realtime(daemon_t *d, char *err, size_t n)
 {
     if (d->opt.mlock && mlockall(MCL_CURRENT | MCL_FUTURE) != 0) {
         return fail("--mlock: mlockall (needs CAP_IPC_LOCK or a high RLIMIT_MEMLOCK)", err, n);
     }
-    if (d->opt.rt_prio > 0) {
-        struct sched_param sp;
-        memset(&sp, 0, sizeof sp);
-        sp.sched_priority = d->opt.rt_prio;
-        if (sched_setscheduler(0, SCHED_FIFO, &sp) != 0) {
-            return fail("--rt-prio: sched_setscheduler (needs CAP_SYS_NICE or RLIMIT_RTPRIO)",
-                        err, n);
-        }
-    }
-    return 0;
+    return d->opt.rt_prio > 0 ? setup_rt_prio(d->opt.rt_prio, err, n) : 0;
 }
 
 static void log_start_line(const daemon_t *d)

@@ -17,7 +17,7 @@
 /* The unit's time in microseconds (64 bits: never wraps in practice). Returns 0, or -1 when
  * CLOCK_BOOTTIME could not be read: *t_us is then an estimate (CLOCK_MONOTONIC moved by the
  * two clocks' last known offset, or the last time read) that never goes backwards, and the
- * caller reports the failure to the core as a fault (core_io.c). */
+ * caller reports the failure to the core as a fault (loop.c). */
 int clock_read_us(uint64_t *t_us);
 /* The same time without the verdict, for log lines and bounds on waits. */
 uint64_t clock_unit_us(void);

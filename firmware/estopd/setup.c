@@ -14,13 +14,11 @@
 #include <sys/timerfd.h>
 #include <unistd.h>
 
-#include "clients.h"
-#include "keyfile.h"
 #include "clock.h"
-#include "core_io.h"
+#include "keyfile.h"
 #include "log.h"
+#include "loop.h"
 #include "net.h"
-#include "udp.h"
 
 static int fail(const char *what, char *err, size_t n)
 {
@@ -77,15 +75,16 @@ static int setup_fds(daemon_t *d, char *err, size_t n)
     if (watch(d, d->timerfd, TAG_TIMER, err, n) != 0 || watch(d, d->sigfd, TAG_SIGNAL, err, n) != 0) {
         return -1;
     }
-    d->udp_fd = net_udp_open(d->opt.bind, d->opt.udp_port, &d->udp_port, err, n);
-    if (d->udp_fd < 0 || udp_setup(d, err, n) != 0) {
+    d->udp.fd = net_udp_open(d->opt.bind, d->opt.udp_port, &d->udp_port, err, n);
+    if (d->udp.fd < 0 || udp_setup(&d->udp, err, n) != 0) {
         return -1;
     }
-    d->tcp_fd = net_tcp_open(d->opt.bind, d->opt.tcp_port, &d->tcp_port, err, n);
-    if (d->tcp_fd < 0) {
+    d->tcp.listen_fd = net_tcp_open(d->opt.bind, d->opt.tcp_port, &d->tcp_port, err, n);
+    if (d->tcp.listen_fd < 0) {
         return -1;
     }
-    return (watch(d, d->udp_fd, TAG_UDP, err, n) != 0 || watch(d, d->tcp_fd, TAG_TCP, err, n) != 0)
+    return (watch(d, d->udp.fd, TAG_UDP, err, n) != 0 ||
+            watch(d, d->tcp.listen_fd, TAG_TCP, err, n) != 0)
                ? -1
                : 0;
 }
@@ -213,7 +212,7 @@ static void log_start_line(const daemon_t *d)
             KV_STR("stop_id", stop_id),
             KV_STR("auth", d->opt.cfg.key_len != 0u ? "key" : "none"),
             KV_STR("session", session),
-            KV_NUM("udp_rcvbuf", d->udp_rcvbuf),
+            KV_NUM("udp_rcvbuf", d->udp.rcvbuf),
             KV_NUM("rt_prio", d->opt.rt_prio),
             KV_NUM("mlock", d->opt.mlock),
             KV_NUM("pid", getpid()),
@@ -222,12 +221,12 @@ static void log_start_line(const daemon_t *d)
         };
         log_event(clock_unit_us(), "start", NULL, kv, sizeof kv / sizeof kv[0]);
     }
-    if (d->udp_rcvbuf < d->udp_rcvbuf_wanted) {
+    if (d->udp.rcvbuf < d->udp.rcvbuf_wanted) {
         /* Without CAP_NET_ADMIN the buffer stops at net.core.rmem_max (README: receive
          * buffer). */
         log_kv_t kv[] = {
-            KV_NUM("bytes", d->udp_rcvbuf),
-            KV_NUM("wanted", d->udp_rcvbuf_wanted),
+            KV_NUM("bytes", d->udp.rcvbuf),
+            KV_NUM("wanted", d->udp.rcvbuf_wanted),
             KV_STR("hint", "net.core.rmem_max"),
         };
         log_event(clock_unit_us(), "udp_rcvbuf_small", NULL, kv, 3u);
@@ -244,22 +243,23 @@ int setup(daemon_t *d, char *err, size_t errlen)
         return fail("prctl(PR_SET_DUMPABLE)", err, errlen);
     }
 
-    d->epfd = d->timerfd = d->sigfd = d->udp_fd = d->tcp_fd = -1;
+    d->epfd = d->timerfd = d->sigfd = d->udp.fd = d->tcp.listen_fd = -1;
     d->canlog.fd = -1;
     d->can.fd = -1;
-    clients_init(d);
+    tcp_init(&d->tcp);
     /* Signals are blocked first, so the output threads inherit the mask and leave them to
      * the loop's signalfd. */
     d->notify.fd = -1;
     if (setup_signals(d, err, errlen) != 0 || log_start(d->opt.log_json, err, errlen) != 0 ||
         notify_open(&d->notify, err, errlen) != 0 ||
         setup_auth(d, err, errlen) != 0 || setup_realtime(d, err, errlen) != 0 ||
-        setup_fds(d, err, errlen) != 0 || setup_can(d, err, errlen) != 0) {
+        setup_fds(d, err, errlen) != 0 || setup_can(d, err, errlen) != 0 ||
+        loop_init(d, err, errlen) != 0) {
         return -1;
     }
     /* The ports go out before the first frame: tests and supervisors read them here. */
     log_start_line(d);
-    rc = cio_boot(d);
+    rc = loop_boot(d);
     /* The core keeps only the state after the key block; no other copy of the key stays. */
     explicit_bzero(d->opt.cfg.key, sizeof d->opt.cfg.key);
     if (rc != 0) {

@@ -1,4 +1,4 @@
-#include "clients.h"
+#include "tcp.h"
 
 #include <errno.h>
 #include <netinet/tcp.h>
@@ -8,7 +8,6 @@
 #include <unistd.h>
 
 #include "clock.h"
-#include "core_io.h"
 #include "log.h"
 #include "net.h"
 
@@ -20,14 +19,17 @@
  * instead of spinning on it (it stays readable while the backlog is full). */
 #define ACCEPT_PAUSE_US 100000u
 
-void clients_init(daemon_t *d)
+void tcp_init(tcp_t *t)
 {
     uint32_t i;
+    memset(t, 0, sizeof *t);
+    t->listen_fd = -1;
+    t->epfd = -1;
     for (i = 0; i < ESTOP_MAX_SLOTS; i++) {
-        d->clients[i].fd = -1;
+        t->clients[i].fd = -1;
     }
-    d->accept_paused_until = 0u;
-    d->accept_failures = 0u;
+    t->accept_paused_until = 0u;
+    t->accept_failures = 0u;
 }
 
 static void log_client(uint64_t now, const char *event, int slot,
@@ -59,16 +61,16 @@ static void log_client(uint64_t now, const char *event, int slot,
 }
 
 /* A free slot, or else the one quiet longest (no complete frame for the longest time). */
-static int pick_slot(const daemon_t *d, int *evict)
+static int pick_slot(const tcp_t *t, int *evict)
 {
     int i;
     int quietest = 0;
     for (i = 0; i < (int)ESTOP_MAX_SLOTS; i++) {
-        if (d->clients[i].fd < 0) {
+        if (t->clients[i].fd < 0) {
             *evict = 0;
             return i;
         }
-        if (d->clients[i].quiet_since_us < d->clients[quietest].quiet_since_us) {
+        if (t->clients[i].quiet_since_us < t->clients[quietest].quiet_since_us) {
             quietest = i;
         }
     }
@@ -77,11 +79,10 @@ static int pick_slot(const daemon_t *d, int *evict)
 }
 
 /* Closes the slot's socket and frees the core's slot. */
-static void close_now(daemon_t *d, uint32_t slot, const char *why)
+static void close_now(tcp_t *t, uint32_t slot, const char *why)
 {
-    client_t *c = &d->clients[slot];
-    estop_out_t out;
-    estop_err_t err;
+    client_t *c = &t->clients[slot];
+    unit_fx_t fx;
     uint64_t now;
 
     if (c->fd < 0) {
@@ -89,10 +90,9 @@ static void close_now(daemon_t *d, uint32_t slot, const char *why)
     }
     (void)close(c->fd); /* also leaves epoll */
     c->fd = -1;
-    now = cio_prepare(d);
-    memset(&out, 0, sizeof out);
-    err = estop_tcp_close(&d->core, slot, (uint32_t)now, &out);
-    (void)cio_done(d, err, "tcp_close", &out, now, NULL, -1);
+    now = t->prepare(t->prepare_ctx);
+    unit_tcp_close(t->unit, slot, now, &fx);
+    apply_fx(t->apply, &fx, NULL);
     log_client(now, "client_close", (int)slot, &c->peer, why, c->reply.dropped);
 }
 
@@ -100,35 +100,37 @@ static void close_now(daemon_t *d, uint32_t slot, const char *why)
  * connection stays usable, -1 once it has been closed. A client whose connection broke while
  * a reply was written is not closed here: the rest of what it sent is handled first (see
  * retire). */
-static int feed(daemon_t *d, uint32_t slot, const uint8_t *buf, size_t len)
+static int feed(tcp_t *t, uint32_t slot, const uint8_t *buf, size_t len)
 {
     size_t off = 0;
 
     while (off < len) {
-        estop_out_t out;
+        unit_fx_t fx;
         size_t used = 0;
-        uint64_t now = cio_prepare(d); /* a due deadline goes before any input */
-        estop_err_t err;
-        unsigned res;
+        uint64_t now = t->prepare(t->prepare_ctx); /* a due deadline goes before any input */
 
-        memset(&out, 0, sizeof out);
-        err = estop_tcp_rx(&d->core, slot, buf + off, len - off, &used, (uint32_t)now, &out);
-        res = cio_done(d, err, "tcp_rx", &out, now, &d->clients[slot].peer, (int)slot);
-        if ((res & CIO_ERROR) != 0u) {
-            close_now(d, slot, "core_error");
+        unit_tcp_rx(t->unit, slot, buf + off, len - off, &used, now, &fx);
+        apply_fx(t->apply, &fx, &t->clients[slot].peer);
+        if (fx.err != ESTOP_OK) {
+            close_now(t, slot, "core_error");
             return -1;
         }
-        if (out.has_reply || out.close_slot) {
-            d->clients[slot].quiet_since_us = now; /* a complete frame */
+        if (fx.has_reply) {
+            /* A reply that cannot be written marks the client; it is closed once its input
+             * is handled (tcp_event), never here in the middle of it. */
+            (void)tcp_reply(t, slot, fx.reply, fx.reply_len);
         }
-        if ((res & CIO_CLOSE) != 0u) {
+        if (fx.has_reply || fx.close_slot) {
+            t->clients[slot].quiet_since_us = now; /* a complete frame */
+        }
+        if (fx.close_slot) {
             /* Framing is lost: the frames before this one have been handled. */
-            log_client(now, "bad_crc", (int)slot, &d->clients[slot].peer, NULL, 0u);
-            close_now(d, slot, "bad_crc");
+            log_client(now, "bad_crc", (int)slot, &t->clients[slot].peer, NULL, 0u);
+            close_now(t, slot, "bad_crc");
             return -1;
         }
         if (used == 0u || used > len - off) {
-            close_now(d, slot, "core_error"); /* would loop forever or overrun */
+            close_now(t, slot, "core_error"); /* would loop forever or overrun */
             return -1;
         }
         off += used;
@@ -155,19 +157,19 @@ static size_t drain_bound(int fd)
 
 /* Handles everything the peer has sent so far (drain_bound), and until host time `until`
  * at most (0: no time limit). The slot may be closed on the way (bad crc, core error). */
-static void drain(daemon_t *d, uint32_t slot, uint64_t until)
+static void drain(tcp_t *t, uint32_t slot, uint64_t until)
 {
     uint8_t buf[TCP_READ_MAX];
     size_t total = 0;
-    size_t bound = d->clients[slot].fd >= 0 ? drain_bound(d->clients[slot].fd) : 0u;
+    size_t bound = t->clients[slot].fd >= 0 ? drain_bound(t->clients[slot].fd) : 0u;
 
-    while (d->clients[slot].fd >= 0 && total < bound &&
+    while (t->clients[slot].fd >= 0 && total < bound &&
            (until == 0u || clock_unit_us() < until)) {
-        ssize_t n = recv(d->clients[slot].fd, buf, sizeof buf, MSG_DONTWAIT);
+        ssize_t n = recv(t->clients[slot].fd, buf, sizeof buf, MSG_DONTWAIT);
         if (n < 0 && errno == EINTR) {
             continue;
         }
-        if (n <= 0 || feed(d, slot, buf, (size_t)n) != 0) {
+        if (n <= 0 || feed(t, slot, buf, (size_t)n) != 0) {
             break; /* EAGAIN (all read), end of file, an error, or the core closed it */
         }
         total += (size_t)n;
@@ -175,88 +177,86 @@ static void drain(daemon_t *d, uint32_t slot, uint64_t until)
 }
 
 /* Handles everything the peer has sent so far, then closes the connection. */
-static void retire(daemon_t *d, uint32_t slot, const char *why)
+static void retire(tcp_t *t, uint32_t slot, const char *why)
 {
-    drain(d, slot, 0u);
-    close_now(d, slot, why);
+    drain(t, slot, 0u);
+    close_now(t, slot, why);
 }
 
 /* Hands a fresh connection to the core and to epoll. Returns 0, or -1 (fd left open). */
-static int client_start(daemon_t *d, int fd, int slot, const struct sockaddr_in *peer)
+static int client_start(tcp_t *t, int fd, int slot, const struct sockaddr_in *peer)
 {
     struct epoll_event ev;
-    estop_out_t out;
-    estop_err_t err;
-    uint64_t now = cio_prepare(d);
+    unit_fx_t fx;
+    uint64_t now = t->prepare(t->prepare_ctx);
 
-    memset(&out, 0, sizeof out);
-    err = estop_tcp_open(&d->core, (uint32_t)slot, (uint32_t)now, &out);
-    if ((cio_done(d, err, "tcp_open", &out, now, peer, -1) & CIO_ERROR) != 0u) {
+    unit_tcp_open(t->unit, (uint32_t)slot, now, &fx);
+    apply_fx(t->apply, &fx, peer);
+    if (fx.err != ESTOP_OK) {
         return -1;
     }
     memset(&ev, 0, sizeof ev);
     ev.events = EPOLLIN | EPOLLRDHUP;
-    ev.data.u64 = (uint64_t)TAG_CLIENT0 + (uint64_t)slot;
-    if (epoll_ctl(d->epfd, EPOLL_CTL_ADD, fd, &ev) != 0) {
-        memset(&out, 0, sizeof out);
-        err = estop_tcp_close(&d->core, (uint32_t)slot, (uint32_t)now, &out);
-        (void)cio_done(d, err, "tcp_close", &out, now, NULL, -1);
+    ev.data.u64 = t->client_tag0 + (uint64_t)slot;
+    if (epoll_ctl(t->epfd, EPOLL_CTL_ADD, fd, &ev) != 0) {
+        unit_tcp_close(t->unit, (uint32_t)slot, now, &fx);
+        apply_fx(t->apply, &fx, NULL);
         return -1;
     }
-    d->clients[slot].fd = fd;
-    d->clients[slot].peer = *peer;
-    d->clients[slot].quiet_since_us = now;
-    reply_reset(&d->clients[slot].reply);
+    t->clients[slot].fd = fd;
+    t->clients[slot].peer = *peer;
+    t->clients[slot].quiet_since_us = now;
+    reply_reset(&t->clients[slot].reply);
     log_client(now, "client_open", slot, peer, NULL, 0u);
     return 0;
 }
 
-static void listener_events(daemon_t *d, uint32_t events)
+static void listener_events(tcp_t *t, uint32_t events)
 {
     struct epoll_event ev;
     memset(&ev, 0, sizeof ev);
     ev.events = events;
-    ev.data.u64 = TAG_TCP;
-    (void)epoll_ctl(d->epfd, EPOLL_CTL_MOD, d->tcp_fd, &ev);
+    ev.data.u64 = t->listen_tag;
+    (void)epoll_ctl(t->epfd, EPOLL_CTL_MOD, t->listen_fd, &ev);
 }
 
 /* Out of descriptors or memory: the listener stays readable, so stop watching it for a
  * while (the loop keeps serving everything else) and say so once per episode. */
-static void pause_accept(daemon_t *d, int e)
+static void pause_accept(tcp_t *t, int e)
 {
     uint64_t now = clock_unit_us();
-    if (d->accept_failures++ == 0u) {
+    if (t->accept_failures++ == 0u) {
         char ebuf[16];
         log_kv_t kv[] = { KV_STR("err", log_errno_name(e, ebuf, sizeof ebuf)),
                           KV_MS("retry_ms", ACCEPT_PAUSE_US) };
         log_event(now, "accept_error", NULL, kv, 2u);
     }
-    listener_events(d, 0u);
-    d->accept_paused_until = now + ACCEPT_PAUSE_US;
+    listener_events(t, 0u);
+    t->accept_paused_until = now + ACCEPT_PAUSE_US;
 }
 
-uint64_t clients_next_wakeup(const daemon_t *d)
+uint64_t tcp_next_wakeup(const tcp_t *t)
 {
-    return d->accept_paused_until;
+    return t->accept_paused_until;
 }
 
-void clients_service(daemon_t *d, uint64_t now)
+void tcp_service(tcp_t *t, uint64_t now)
 {
     uint32_t i;
-    if (d->accept_paused_until != 0u && now >= d->accept_paused_until) {
-        d->accept_paused_until = 0u;
-        listener_events(d, EPOLLIN);
+    if (t->accept_paused_until != 0u && now >= t->accept_paused_until) {
+        t->accept_paused_until = 0u;
+        listener_events(t, EPOLLIN);
     }
     /* The end of a reply the kernel took in part goes out as soon as there is room (the loop
      * comes by at least every brake period). */
     for (i = 0; i < ESTOP_MAX_SLOTS; i++) {
-        if (d->clients[i].fd >= 0 && d->clients[i].reply.rest_len > 0u) {
-            (void)reply_flush(&d->clients[i].reply, d->clients[i].fd);
+        if (t->clients[i].fd >= 0 && t->clients[i].reply.rest_len > 0u) {
+            (void)reply_flush(&t->clients[i].reply, t->clients[i].fd);
         }
     }
 }
 
-void clients_accept(daemon_t *d)
+void tcp_accept(tcp_t *t)
 {
     int i;
     for (i = 0; i < ACCEPT_BATCH; i++) {
@@ -264,14 +264,14 @@ void clients_accept(daemon_t *d)
         socklen_t len = sizeof peer;
         int evict = 0;
         int slot;
-        int fd = accept4(d->tcp_fd, (struct sockaddr *)&peer, &len, SOCK_NONBLOCK | SOCK_CLOEXEC);
+        int fd = accept4(t->listen_fd, (struct sockaddr *)&peer, &len, SOCK_NONBLOCK | SOCK_CLOEXEC);
 
         if (fd < 0) {
             if (errno == EINTR || errno == ECONNABORTED) {
                 continue;
             }
             if (errno == EMFILE || errno == ENFILE || errno == ENOBUFS || errno == ENOMEM) {
-                pause_accept(d, errno);
+                pause_accept(t, errno);
             } else if (errno != EAGAIN) {
                 char ebuf[16];
                 log_kv_t kv[] = { KV_STR("err", log_errno_name(errno, ebuf, sizeof ebuf)) };
@@ -279,27 +279,27 @@ void clients_accept(daemon_t *d)
             }
             return;
         }
-        if (d->accept_failures != 0u) {
-            log_kv_t kv[] = { KV_NUM("pauses", d->accept_failures) };
+        if (t->accept_failures != 0u) {
+            log_kv_t kv[] = { KV_NUM("pauses", t->accept_failures) };
             log_event(clock_unit_us(), "accept_ok", NULL, kv, 1u);
-            d->accept_failures = 0u;
+            t->accept_failures = 0u;
         }
-        slot = pick_slot(d, &evict);
+        slot = pick_slot(t, &evict);
         if (evict) {
-            log_client(clock_unit_us(), "client_evict", slot, &d->clients[slot].peer,
+            log_client(clock_unit_us(), "client_evict", slot, &t->clients[slot].peer,
                        "make_room", 0u);
-            retire(d, (uint32_t)slot, "evicted");
+            retire(t, (uint32_t)slot, "evicted");
         }
         net_stop_socket_options(fd); /* inherited from the listener; set again all the same */
-        if (client_start(d, fd, slot, &peer) != 0) {
+        if (client_start(t, fd, slot, &peer) != 0) {
             (void)close(fd);
         }
     }
 }
 
-int clients_reply(daemon_t *d, uint32_t slot, const uint8_t *reply, size_t len)
+int tcp_reply(tcp_t *t, uint32_t slot, const uint8_t *reply, size_t len)
 {
-    client_t *c = &d->clients[slot];
+    client_t *c = &t->clients[slot];
     reply_result_t res;
 
     if (c->fd < 0) {
@@ -318,53 +318,53 @@ int clients_reply(daemon_t *d, uint32_t slot, const uint8_t *reply, size_t len)
     return res == REPLY_SENT ? 0 : -1;
 }
 
-void clients_event(daemon_t *d, uint32_t slot)
+void tcp_event(tcp_t *t, uint32_t slot)
 {
     uint8_t buf[TCP_READ_MAX];
     ssize_t n;
-    int fd = d->clients[slot].fd;
+    int fd = t->clients[slot].fd;
 
     if (fd < 0) {
         return;
     }
     n = recv(fd, buf, sizeof buf, 0);
     if (n == 0) {
-        close_now(d, slot, "eof");
+        close_now(t, slot, "eof");
         return;
     }
     if (n < 0) {
         if (errno != EAGAIN && errno != EINTR) {
             char ebuf[16];
-            close_now(d, slot, log_errno_name(errno, ebuf, sizeof ebuf));
+            close_now(t, slot, log_errno_name(errno, ebuf, sizeof ebuf));
         }
         return;
     }
-    if (feed(d, slot, buf, (size_t)n) == 0 && d->clients[slot].reply.hard_err != 0) {
+    if (feed(t, slot, buf, (size_t)n) == 0 && t->clients[slot].reply.hard_err != 0) {
         /* The connection broke under a reply: what the client sent is handled, then it goes. */
         char ebuf[16];
-        retire(d, slot, log_errno_name(d->clients[slot].reply.hard_err, ebuf, sizeof ebuf));
+        retire(t, slot, log_errno_name(t->clients[slot].reply.hard_err, ebuf, sizeof ebuf));
     }
 }
 
-void clients_drain_all(daemon_t *d, uint64_t max_us)
+void tcp_drain_all(tcp_t *t, uint64_t max_us)
 {
     uint64_t until = clock_unit_us() + max_us;
     uint32_t i;
     for (i = 0; i < ESTOP_MAX_SLOTS; i++) {
-        drain(d, i, until);
+        drain(t, i, until);
     }
 }
 
-void clients_close_all(daemon_t *d, const char *why)
+void tcp_close_all(tcp_t *t, const char *why)
 {
     uint32_t i;
     uint64_t now = clock_unit_us();
     for (i = 0; i < ESTOP_MAX_SLOTS; i++) {
-        if (d->clients[i].fd >= 0) {
-            (void)close(d->clients[i].fd);
-            d->clients[i].fd = -1;
-            log_client(now, "client_close", (int)i, &d->clients[i].peer, why,
-                       d->clients[i].reply.dropped);
+        if (t->clients[i].fd >= 0) {
+            (void)close(t->clients[i].fd);
+            t->clients[i].fd = -1;
+            log_client(now, "client_close", (int)i, &t->clients[i].peer, why,
+                       t->clients[i].reply.dropped);
         }
     }
 }

@@ -27,6 +27,7 @@ from daemon_util import (
     STOPPED,
     Daemon,
     parse_reply,
+    recv_exact,
     tcp_frame,
 )
 from test_estopd_attacks import Heartbeat, status
@@ -144,5 +145,28 @@ def test_a_stop_already_in_a_socket_at_sigterm_is_handled_and_answered(tmp_path:
         at_stop = next(i for i, line in enumerate(lines) if "reason=tcp_stop" in line)
         at_exit = next(i for i, line in enumerate(lines) if " exit " in line)
         assert at_stop < at_exit, lines
+        last = [f for f in d.frames() if f.is_brake()][-1]
+        assert last.state == STOPPED and last.reason == R_TCP_STOP, last
+
+
+def test_a_stop_on_a_connection_still_in_the_backlog_at_sigterm_counts(tmp_path: Path) -> None:
+    """SIGTERM, then a client connects and sends a STOP while the daemon cannot run: its
+    connection is still in the listen backlog when the exit begins. The exit accepts it and
+    handles the STOP before the last frame."""
+    with Daemon(tmp_path) as d, Heartbeat(d.udp_port):
+        d.arm()
+        assert d.proc is not None
+        os.kill(d.proc.pid, signal.SIGSTOP)
+        try:
+            d.proc.send_signal(signal.SIGTERM)
+            s = socket.create_connection(("127.0.0.1", d.tcp_port), timeout=5)
+            s.sendall(tcp_frame(STOP_ID, 778))
+            time.sleep(0.1)
+        finally:
+            os.kill(d.proc.pid, signal.SIGCONT)
+        assert d.proc.wait(timeout=10) == 0
+        with s:
+            reply = parse_reply(recv_exact(s, 16))
+        assert reply.seq == 778 and reply.msg == ACK and reply.state == STOPPED, reply
         last = [f for f in d.frames() if f.is_brake()][-1]
         assert last.state == STOPPED and last.reason == R_TCP_STOP, last

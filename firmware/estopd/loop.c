@@ -254,6 +254,7 @@ static int finish(daemon_t *d)
     notify_send(&d->notify, "STOPPING=1");
     udp_round(&d->udp);
     if (!broken(d)) {
+        tcp_accept(&d->tcp); /* connections still in the backlog may hold a STOP too */
         tcp_drain_all(&d->tcp, EXIT_DRAIN_US);
     }
     last_frame(d);

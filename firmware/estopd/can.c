@@ -358,11 +358,11 @@ void can_on_event(can_t *c, uint32_t events, uint64_t now_us)
 
 void can_drain(can_t *c, uint64_t max_us)
 {
-    uint64_t start = clock_mono_us();
+    uint64_t start = clock_unit_us();
     const struct timespec pause = { 0, 500000L };
 
     while (c->n_queue > 0u) {
-        uint64_t now = clock_mono_us();
+        uint64_t now = clock_unit_us();
         if (now - start >= max_us) {
             break;
         }

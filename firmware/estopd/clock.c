@@ -1,21 +1,54 @@
 #include "clock.h"
 
-#include <time.h>
+/* The latest time handed out, and CLOCK_BOOTTIME minus CLOCK_MONOTONIC when it was read: the
+ * fallback when CLOCK_BOOTTIME fails. One clock per process, as there is one loop. */
+static uint64_t last_us;
+static uint64_t boot_minus_mono_us;
 
-uint64_t clock_mono_us(void)
+static int read_us(clockid_t id, uint64_t *t_us)
 {
     struct timespec ts;
-    /* CLOCK_MONOTONIC always exists on Linux; a failure would leave ts unset, so report 0
-     * and let the caller's "never go backwards" clamp hold the time still. */
-    if (clock_gettime(CLOCK_MONOTONIC, &ts) != 0) {
-        return 0u;
+    if (clock_gettime(id, &ts) != 0 || ts.tv_sec < 0) {
+        return -1;
     }
-    return (uint64_t)ts.tv_sec * 1000000u + (uint64_t)ts.tv_nsec / 1000u;
+    *t_us = (uint64_t)ts.tv_sec * 1000000u + (uint64_t)ts.tv_nsec / 1000u;
+    return 0;
 }
 
-void clock_pair(uint64_t *mono_us, struct timespec *real)
+int clock_read_us(uint64_t *t_us)
 {
-    *mono_us = clock_mono_us();
+    uint64_t boot;
+    uint64_t mono;
+    int rc = 0;
+
+    if (read_us(CLOCK_UNIT, &boot) == 0) {
+        if (read_us(CLOCK_MONOTONIC, &mono) == 0 && boot >= mono) {
+            boot_minus_mono_us = boot - mono;
+        }
+    } else {
+        /* No verdict from the unit's clock: time must still move, or no deadline ever passes
+         * and no frame goes out. The monotonic clock (which misses suspends) stands in. */
+        rc = -1;
+        boot = read_us(CLOCK_MONOTONIC, &mono) == 0 ? mono + boot_minus_mono_us : last_us;
+    }
+    if (boot < last_us) {
+        boot = last_us; /* the stand-in may start a little behind */
+    }
+    last_us = boot;
+    *t_us = boot;
+    return rc;
+}
+
+uint64_t clock_unit_us(void)
+{
+    uint64_t t;
+    (void)clock_read_us(&t);
+    return t;
+}
+
+void clock_pair(uint64_t *unit_us, struct timespec *real)
+{
+    *unit_us = clock_unit_us();
     if (clock_gettime(CLOCK_REALTIME, real) != 0) {
         real->tv_sec = -1; /* no wall clock: rxtime takes the read time */
         real->tv_nsec = 0;

@@ -1,16 +1,20 @@
-/* The daemon's whole state (one static instance, no heap) and the hooks its parts share. */
+/* The whole daemon (one static instance, no heap): what the loop and the start-up put
+ * together. The parts below it each get the narrow struct they need, never this one. */
 #ifndef ESTOPD_DAEMON_H
 #define ESTOPD_DAEMON_H
 
-#include <netinet/in.h>
 #include <stdint.h>
 
+#include "apply.h"
 #include "can.h"
 #include "canlog.h"
-#include "estop_core.h"
 #include "notify.h"
 #include "opts.h"
-#include "reply.h"
+#include "stats.h"
+#include "tcp.h"
+#include "udp.h"
+#include "unit.h"
+#include "wake.h"
 
 /* epoll tags (data.u64). */
 enum {
@@ -23,49 +27,26 @@ enum {
 };
 
 typedef struct {
-    int fd;                   /* -1: slot free */
-    struct sockaddr_in peer;
-    uint64_t quiet_since_us;  /* accepted, or its latest complete frame: who makes room */
-    reply_state_t reply;      /* replies not read: dropped and counted, never waited for */
-} client_t;
-
-typedef struct {
     opts_t opt;
-    estop_core_t core;
-    int epfd;
-    int timerfd;
-    int sigfd;
-    int udp_fd;
-    uint32_t udp_budget;      /* datagrams the drain may still read this loop round */
-    int udp_rcvbuf;           /* the receive buffer the kernel gave (bytes, as SO_RCVBUF says) */
-    int udp_rcvbuf_wanted;
-    uint32_t udp_drops;       /* the kernel's count of datagrams dropped for want of room */
-    int tcp_fd;
-    uint16_t udp_port;        /* bound ports (port 0 picks one) */
-    uint16_t tcp_port;
-    client_t clients[ESTOP_MAX_SLOTS];
-    uint64_t accept_paused_until; /* listener unwatched until then (EMFILE...), 0: watched */
-    uint32_t accept_failures;     /* pauses in the current episode */
+    unit_t unit;              /* the core, its time and catch-up */
+    apply_t apply;            /* where the unit's frames and state lines go */
+    udp_t udp;
+    tcp_t tcp;
     int can_on;
     can_t can;
     canlog_t canlog;
-    uint64_t last_call_us;    /* host time of the latest successful core call */
-    uint64_t deadline_us;     /* host time the core asked to be called back */
-    uint64_t armed_us;        /* what the timerfd is armed for (0: never armed) */
-    uint8_t state;
-    uint8_t reason;
-    estop_can_frame_t last_brake; /* latest brake frame the core produced */
-    uint8_t have_brake;
-    uint32_t frames_out;      /* frames handed out so far */
-    estop_can_frame_t last_frame;
-    uint64_t stats_last_us;   /* the latest periodic read-out (stats.c) */
-    uint64_t stats_auth_reported; /* authentication failures already in the log */
-    uint32_t stats_valid_reported; /* valid packets in the latest link_histogram */
-    uint32_t stats_slowdowns_reported; /* ... and slow-downs and timeouts */
-    uint32_t stats_timeouts_reported;
-    uint32_t stats_drops_reported; /* udp_drops in the latest udp_drops event */
     notify_t notify;          /* the systemd notify protocol (no-op without NOTIFY_SOCKET) */
-    int fatal;                /* an unrecoverable error: leave the loop */
+    stats_t stats;
+    stats_src_t stats_src;
+    wake_t wake;              /* who needs the loop when (wake.h) */
+    int epfd;
+    int timerfd;
+    int sigfd;
+    uint16_t udp_port;        /* bound ports (port 0 picks one) */
+    uint16_t tcp_port;
+    uint64_t armed_us;        /* what the timerfd is armed for (0: never armed) */
+    uint8_t clock_fault;      /* the unit's clock failed at its latest read (reported once) */
+    int fatal;                /* an unrecoverable error of the loop itself: leave it */
     int stop_signal;          /* the signal that asks us to stop, 0 if none */
 } daemon_t;
 

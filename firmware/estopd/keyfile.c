@@ -40,7 +40,7 @@ int keyfile_parse(const char *text, size_t len, uint8_t key[ESTOP_KEY_LEN], char
         if (hi < 0 || lo < 0) {
             (void)snprintf(err, errlen, "not a hex digit at byte %zu of the key file",
                            hi < 0 ? i + 1u : i + 2u);
-            memset(key, 0, ESTOP_KEY_LEN);
+            explicit_bzero(key, ESTOP_KEY_LEN);
             return -1;
         }
         key[i / 2u] = (uint8_t)((hi << 4) | lo);
@@ -65,6 +65,11 @@ int keyfile_load(const char *path, uint8_t key[ESTOP_KEY_LEN], char *err, size_t
         (void)snprintf(err, errlen, "--key-file '%s': %s", path, strerror(errno));
     } else if (!S_ISREG(st.st_mode)) {
         (void)snprintf(err, errlen, "--key-file '%s': not a regular file", path);
+    } else if (st.st_uid != geteuid() && st.st_uid != 0u) {
+        /* Whoever owns the file can change the key (chmod it back, write another): only the
+         * daemon's own user and root may. */
+        (void)snprintf(err, errlen, "--key-file '%s': owned by uid %u, not by estopd's user "
+                       "(uid %u) or root", path, (unsigned)st.st_uid, (unsigned)geteuid());
     } else if ((st.st_mode & (S_IRWXG | S_IRWXO)) != 0u) {
         /* Group or others may read or write the key (or run it): refuse, as ssh does. */
         (void)snprintf(err, errlen, "--key-file '%s': group or others have access (mode %04o);"
@@ -81,7 +86,8 @@ int keyfile_load(const char *path, uint8_t key[ESTOP_KEY_LEN], char *err, size_t
             rc = 0;
         }
     }
-    memset(buf, 0, sizeof buf);
+    /* A memset of a buffer never read again is a dead store the compiler may drop. */
+    explicit_bzero(buf, sizeof buf);
     (void)close(fd);
     return rc;
 }

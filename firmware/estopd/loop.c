@@ -2,30 +2,157 @@
 
 #include <errno.h>
 #include <signal.h>
+#include <stdio.h>
 #include <string.h>
 #include <sys/epoll.h>
 #include <sys/signalfd.h>
 #include <sys/timerfd.h>
 #include <unistd.h>
 
-#include "clients.h"
 #include "clock.h"
-#include "core_io.h"
-#include "frame.h"
 #include "log.h"
-#include "stats.h"
-#include "udp.h"
 
 #define MAX_EVENTS 16
 #define EXIT_FLUSH_US 1000000u
+/* At exit, what the clients have sent is handled within this long (all of them together): a
+ * STOP already in a socket counts and is answered; a client that sends as fast as it is read
+ * cannot hold the exit. */
+#define EXIT_DRAIN_US 100000u
 
-/* Arms the timerfd (absolute CLOCK_MONOTONIC) for the next wakeup, when it changed. */
+static int broken(const daemon_t *d)
+{
+    return d->fatal || d->unit.fatal;
+}
+
+/* One round's work before any input or deadline: reads the clock, drains the control port
+ * (every datagram received so far goes to the unit at its receive time), catches the unit up
+ * and runs every wake-up source (the unit's due tick first). Returns the host time for the
+ * input that follows. No deadline is acted on before what was received before it has been
+ * looked at (PROTOCOL.md 6). */
+static uint64_t prepare(daemon_t *d)
+{
+    uint64_t t0;
+    uint64_t now;
+    /* A clock that cannot be read gives a stand-in time (clock.h) and is a fault: the core
+     * stops and latches, reported once per episode. */
+    int clock_bad = clock_read_us(&t0) != 0;
+
+    if (t0 < d->unit.last_call_us) {
+        t0 = d->unit.last_call_us; /* time handed to the core never goes backwards */
+    }
+    /* Drain first: a drain cut short by its budget leaves the rest unread; the deadline is
+     * not delayed for packets not yet looked at (the car stops rather than waits). */
+    udp_drain(&d->udp, &d->unit, &d->apply, t0);
+    now = t0 > d->unit.last_call_us ? t0 : d->unit.last_call_us;
+    apply_catch_up(&d->apply, &d->unit, now);
+    if (!d->unit.fatal && clock_bad && !d->clock_fault) {
+        apply_fault(&d->apply, &d->unit, now, "clock");
+    }
+    d->clock_fault = (uint8_t)clock_bad;
+    wake_service(&d->wake, now);
+    return now;
+}
+
+static uint64_t prepare_hook(void *ctx)
+{
+    return prepare(ctx);
+}
+
+/* ---- wake-up sources (wake.h) -------------------------------------------------------------- */
+
+static uint64_t unit_next(const void *ctx)
+{
+    return unit_next_wakeup(&((const daemon_t *)ctx)->unit);
+}
+
+static void unit_service(void *ctx, uint64_t now)
+{
+    daemon_t *d = ctx;
+    unit_fx_t fx;
+    if (unit_tick_due(&d->unit, now, &fx)) {
+        apply_fx(&d->apply, &fx, NULL);
+    }
+}
+
+static uint64_t tcp_next(const void *ctx)
+{
+    return tcp_next_wakeup(ctx);
+}
+
+static void tcp_service_src(void *ctx, uint64_t now)
+{
+    tcp_service(ctx, now);
+}
+
+static void log_service(void *ctx, uint64_t now)
+{
+    (void)ctx;
+    log_housekeeping(now);
+}
+
+static uint64_t can_next(const void *ctx)
+{
+    return can_next_wakeup(&((const daemon_t *)ctx)->can);
+}
+
+static void can_service_src(void *ctx, uint64_t now)
+{
+    daemon_t *d = ctx;
+    const char *cause;
+    if (d->unit.fatal) {
+        return;
+    }
+    can_service(&d->can, now);
+    cause = can_take_fault(&d->can);
+    if (cause != NULL) {
+        apply_fault(&d->apply, &d->unit, now, cause);
+    }
+}
+
+int loop_init(daemon_t *d, char *err, size_t errlen)
+{
+    d->apply.can = d->can_on ? &d->can : NULL;
+    d->apply.canlog = &d->canlog;
+    d->apply.notify = &d->notify;
+    d->tcp.epfd = d->epfd;
+    d->tcp.listen_tag = TAG_TCP;
+    d->tcp.client_tag0 = TAG_CLIENT0;
+    d->tcp.unit = &d->unit;
+    d->tcp.apply = &d->apply;
+    d->tcp.prepare = prepare_hook;
+    d->tcp.prepare_ctx = d;
+    d->stats_src.core = &d->unit.core;
+    d->stats_src.cfg = &d->opt.cfg;
+    d->stats_src.udp_drops = &d->udp.drops;
+    /* In this order every round: the unit's due tick, the stop port, the log, CAN. */
+    if (wake_add(&d->wake, unit_next, unit_service, d) != 0 ||
+        wake_add(&d->wake, tcp_next, tcp_service_src, &d->tcp) != 0 ||
+        wake_add(&d->wake, NULL, log_service, NULL) != 0 ||
+        (d->can_on && wake_add(&d->wake, can_next, can_service_src, d) != 0)) {
+        (void)snprintf(err, errlen, "too many wake-up sources (WAKE_MAX)");
+        return -1;
+    }
+    return 0;
+}
+
+int loop_boot(daemon_t *d)
+{
+    unit_fx_t fx;
+    int rc = unit_boot(&d->unit, &d->opt.cfg, clock_unit_us(), &fx);
+    apply_fx(&d->apply, &fx, NULL);
+    return rc;
+}
+
+/* ---- the loop ------------------------------------------------------------------------------ */
+
+/* Arms the timerfd (absolute, on the unit's clock: CLOCK_BOOTTIME) for the next wakeup, when it
+ * changed. */
 static void arm_timer(daemon_t *d)
 {
     struct itimerspec its;
-    uint64_t wake = cio_wakeup(d);
+    uint64_t wake = wake_next(&d->wake);
 
-    if (wake == d->armed_us) {
+    if (wake == d->armed_us || wake == UINT64_MAX) {
         return;
     }
     memset(&its, 0, sizeof its);
@@ -37,7 +164,7 @@ static void arm_timer(daemon_t *d)
     if (timerfd_settime(d->timerfd, TFD_TIMER_ABSTIME, &its, NULL) != 0) {
         char ebuf[16];
         log_kv_t kv[] = { KV_STR("err", log_errno_name(errno, ebuf, sizeof ebuf)) };
-        log_event(clock_mono_us(), "timer_error", NULL, kv, 1u);
+        log_event(clock_unit_us(), "timer_error", NULL, kv, 1u);
         d->armed_us = 0u; /* the epoll timeout below still wakes us */
         return;
     }
@@ -47,9 +174,12 @@ static void arm_timer(daemon_t *d)
 /* epoll timeout: a backstop just past the timerfd (which normally wins), never -1. */
 static int backstop_ms(const daemon_t *d, uint64_t now)
 {
-    uint64_t wake = cio_wakeup(d);
+    uint64_t wake = wake_next(&d->wake);
     if (wake <= now) {
         return 0;
+    }
+    if (wake - now > (uint64_t)ESTOP_MAX_STEP_US) {
+        wake = now + ESTOP_MAX_STEP_US; /* nobody asked: the core's longest step */
     }
     return (int)((wake - now) / 1000u + 2u); /* the core's steps are < 2^31 us */
 }
@@ -57,12 +187,10 @@ static int backstop_ms(const daemon_t *d, uint64_t now)
 static void on_timer(daemon_t *d)
 {
     uint64_t expirations;
-    /* Clears the expiration; the work itself is cio_prepare's, as for every input. */
-    if (read(d->timerfd, &expirations, sizeof expirations) < 0 && errno != EAGAIN) {
-        d->armed_us = 0u;
-    }
+    /* Clears the expiration; the work itself is prepare's, as for every input. */
+    (void)read(d->timerfd, &expirations, sizeof expirations);
     d->armed_us = 0u; /* re-arm next round whatever the deadline is */
-    (void)cio_prepare(d);
+    (void)prepare(d);
 }
 
 static void on_signal(daemon_t *d)
@@ -83,15 +211,15 @@ static void dispatch(daemon_t *d, const struct epoll_event *ev)
     } else if (tag == TAG_SIGNAL) {
         on_signal(d);
     } else if (tag == TAG_UDP) {
-        (void)cio_prepare(d); /* the drain reads the datagrams (udp.h) */
+        (void)prepare(d); /* the drain reads the datagrams (udp.h) */
     } else if (tag == TAG_TCP) {
-        clients_accept(d);
+        tcp_accept(&d->tcp);
     } else if (tag == TAG_CAN) {
         if (d->can_on) {
-            can_on_event(&d->can, ev->events, cio_prepare(d));
+            can_on_event(&d->can, ev->events, prepare(d));
         }
     } else if (tag >= TAG_CLIENT0 && tag < (uint64_t)TAG_CLIENT0 + ESTOP_MAX_SLOTS) {
-        clients_event(d, (uint32_t)(tag - TAG_CLIENT0));
+        tcp_event(&d->tcp, (uint32_t)(tag - TAG_CLIENT0));
     }
 }
 
@@ -105,53 +233,48 @@ static const char *signal_name(int sig)
     }
 }
 
-/* One last ESTOP_BRAKE frame that says brake. ARMED or SLOWING (neither is latched): a fault
- * makes the core itself send the STOPPED frame (valid counter and CRC). Already STOPPED (or
- * the core is broken): the next frame of the sequence is built here. */
+/* One last ESTOP_BRAKE frame that says brake (unit_last_frame). */
 static void last_frame(daemon_t *d)
 {
-    uint32_t before = d->frames_out;
-    uint64_t now = d->fatal ? clock_mono_us() : cio_prepare(d);
-    estop_can_frame_t f;
-    uint8_t reason;
+    uint64_t now = broken(d) ? clock_unit_us() : prepare(d);
+    unit_fx_t fx;
 
-    if (!d->fatal && d->state != ESTOP_STATE_STOPPED) {
-        cio_fault(d, now, "shutdown");
+    if (!broken(d) && d->unit.state != ESTOP_STATE_STOPPED) {
+        log_kv_t kv[] = { KV_STR("cause", "shutdown") };
+        log_event(now, "fault", NULL, kv, 1u);
     }
-    if (d->frames_out != before && d->last_frame.id == d->opt.cfg.brake_can_id &&
-        d->last_frame.data[0] == 1u) {
-        return;
-    }
-    reason = d->state == ESTOP_STATE_STOPPED ? d->reason : (uint8_t)ESTOP_REASON_FAULT;
-    frame_next_stopped(d->have_brake ? &d->last_brake : NULL, d->opt.cfg.brake_can_id,
-                       d->opt.cfg.brake_data_id, reason, &f);
-    cio_emit(d, &f, now);
+    (void)unit_last_frame(&d->unit, now, !broken(d), &fx);
+    apply_fx(&d->apply, &fx, NULL);
 }
 
 static int finish(daemon_t *d)
 {
-    int code = d->fatal ? 1 : 0;
+    int code = broken(d) ? 1 : 0;
 
     notify_send(&d->notify, "STOPPING=1");
-    udp_round(d);
+    udp_round(&d->udp);
+    if (!broken(d)) {
+        tcp_accept(&d->tcp); /* connections still in the backlog may hold a STOP too */
+        tcp_drain_all(&d->tcp, EXIT_DRAIN_US);
+    }
     last_frame(d);
     if (d->can_on) {
         can_drain(&d->can, d->opt.cfg.brake_period_us); /* a refused last frame gets a period */
         can_close(&d->can);
     }
-    clients_close_all(d, "exit");
-    stats_final(d, clock_mono_us());
-    log_report(clock_mono_us()); /* what is left to say about lost lines, before the exit line */
+    tcp_close_all(&d->tcp, "exit");
+    stats_final(&d->stats, &d->stats_src, clock_unit_us());
+    log_report(clock_unit_us()); /* what is left to say about lost lines, before the exit line */
     {
         log_kv_t kv[] = { KV_NUM("code", code), KV_STR("signal", signal_name(d->stop_signal)) };
-        log_event(clock_mono_us(), "exit", NULL, kv, 2u);
+        log_event(clock_unit_us(), "exit", NULL, kv, 2u);
     }
     {
         /* Whatever the readers do, the exit is bounded: the outputs share one deadline. */
-        uint64_t start = clock_mono_us();
+        uint64_t start = clock_unit_us();
         uint64_t spent;
         canlog_close(&d->canlog, EXIT_FLUSH_US);
-        spent = clock_mono_us() - start;
+        spent = clock_unit_us() - start;
         log_flush(spent < EXIT_FLUSH_US ? EXIT_FLUSH_US - spent : 0u);
     }
     return code;
@@ -161,18 +284,18 @@ int loop_run(daemon_t *d)
 {
     struct epoll_event evs[MAX_EVENTS];
 
-    while (!d->fatal && d->stop_signal == 0) {
+    while (!broken(d) && d->stop_signal == 0) {
         uint64_t now;
         int n;
         int i;
 
-        udp_round(d);
-        now = cio_prepare(d); /* deadline work first, every round */
-        if (d->fatal) {
+        udp_round(&d->udp);
+        now = prepare(d); /* deadline work first, every round */
+        if (broken(d)) {
             break;
         }
-        stats_tick(d, now);
-        notify_loop(&d->notify, now, d->fatal, d->frames_out);
+        stats_tick(&d->stats, &d->stats_src, now);
+        notify_loop(&d->notify, now, broken(d), d->unit.frames_out);
         arm_timer(d);
         n = epoll_wait(d->epfd, evs, MAX_EVENTS, backstop_ms(d, now));
         if (n < 0) {
@@ -182,12 +305,12 @@ int loop_run(daemon_t *d)
             {
                 char ebuf[16];
                 log_kv_t kv[] = { KV_STR("err", log_errno_name(errno, ebuf, sizeof ebuf)) };
-                log_event(clock_mono_us(), "epoll_error", NULL, kv, 1u);
+                log_event(clock_unit_us(), "epoll_error", NULL, kv, 1u);
             }
             d->fatal = 1;
             break;
         }
-        for (i = 0; i < n && !d->fatal; i++) {
+        for (i = 0; i < n && !broken(d); i++) {
             dispatch(d, &evs[i]);
         }
     }

@@ -4,10 +4,45 @@
 #include <errno.h>
 #include <stdio.h>
 #include <string.h>
+#include <netinet/tcp.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
 #define TCP_BACKLOG 128 /* a connect storm queues here; room is made as they are accepted */
+#define TCP_RCVBUF 8192    /* the kernel doubles it */
+/* Replies a client has not read yet stay below this (the kernel doubles it): an honest
+ * client has one or two outstanding; for one that never reads, replies are dropped soon. */
+#define TCP_SNDBUF 4096
+/* A peer that vanished without a FIN is found within about KEEP_IDLE + KEEP_CNT * KEEP_INTVL
+ * seconds; one that stops acknowledging replies within USER_TIMEOUT_MS. */
+#define KEEP_IDLE 2
+#define KEEP_INTVL 1
+#define KEEP_CNT 3
+#define USER_TIMEOUT_MS 5000u
+
+void net_stop_socket_options(int fd)
+{
+    /* Replies are single small frames: send them at once, and keep few unread ones. Dead
+     * peers are found by keepalive. Failing here only costs latency or memory, or a slot
+     * held longer (until it is the quietest and a new client needs it), so results are not
+     * checked. */
+    int one = 1;
+    int sndbuf = TCP_SNDBUF;
+    int rcvbuf = TCP_RCVBUF;
+    int idle = KEEP_IDLE;
+    int intvl = KEEP_INTVL;
+    int cnt = KEEP_CNT;
+    unsigned user_timeout = USER_TIMEOUT_MS;
+
+    (void)setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
+    (void)setsockopt(fd, SOL_SOCKET, SO_SNDBUF, &sndbuf, sizeof sndbuf);
+    (void)setsockopt(fd, SOL_SOCKET, SO_RCVBUF, &rcvbuf, sizeof rcvbuf);
+    (void)setsockopt(fd, SOL_SOCKET, SO_KEEPALIVE, &one, sizeof one);
+    (void)setsockopt(fd, IPPROTO_TCP, TCP_KEEPIDLE, &idle, sizeof idle);
+    (void)setsockopt(fd, IPPROTO_TCP, TCP_KEEPINTVL, &intvl, sizeof intvl);
+    (void)setsockopt(fd, IPPROTO_TCP, TCP_KEEPCNT, &cnt, sizeof cnt);
+    (void)setsockopt(fd, IPPROTO_TCP, TCP_USER_TIMEOUT, &user_timeout, sizeof user_timeout);
+}
 
 static int net_fail(int fd, const char *what, const char *proto, struct in_addr addr,
                     uint16_t port, char *err, size_t n)
@@ -47,6 +82,14 @@ static int net_open(int type, struct in_addr addr, uint16_t port, uint16_t *boun
     sa.sin_port = htons(port);
     if (bind(fd, (struct sockaddr *)&sa, sizeof sa) != 0) {
         return net_fail(fd, "cannot bind", proto, addr, port, err, n);
+    }
+    /* Before listen(): a connection the kernel completes while it waits in the backlog is
+     * a copy of the listener and queues what its peer sends in the listener's buffer. With
+     * the default (tcp_rmem, 128 KiB) a client could queue more before its accept than the
+     * drain before a close reads; set here, every connection has the small buffer from its
+     * first byte, and accept() hands it on with the rest of these options. */
+    if (type == SOCK_STREAM) {
+        net_stop_socket_options(fd);
     }
     if (type == SOCK_STREAM && listen(fd, TCP_BACKLOG) != 0) {
         return net_fail(fd, "cannot listen on", proto, addr, port, err, n);

@@ -13,6 +13,9 @@
 int net_udp_open(struct in_addr addr, uint16_t port, uint16_t *bound, char *err, size_t n);
 /* Non-blocking listening TCP socket, SO_REUSEADDR. Same conventions. */
 int net_tcp_open(struct in_addr addr, uint16_t port, uint16_t *bound, char *err, size_t n);
+/* The stop port's socket options (small buffers, TCP_NODELAY, keepalive, user timeout): set
+ * on the listener before listen() and on every accepted socket. */
+void net_stop_socket_options(int fd);
 /* "a.b.c.d:port". */
 void net_fmt_addr(const struct sockaddr_in *a, char *buf, size_t n);
 

@@ -1,6 +1,7 @@
 #include "outq.h"
 
 #include <errno.h>
+#include <limits.h>
 #include <poll.h>
 #include <sched.h>
 #include <signal.h>
@@ -33,13 +34,31 @@ static uint64_t count_lines(const char *buf, size_t len)
     return n;
 }
 
-/* Writes one contiguous piece of the ring. A descriptor someone else made non-blocking is
- * waited for with poll (this is the writer's own thread, waiting is its job). Anything else
- * that fails loses the piece: the lines are counted, the writer goes on. */
-static void write_piece(outq_t *q, uint32_t tail, uint32_t len)
+/* The next write: whole lines from the ring, at most PIPE_BUF bytes, copied into chunk (which
+ * also joins a line across the end of the ring). On a pipe a write of at most PIPE_BUF bytes
+ * is atomic, so when the log and the can-log share one pipe (estopd 2>&1 | ...) their lines
+ * never interleave inside a line. Returns the byte count. */
+static uint32_t gather(const outq_t *q, uint32_t tail, uint32_t head, char *chunk)
 {
-    const char *p = &q->ring[tail & OUTQ_MASK];
-    ssize_t n = write(q->fd, p, len);
+    uint32_t n = 0u;
+    uint32_t whole = 0u;
+    while (tail + n != head && n < (uint32_t)PIPE_BUF) {
+        char c = q->ring[(tail + n) & OUTQ_MASK];
+        chunk[n++] = c;
+        if (c == '\n') {
+            whole = n;
+        }
+    }
+    return whole != 0u ? whole : n; /* no line is longer than PIPE_BUF (outq_put) */
+}
+
+/* Writes one chunk. A descriptor someone else made non-blocking is waited for with poll
+ * (this is the writer's own thread, waiting is its job). Anything else that fails loses the
+ * chunk: the lines are counted, the writer goes on. A file or terminal may take part of a
+ * chunk; the rest goes with the next write. */
+static void write_chunk(outq_t *q, uint32_t tail, const char *chunk, uint32_t len)
+{
+    ssize_t n = write(q->fd, chunk, len);
 
     if (n > 0) {
         store_rel(&q->tail, tail + (uint32_t)n);
@@ -51,7 +70,7 @@ static void write_piece(outq_t *q, uint32_t tail, uint32_t len)
         (void)poll(&pfd, 1, 1000);
     } else if (!(n < 0 && errno == EINTR)) {
         __atomic_store_n(&q->last_errno, n < 0 ? errno : EIO, __ATOMIC_RELAXED);
-        __atomic_add_fetch(&q->lines_failed, count_lines(p, len), __ATOMIC_RELAXED);
+        __atomic_add_fetch(&q->lines_failed, count_lines(chunk, len), __ATOMIC_RELAXED);
         store_rel(&q->tail, tail + len);
     }
 }
@@ -60,6 +79,7 @@ static void *writer_main(void *arg)
 {
     outq_t *q = arg;
     sigset_t all;
+    char chunk[PIPE_BUF]; /* one write's worth (the writer's stack is 64 KiB) */
 
     (void)sigfillset(&all);
     (void)pthread_sigmask(SIG_BLOCK, &all, NULL); /* signals belong to the loop's signalfd */
@@ -78,9 +98,7 @@ static void *writer_main(void *arg)
             }
             __atomic_store_n(&q->asleep, 0, __ATOMIC_SEQ_CST);
         } else {
-            uint32_t len = head - tail;
-            uint32_t room = OUTQ_SIZE - (tail & OUTQ_MASK); /* up to the end of the ring */
-            write_piece(q, tail, len < room ? len : room);
+            write_chunk(q, tail, chunk, gather(q, tail, head, chunk));
         }
     }
     return NULL;
@@ -132,7 +150,8 @@ int outq_put(outq_t *q, const char *line, size_t len)
     uint32_t used = head - tail;
     uint32_t i;
 
-    if (!q->running || len == 0u || len > (size_t)(OUTQ_SIZE - used)) {
+    if (!q->running || len == 0u || len > (size_t)PIPE_BUF ||
+        len > (size_t)(OUTQ_SIZE - used)) {
         if (q->running && len > 0u) {
             q->lines_full++;
         }

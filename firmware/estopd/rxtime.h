@@ -1,5 +1,6 @@
 /* Receive times of control packets (PROTOCOL.md 6): the kernel stamps a datagram on
- * CLOCK_REALTIME when it arrives; the daemon and its core run on CLOCK_MONOTONIC. Pure
+ * CLOCK_REALTIME when it arrives; the daemon and its core run on the unit's clock
+ * (CLOCK_BOOTTIME, clock.h; "mono" below). Pure
  * functions without clock reads, so they can be tested alone (tests/c/rxtime_check.c). */
 #ifndef ESTOPD_RXTIME_H
 #define ESTOPD_RXTIME_H

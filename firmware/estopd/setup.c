@@ -7,18 +7,18 @@
 #include <sched.h>
 #include <sys/epoll.h>
 #include <sys/mman.h>
+#include <sys/prctl.h>
 #include <sys/random.h>
+#include <sys/resource.h>
 #include <sys/signalfd.h>
 #include <sys/timerfd.h>
 #include <unistd.h>
 
-#include "clients.h"
-#include "keyfile.h"
 #include "clock.h"
-#include "core_io.h"
+#include "keyfile.h"
 #include "log.h"
+#include "loop.h"
 #include "net.h"
-#include "udp.h"
 
 static int fail(const char *what, char *err, size_t n)
 {
@@ -68,22 +68,23 @@ static int setup_fds(daemon_t *d, char *err, size_t n)
     if (d->epfd < 0) {
         return fail("epoll_create1", err, n);
     }
-    d->timerfd = timerfd_create(CLOCK_MONOTONIC, TFD_NONBLOCK | TFD_CLOEXEC);
+    d->timerfd = timerfd_create(CLOCK_UNIT, TFD_NONBLOCK | TFD_CLOEXEC);
     if (d->timerfd < 0) {
         return fail("timerfd_create", err, n);
     }
     if (watch(d, d->timerfd, TAG_TIMER, err, n) != 0 || watch(d, d->sigfd, TAG_SIGNAL, err, n) != 0) {
         return -1;
     }
-    d->udp_fd = net_udp_open(d->opt.bind, d->opt.udp_port, &d->udp_port, err, n);
-    if (d->udp_fd < 0 || udp_setup(d, err, n) != 0) {
+    d->udp.fd = net_udp_open(d->opt.bind, d->opt.udp_port, &d->udp_port, err, n);
+    if (d->udp.fd < 0 || udp_setup(&d->udp, err, n) != 0) {
         return -1;
     }
-    d->tcp_fd = net_tcp_open(d->opt.bind, d->opt.tcp_port, &d->tcp_port, err, n);
-    if (d->tcp_fd < 0) {
+    d->tcp.listen_fd = net_tcp_open(d->opt.bind, d->opt.tcp_port, &d->tcp_port, err, n);
+    if (d->tcp.listen_fd < 0) {
         return -1;
     }
-    return (watch(d, d->udp_fd, TAG_UDP, err, n) != 0 || watch(d, d->tcp_fd, TAG_TCP, err, n) != 0)
+    return (watch(d, d->udp.fd, TAG_UDP, err, n) != 0 ||
+            watch(d, d->tcp.listen_fd, TAG_TCP, err, n) != 0)
                ? -1
                : 0;
 }
@@ -137,23 +138,51 @@ static int setup_auth(daemon_t *d, char *err, size_t n)
     return 0;
 }
 
-/* --rt-prio and --mlock, for hosts without systemd's CPUSchedulingPolicy= and friends. The
- * output threads were started with explicit normal priority, so only the loop gets it. */
+/* --rt-prio N: SCHED_FIFO at N for the loop. A process that already runs under SCHED_FIFO at N
+ * or higher keeps what it has: the shipped service (deploy/estopd.service.in) sets SCHED_FIFO
+ * with CPUSchedulingResetOnFork and gives no capability, and the kernel lets an unprivileged
+ * process neither raise its priority nor clear SCHED_RESET_ON_FORK. Otherwise it asks with
+ * SCHED_RESET_ON_FORK (children start at normal priority, and an unprivileged process may not
+ * ask without it when it already has it). The output threads were started with explicit
+ * normal priority, so only the loop gets it. Returns 0, or -1 with the real cause in err. */
+static int setup_rt_prio(int prio, char *err, size_t n)
+{
+    struct sched_param sp;
+    struct rlimit rl;
+    int policy = sched_getscheduler(0);
+    int e;
+
+    memset(&sp, 0, sizeof sp);
+    if (policy >= 0 && (policy & ~SCHED_RESET_ON_FORK) == SCHED_FIFO &&
+        sched_getparam(0, &sp) == 0 && sp.sched_priority >= prio) {
+        return 0;
+    }
+    memset(&sp, 0, sizeof sp);
+    sp.sched_priority = prio;
+    if (sched_setscheduler(0, SCHED_FIFO | SCHED_RESET_ON_FORK, &sp) == 0) {
+        return 0;
+    }
+    e = errno;
+    if (e == EPERM && getrlimit(RLIMIT_RTPRIO, &rl) == 0) {
+        (void)snprintf(err, n, "--rt-prio %d: sched_setscheduler(SCHED_FIFO): %s: needs "
+                       "CAP_SYS_NICE, or RLIMIT_RTPRIO >= %d (it is %llu), or starting under "
+                       "SCHED_FIFO at %d or higher (systemd: CPUSchedulingPolicy=fifo, "
+                       "CPUSchedulingPriority=%d)", prio, strerror(e), prio,
+                       (unsigned long long)rl.rlim_cur, prio, prio);
+    } else {
+        (void)snprintf(err, n, "--rt-prio %d: sched_setscheduler(SCHED_FIFO): %s", prio,
+                       strerror(e));
+    }
+    return -1;
+}
+
+/* --rt-prio and --mlock, for hosts without systemd's CPUSchedulingPolicy= and friends. */
 static int setup_realtime(daemon_t *d, char *err, size_t n)
 {
     if (d->opt.mlock && mlockall(MCL_CURRENT | MCL_FUTURE) != 0) {
         return fail("--mlock: mlockall (needs CAP_IPC_LOCK or a high RLIMIT_MEMLOCK)", err, n);
     }
-    if (d->opt.rt_prio > 0) {
-        struct sched_param sp;
-        memset(&sp, 0, sizeof sp);
-        sp.sched_priority = d->opt.rt_prio;
-        if (sched_setscheduler(0, SCHED_FIFO, &sp) != 0) {
-            return fail("--rt-prio: sched_setscheduler (needs CAP_SYS_NICE or RLIMIT_RTPRIO)",
-                        err, n);
-        }
-    }
-    return 0;
+    return d->opt.rt_prio > 0 ? setup_rt_prio(d->opt.rt_prio, err, n) : 0;
 }
 
 static void log_start_line(const daemon_t *d)
@@ -183,24 +212,24 @@ static void log_start_line(const daemon_t *d)
             KV_STR("stop_id", stop_id),
             KV_STR("auth", d->opt.cfg.key_len != 0u ? "key" : "none"),
             KV_STR("session", session),
-            KV_NUM("udp_rcvbuf", d->udp_rcvbuf),
+            KV_NUM("udp_rcvbuf", d->udp.rcvbuf),
             KV_NUM("rt_prio", d->opt.rt_prio),
             KV_NUM("mlock", d->opt.mlock),
             KV_NUM("pid", getpid()),
             KV_NUM("version_major", ESTOP_VERSION_MAJOR),
             KV_NUM("version_minor", ESTOP_VERSION_MINOR),
         };
-        log_event(clock_mono_us(), "start", NULL, kv, sizeof kv / sizeof kv[0]);
+        log_event(clock_unit_us(), "start", NULL, kv, sizeof kv / sizeof kv[0]);
     }
-    if (d->udp_rcvbuf < d->udp_rcvbuf_wanted) {
+    if (d->udp.rcvbuf < d->udp.rcvbuf_wanted) {
         /* Without CAP_NET_ADMIN the buffer stops at net.core.rmem_max (README: receive
          * buffer). */
         log_kv_t kv[] = {
-            KV_NUM("bytes", d->udp_rcvbuf),
-            KV_NUM("wanted", d->udp_rcvbuf_wanted),
+            KV_NUM("bytes", d->udp.rcvbuf),
+            KV_NUM("wanted", d->udp.rcvbuf_wanted),
             KV_STR("hint", "net.core.rmem_max"),
         };
-        log_event(clock_mono_us(), "udp_rcvbuf_small", NULL, kv, 3u);
+        log_event(clock_unit_us(), "udp_rcvbuf_small", NULL, kv, 3u);
     }
 }
 
@@ -208,24 +237,31 @@ int setup(daemon_t *d, char *err, size_t errlen)
 {
     int rc;
 
-    d->epfd = d->timerfd = d->sigfd = d->udp_fd = d->tcp_fd = -1;
+    /* The core's MAC state is as good as the key: no core dump, and no process of our own
+     * user may ptrace us or read our memory (/proc/PID/mem) for it. */
+    if (prctl(PR_SET_DUMPABLE, 0L, 0L, 0L, 0L) != 0) {
+        return fail("prctl(PR_SET_DUMPABLE)", err, errlen);
+    }
+
+    d->epfd = d->timerfd = d->sigfd = d->udp.fd = d->tcp.listen_fd = -1;
     d->canlog.fd = -1;
     d->can.fd = -1;
-    clients_init(d);
+    tcp_init(&d->tcp);
     /* Signals are blocked first, so the output threads inherit the mask and leave them to
      * the loop's signalfd. */
     d->notify.fd = -1;
     if (setup_signals(d, err, errlen) != 0 || log_start(d->opt.log_json, err, errlen) != 0 ||
         notify_open(&d->notify, err, errlen) != 0 ||
         setup_auth(d, err, errlen) != 0 || setup_realtime(d, err, errlen) != 0 ||
-        setup_fds(d, err, errlen) != 0 || setup_can(d, err, errlen) != 0) {
+        setup_fds(d, err, errlen) != 0 || setup_can(d, err, errlen) != 0 ||
+        loop_init(d, err, errlen) != 0) {
         return -1;
     }
     /* The ports go out before the first frame: tests and supervisors read them here. */
     log_start_line(d);
-    rc = cio_boot(d);
+    rc = loop_boot(d);
     /* The core keeps only the state after the key block; no other copy of the key stays. */
-    memset(d->opt.cfg.key, 0, sizeof d->opt.cfg.key);
+    explicit_bzero(d->opt.cfg.key, sizeof d->opt.cfg.key);
     if (rc != 0) {
         (void)snprintf(err, errlen, "the core failed to start");
         return -1;

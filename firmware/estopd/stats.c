@@ -23,7 +23,8 @@ static void list_u32(char *buf, size_t size, const uint32_t *v, uint32_t n)
 
 /* link_histogram (docs/LINK.md, read by `estop link`): cumulative since start, written when
  * valid packets arrived, or the link slowed the unit down or timed out, since the last one. */
-static void report_link(daemon_t *d, uint64_t now, const estop_counters_t *c)
+static void report_link(stats_t *s, const stats_src_t *src, uint64_t now,
+                        const estop_counters_t *c)
 {
     estop_link_stats_t ls;
     uint32_t edges[ESTOP_GAP_BINS];
@@ -31,14 +32,14 @@ static void report_link(daemon_t *d, uint64_t now, const estop_counters_t *c)
     char edges_s[LIST_MAX];
     uint32_t b;
 
-    if (estop_get_link_stats(&d->core, &ls) != ESTOP_OK ||
-        (ls.valid == d->stats_valid_reported && ls.slowdowns == d->stats_slowdowns_reported &&
-         ls.timeouts == d->stats_timeouts_reported)) {
+    if (estop_get_link_stats(src->core, &ls) != ESTOP_OK ||
+        (ls.valid == s->valid_reported && ls.slowdowns == s->slowdowns_reported &&
+         ls.timeouts == s->timeouts_reported)) {
         return;
     }
-    d->stats_valid_reported = ls.valid;
-    d->stats_slowdowns_reported = ls.slowdowns;
-    d->stats_timeouts_reported = ls.timeouts;
+    s->valid_reported = ls.valid;
+    s->slowdowns_reported = ls.slowdowns;
+    s->timeouts_reported = ls.timeouts;
     /* The lower edge of every bin, from the core's own bin rule (bin 0 starts at 0). */
     edges[0] = 0u;
     for (b = 1u; b < ESTOP_GAP_BINS; b++) {
@@ -54,9 +55,9 @@ static void report_link(daemon_t *d, uint64_t now, const estop_counters_t *c)
             KV_NUM("silences", ls.silences),
             KV_NUM("slowdowns", ls.slowdowns),
             KV_NUM("timeouts", ls.timeouts),
-            KV_NUM("warn_us", d->opt.cfg.warn_us),
-            KV_NUM("slow_us", d->opt.cfg.slow_us),
-            KV_NUM("timeout_us", d->opt.cfg.timeout_us),
+            KV_NUM("warn_us", src->cfg->warn_us),
+            KV_NUM("slow_us", src->cfg->slow_us),
+            KV_NUM("timeout_us", src->cfg->timeout_us),
             KV_LIST("edges_us", edges_s),
             KV_LIST("counts", counts_s),
         };
@@ -66,55 +67,55 @@ static void report_link(daemon_t *d, uint64_t now, const estop_counters_t *c)
 
 /* auth_failures: control packets and RELEASEs that failed authentication, by the first check
  * that failed (PROTOCOL.md 5), cumulative since start. Written only when they changed. */
-static void report_auth(daemon_t *d, uint64_t now, const estop_counters_t *c)
+static void report_auth(stats_t *s, uint64_t now, const estop_counters_t *c)
 {
     uint64_t sum = (uint64_t)c->auth_bad_tag + c->auth_bad_session + c->auth_old_counter +
                    c->auth_table_full;
-    if (sum != d->stats_auth_reported) {
+    if (sum != s->auth_reported) {
         log_kv_t kv[] = {
             KV_NUM("tag", c->auth_bad_tag),
             KV_NUM("session", c->auth_bad_session),
             KV_NUM("counter", c->auth_old_counter),
             KV_NUM("table_full", c->auth_table_full),
         };
-        d->stats_auth_reported = sum;
+        s->auth_reported = sum;
         log_event(now, "auth_failures", NULL, kv, 4u);
     }
 }
 
 /* udp_drops: datagrams the kernel dropped because the receive buffer was full (a flood, or a
  * loop that could not keep up), since start and since the last report. */
-static void report_drops(daemon_t *d, uint64_t now)
+static void report_drops(stats_t *s, uint32_t drops, uint64_t now)
 {
-    if (d->udp_drops != d->stats_drops_reported) {
+    if (drops != s->drops_reported) {
         log_kv_t kv[] = {
-            KV_NUM("dropped", (uint32_t)(d->udp_drops - d->stats_drops_reported)),
-            KV_NUM("total", d->udp_drops),
+            KV_NUM("dropped", (uint32_t)(drops - s->drops_reported)),
+            KV_NUM("total", drops),
         };
-        d->stats_drops_reported = d->udp_drops;
+        s->drops_reported = drops;
         log_event(now, "udp_drops", NULL, kv, 2u);
     }
 }
 
-static void report(daemon_t *d, uint64_t now)
+static void report(stats_t *s, const stats_src_t *src, uint64_t now)
 {
     estop_status_t st;
-    d->stats_last_us = now;
-    if (estop_get_status(&d->core, &st) == ESTOP_OK) {
-        report_auth(d, now, &st.counters);
-        report_link(d, now, &st.counters);
+    s->last_us = now;
+    if (estop_get_status(src->core, &st) == ESTOP_OK) {
+        report_auth(s, now, &st.counters);
+        report_link(s, src, now, &st.counters);
     }
-    report_drops(d, now);
+    report_drops(s, *src->udp_drops, now);
 }
 
-void stats_tick(daemon_t *d, uint64_t now_us)
+void stats_tick(stats_t *s, const stats_src_t *src, uint64_t now_us)
 {
-    if (now_us - d->stats_last_us >= STATS_EVERY_US) {
-        report(d, now_us);
+    if (now_us - s->last_us >= STATS_EVERY_US) {
+        report(s, src, now_us);
     }
 }
 
-void stats_final(daemon_t *d, uint64_t now_us)
+void stats_final(stats_t *s, const stats_src_t *src, uint64_t now_us)
 {
-    report(d, now_us);
+    report(s, src, now_us);
 }

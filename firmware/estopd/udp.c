@@ -7,7 +7,6 @@
 #include <time.h>
 
 #include "clock.h"
-#include "core_io.h"
 #include "log.h"
 #include "rxtime.h"
 
@@ -34,36 +33,36 @@ typedef struct {
 /* One loop, one batch: static, no heap and no large stack frame. */
 static batch_t batch;
 
-int udp_setup(daemon_t *d, char *err, size_t errlen)
+int udp_setup(udp_t *u, char *err, size_t errlen)
 {
     int one = 1;
     int size = UDP_RCVBUF;
-    socklen_t len = sizeof d->udp_rcvbuf;
+    socklen_t len = sizeof u->rcvbuf;
 
     /* Without receive stamps a backlog would stretch the deadlines: refuse to run. */
-    if (setsockopt(d->udp_fd, SOL_SOCKET, SO_TIMESTAMPNS, &one, sizeof one) != 0) {
+    if (setsockopt(u->fd, SOL_SOCKET, SO_TIMESTAMPNS, &one, sizeof one) != 0) {
         (void)snprintf(err, errlen, "cannot enable SO_TIMESTAMPNS on the UDP socket: %s",
                        strerror(errno));
         return -1;
     }
     /* Past net.core.rmem_max only with CAP_NET_ADMIN; else as much as that allows. A small
      * buffer costs dropped packets under a flood (false stops, never a missed one). */
-    if (setsockopt(d->udp_fd, SOL_SOCKET, SO_RCVBUFFORCE, &size, sizeof size) != 0) {
-        (void)setsockopt(d->udp_fd, SOL_SOCKET, SO_RCVBUF, &size, sizeof size);
+    if (setsockopt(u->fd, SOL_SOCKET, SO_RCVBUFFORCE, &size, sizeof size) != 0) {
+        (void)setsockopt(u->fd, SOL_SOCKET, SO_RCVBUF, &size, sizeof size);
     }
-    if (getsockopt(d->udp_fd, SOL_SOCKET, SO_RCVBUF, &d->udp_rcvbuf, &len) != 0) {
-        d->udp_rcvbuf = 0;
+    if (getsockopt(u->fd, SOL_SOCKET, SO_RCVBUF, &u->rcvbuf, &len) != 0) {
+        u->rcvbuf = 0;
     }
-    d->udp_rcvbuf_wanted = 2 * UDP_RCVBUF;
+    u->rcvbuf_wanted = 2 * UDP_RCVBUF;
     /* With every datagram, the kernel's count so far of those it dropped for want of room. */
-    (void)setsockopt(d->udp_fd, SOL_SOCKET, SO_RXQ_OVFL, &one, sizeof one);
-    udp_round(d);
+    (void)setsockopt(u->fd, SOL_SOCKET, SO_RXQ_OVFL, &one, sizeof one);
+    udp_round(u);
     return 0;
 }
 
-void udp_round(daemon_t *d)
+void udp_round(udp_t *u)
 {
-    d->udp_budget = UDP_ROUND_MAX;
+    u->budget = UDP_ROUND_MAX;
 }
 
 static void batch_reset(uint32_t vlen)
@@ -86,7 +85,7 @@ static void batch_reset(uint32_t vlen)
 
 /* The kernel's receive stamp (CLOCK_REALTIME) of one datagram: returns 1, or 0 without one.
  * Notes the socket's drop count on the way. */
-static int rx_stamp(daemon_t *d, struct msghdr *h, struct timespec *ts)
+static int rx_stamp(udp_t *u, struct msghdr *h, struct timespec *ts)
 {
     struct cmsghdr *c;
     int found = 0;
@@ -97,17 +96,32 @@ static int rx_stamp(daemon_t *d, struct msghdr *h, struct timespec *ts)
         if (c->cmsg_type == SCM_TIMESTAMPNS && c->cmsg_len >= CMSG_LEN(sizeof *ts)) {
             memcpy(ts, CMSG_DATA(c), sizeof *ts);
             found = 1;
-        } else if (c->cmsg_type == SO_RXQ_OVFL && c->cmsg_len >= CMSG_LEN(sizeof d->udp_drops)) {
-            memcpy(&d->udp_drops, CMSG_DATA(c), sizeof d->udp_drops);
+        } else if (c->cmsg_type == SO_RXQ_OVFL && c->cmsg_len >= CMSG_LEN(sizeof u->drops)) {
+            memcpy(&u->drops, CMSG_DATA(c), sizeof u->drops);
         }
     }
     return found;
 }
 
-void udp_drain(daemon_t *d, uint64_t t0)
+/* One datagram to the unit at its receive time (caught up first), its effects applied. */
+static void feed(unit_t *unit, const apply_t *a, const uint8_t *data, size_t len,
+                 const struct sockaddr_in *src, uint64_t rx_us)
 {
-    while (d->udp_budget > 0u && !d->fatal) {
-        uint32_t vlen = d->udp_budget < UDP_BATCH ? d->udp_budget : UDP_BATCH;
+    uint64_t t = unit_feed_time(unit, rx_us);
+    unit_fx_t fx;
+
+    apply_catch_up(a, unit, t);
+    if (unit->fatal) {
+        return;
+    }
+    unit_udp(unit, data, len, t, &fx);
+    apply_fx(a, &fx, src);
+}
+
+void udp_drain(udp_t *u, unit_t *unit, const apply_t *a, uint64_t t0)
+{
+    while (u->budget > 0u && !unit->fatal) {
+        uint32_t vlen = u->budget < UDP_BATCH ? u->budget : UDP_BATCH;
         uint64_t read_us;
         struct timespec real_now;
         int reached = 0;
@@ -115,7 +129,7 @@ void udp_drain(daemon_t *d, uint64_t t0)
         int i;
 
         batch_reset(vlen);
-        n = recvmmsg(d->udp_fd, batch.msg, vlen, MSG_DONTWAIT | MSG_TRUNC, NULL);
+        n = recvmmsg(u->fd, batch.msg, vlen, MSG_DONTWAIT | MSG_TRUNC, NULL);
         if (n < 0) {
             if (errno == EINTR) {
                 continue;
@@ -123,19 +137,19 @@ void udp_drain(daemon_t *d, uint64_t t0)
             if (errno != EAGAIN && errno != EWOULDBLOCK) {
                 char ebuf[16];
                 log_kv_t kv[] = { KV_STR("err", log_errno_name(errno, ebuf, sizeof ebuf)) };
-                log_limited(LOG_CLASS_NET, d->last_call_us, "udp_error", kv, 1u);
+                log_limited(LOG_CLASS_NET, unit->last_call_us, "udp_error", kv, 1u);
             }
             return;
         }
         clock_pair(&read_us, &real_now);
-        d->udp_budget -= (uint32_t)n;
+        u->budget -= (uint32_t)n;
         for (i = 0; i < n; i++) {
             struct timespec stamp;
             size_t len = batch.msg[i].msg_len < UDP_BUF ? batch.msg[i].msg_len : UDP_BUF;
-            uint64_t rx_us = rx_stamp(d, &batch.msg[i].msg_hdr, &stamp) != 0
+            uint64_t rx_us = rx_stamp(u, &batch.msg[i].msg_hdr, &stamp) != 0
                                  ? rxtime_to_mono_us(&stamp, &real_now, read_us)
                                  : read_us;
-            cio_udp(d, batch.buf[i], len, &batch.src[i], rx_us);
+            feed(unit, a, batch.buf[i], len, &batch.src[i], rx_us);
             if (rx_us >= t0) {
                 reached = 1; /* arrived after the drain began: what came before is all in */
             }

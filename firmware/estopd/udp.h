@@ -5,19 +5,29 @@
 #include <stddef.h>
 #include <stdint.h>
 
-#include "daemon.h"
+#include "apply.h"
+#include "unit.h"
 
 /* Datagrams read per loop round at most: a flood cannot freeze the loop, and the TCP stop
  * channel is served within a round whatever arrives on UDP. */
 #define UDP_ROUND_MAX 2048u
 
-/* Asks the kernel for receive stamps on the open socket. Returns 0, or -1 with a message. */
-int udp_setup(daemon_t *d, char *err, size_t errlen);
+typedef struct {
+    int fd;
+    uint32_t budget;          /* datagrams the drain may still read this loop round */
+    int rcvbuf;               /* the receive buffer the kernel gave (bytes, as SO_RCVBUF says) */
+    int rcvbuf_wanted;
+    uint32_t drops;           /* the kernel's count of datagrams dropped for want of room */
+} udp_t;
+
+/* Asks the kernel for receive stamps on the open socket u->fd. Returns 0, or -1 with a
+ * message. */
+int udp_setup(udp_t *u, char *err, size_t errlen);
 /* A new loop round: the read budget is UDP_ROUND_MAX again. */
-void udp_round(daemon_t *d);
+void udp_round(udp_t *u);
 /* The drain before any deadline is acted on: reads datagrams, oldest first, and hands each to
  * the core at its receive time, until the socket is empty, a datagram received at or after t0
  * (the moment the drain began) has been read, or the round's budget is spent. */
-void udp_drain(daemon_t *d, uint64_t t0);
+void udp_drain(udp_t *u, unit_t *unit, const apply_t *a, uint64_t t0);
 
 #endif

@@ -14,6 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+from estop.cliutil import EXIT_FILE
 from link_util import arrivals_us, gilbert_lost, histogram_log
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -83,7 +84,7 @@ def test_a_log_with_no_event_says_what_it_skipped(tmp_path: Path) -> None:
     path.write_text("Nov 25 10:00:00 car estopd[812]: start udp=0.0.0.0:5700 tcp=0.0.0.0:5701\n"
                     "Nov 25 10:00:01 car estopd[812]: state STOPPED->ARMED reason=none\n")
     res = _link(str(path))
-    assert res.returncode == 2
+    assert res.returncode == EXIT_FILE  # the input holds nothing usable: a file error
     assert res.stderr.count("\n") == 1, res.stderr
     assert "no link_histogram event" in res.stderr and "skipped 2 line(s)" in res.stderr
     assert "line 1: 'Nov 25 10:00:00 car estopd[812]: start" in res.stderr
@@ -108,7 +109,7 @@ def test_journal_option_runs_journalctl(tmp_path: Path) -> None:
     got, _ = _report(_link("--journal", env=env))
     assert got == want
     res = _link("--journal", "other", env=env)  # journalctl fails: its last line, exit 2
-    assert res.returncode == 2 and "journalctl -u other failed (exit 1): args: -u other" \
+    assert res.returncode == EXIT_FILE and "journalctl -u other failed (exit 1): args: -u other" \
         in res.stderr, res.stderr
     res = _link("--journal", str(raw))
     assert res.returncode == 2  # a FILE after --journal is its unit name: both given

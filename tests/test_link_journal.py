@@ -108,8 +108,9 @@ def test_journal_option_runs_journalctl(tmp_path: Path) -> None:
     env = {"PATH": f"{bindir}:{os.environ['PATH']}"}
     got, _ = _report(_link("--journal", env=env))
     assert got == want
-    res = _link("--journal", "other", env=env)  # journalctl fails: its last line, exit 2
+    res = _link("--journal", "other", env=env)  # journalctl fails: its last line, exit 4
     assert res.returncode == EXIT_FILE and "journalctl -u other failed (exit 1): args: -u other" \
         in res.stderr, res.stderr
-    res = _link("--journal", str(raw))
-    assert res.returncode == 2  # a FILE after --journal is its unit name: both given
+    res = _link("--journal", str(raw), env=env)  # a FILE after --journal is its unit name
+    assert res.returncode == EXIT_FILE and f"journalctl -u {raw} failed" in res.stderr, \
+        res.stderr

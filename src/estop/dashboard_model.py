@@ -7,7 +7,11 @@ The frames go through the same checks a brake controller makes (:mod:`estop.brak
 only a good ESTOP_BRAKE frame (right length, CRC, new alive counter, consistent fields)
 counts. Silence is a failure (PROTOCOL.md 7): no good ESTOP_BRAKE frame for 50 ms, or none
 at all yet, is ``NO SIGNAL``, whatever the last frame said. Frame times are the frames' own
-stamps (the can-log's, python-can's), compared with the wall clock (``time.time()``).
+stamps (the can-log's, python-can's); the silence is measured on the wall clock
+(``time.time()``) from the last good frame's stamp carried over by the smallest delay (arrival
+minus stamp) of the last 100 good frames. So a log read from its start does not look silent
+while it is caught up, a pipe from another machine whose clock is off is judged by its own
+period, and a frame that came late (a slow reader) counts as late.
 
 The link figures come from the same code as ``estop link``: the events are summed by
 :class:`estop.linklog.HistogramReader`, fitted by :func:`estop.linkfit.fit` and read at this
@@ -162,6 +166,7 @@ class DashboardModel:
         self.link: dict[str, Any] | None = None
         self._link_reader = HistogramReader()
         self._times: deque[float] = deque(maxlen=PERIOD_WINDOW)
+        self._delays: deque[float] = deque(maxlen=PERIOD_WINDOW)  # arrival - stamp
         self._shown: tuple[str, str] | None = None  # (state, reason) of the last timeline entry
         self._moving_state: str | None = None  # the last state the frames said, for stops
         self._pending: deque[_LogState] = deque(maxlen=8)
@@ -192,10 +197,10 @@ class DashboardModel:
             self._changed()
             return
         if not rec.extended:
-            self.frame(rec.timestamp, rec.can_id, rec.data)
+            self.frame(rec.timestamp, rec.can_id, rec.data, arrived)
 
-    def frame(self, t: float, can_id: int, data: bytes) -> None:
-        """One classic CAN frame received at ``t`` (wall-clock seconds)."""
+    def frame(self, t: float, can_id: int, data: bytes, arrived: float) -> None:
+        """One classic CAN frame stamped ``t``, here at ``arrived`` (wall-clock seconds)."""
         verdict = self.checker.feed(t, can_id, data)
         if verdict is None:
             return
@@ -210,6 +215,7 @@ class DashboardModel:
             return
         assert isinstance(frame, BrakeFrame)
         self._times.append(t)
+        self._delays.append(arrived - t)
         state = state_name(frame.state)
         reason = reason_words(frame.reason) if state == _STOPPED else ""
         if self._shown != (state, reason):
@@ -234,7 +240,7 @@ class DashboardModel:
         if self._shown is not None and self._shown[0] == NO_SIGNAL:
             return
         since = self.checker.last_brake_time
-        if since is None or now - since < self.signal_timeout:
+        if since is None or self.signal(now):
             return
         self._add(Change(since + self.signal_timeout, NO_SIGNAL, "", "silence",
                          f"no good ESTOP_BRAKE for {self.signal_timeout * 1000:g} ms"))
@@ -300,13 +306,19 @@ class DashboardModel:
 
     # ------------------------------------------------------------------------- reading
 
-    def signal(self, now: float) -> bool:
+    def _last_good(self) -> float | None:
+        """The last good ESTOP_BRAKE's stamp on the wall clock (see the module's docstring)."""
         last = self.checker.last_brake_time
+        return None if last is None or not self._delays else last + min(self._delays)
+
+    def signal(self, now: float) -> bool:
+        """A good ESTOP_BRAKE frame came within the last 50 ms."""
+        last = self._last_good()
         return last is not None and now - last < self.signal_timeout
 
     def deadline(self, now: float) -> float | None:
         """When the state turns NO SIGNAL unless a good frame comes first (None: already)."""
-        last = self.checker.last_brake_time
+        last = self._last_good()
         if last is None or now - last >= self.signal_timeout:
             return None
         return last + self.signal_timeout
@@ -323,7 +335,8 @@ class DashboardModel:
                     "degraded": False,
                     "t": None if last_t is None else last_t + self.signal_timeout,
                     "why": ("no good ESTOP_BRAKE frame yet" if last_t is None else
-                            f"no good ESTOP_BRAKE for {(now - last_t) * 1000:.0f} ms")}
+                            f"no good ESTOP_BRAKE for "
+                            f"{(now - (self._last_good() or now)) * 1000:.0f} ms")}
         else:
             state = state_name(frame.state)
             since = self.timeline[-1].t if self.timeline else last_t

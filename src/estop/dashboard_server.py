@@ -85,7 +85,7 @@ class DashboardServer:
 
     def frame(self, t: float, can_id: int, data: bytes) -> None:
         changes = self.model.changes
-        self.model.frame(t, can_id, data)
+        self.model.frame(t, can_id, data, self.clock())
         self._after(changes)
 
     def log_line(self, line: str, arrived: float) -> None:

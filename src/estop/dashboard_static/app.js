@@ -27,22 +27,23 @@ function fmtTime(t) {
 
 function cls(state) { return String(state).replace(/[^A-Z]/g, ""); }
 
-function note(state, reason, frameT) {
+function note(state, reason, frameT, sentT) {
   const key = state + "|" + reason;
   if (key === current) return;
   current = key;
-  shown.push({ state: state, reason: reason, frame_t: frameT, shown: Date.now() / 1000 });
+  shown.push({ state: state, reason: reason, frame_t: frameT, sent: sentT,
+               shown: Date.now() / 1000 });
   if (shown.length > 200) shown.shift();
 }
 
-function showState(state, reason, detail, klass, frameT) {
+function showState(state, reason, detail, klass, frameT, sentT) {
   const banner = $("banner");
   banner.className = "state-" + klass;
   banner.dataset.state = state;
   $("state").textContent = state;
   $("reason").textContent = reason;
   $("detail").textContent = detail;
-  note(state, reason, frameT);
+  note(state, reason, frameT, sentT);
 }
 
 function setLost(why) {
@@ -86,7 +87,7 @@ function render(s) {
     detail = "brake: " + s.brake + (s.degraded ? " | LINK DEGRADED" : "") +
              " | since " + fmtTime(s.t);
   }
-  showState(s.state, s.reason ? s.reason.toUpperCase() : "", detail, cls(s.state), s.t);
+  showState(s.state, s.reason || "", detail, cls(s.state), s.t, s.now);
 
   const h = s.health;
   const list = [["frames (good)", `${h.frames} (${h.accepted})`],

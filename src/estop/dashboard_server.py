@@ -135,24 +135,33 @@ class DashboardServer:
         return b"data: " + json.dumps(snap, separators=(",", ":")).encode() + b"\n\n"
 
     async def _push(self) -> None:
+        """Push when the page must change at once (a new timeline entry, the 50 ms rule
+        turning the state to NO SIGNAL) or when 200 ms passed since the last push; never
+        two pushes within 50 ms."""
         loop = asyncio.get_running_loop()
-        last_regular = loop.time()
+        last_push = loop.time()
+        had_signal = False
         while True:
-            wait = REGULAR_INTERVAL - (loop.time() - last_regular)
+            wait = last_push + REGULAR_INTERVAL - loop.time()
             deadline = self.model.deadline(self.clock())
             if deadline is not None:  # the 50 ms rule turns the state without any input
                 wait = min(wait, deadline - self.clock() + 0.001)
             if wait > 0:
                 with contextlib.suppress(TimeoutError):
                     await asyncio.wait_for(self._urgent.wait(), wait)
+            signal = self.model.signal(self.clock())
+            due = (self._urgent.is_set() or (had_signal and not signal)
+                   or loop.time() - last_push >= REGULAR_INTERVAL)
+            had_signal = signal
+            if not due:
+                continue  # a deadline that a newer frame moved on
             self._urgent.clear()
             if self.clients:
                 data = self.encode()
                 self.pushes += 1
                 for client in self.clients:
                     client.put(data)
-            if loop.time() - last_regular >= REGULAR_INTERVAL - MIN_INTERVAL:
-                last_regular = loop.time()
+            last_push = loop.time()
             await asyncio.sleep(MIN_INTERVAL)
 
     # ------------------------------------------------------------------ handlers

@@ -9,6 +9,7 @@ const FEED_QUIET_MS = 500;
 const shown = [];
 window.estopShown = shown;
 window.estopRenderErrors = 0;
+window.estopUpdates = 0;  // updates received (the benchmark counts them per second)
 let lastUpdate = 0;       // performance.now() of the latest update
 let lastUpdateWall = 0;   // Date.now() of the same
 let feedLost = true;
@@ -210,6 +211,7 @@ function renderLink(link, unit) {
 function connect() {
   const es = new EventSource("/events");
   es.onmessage = (e) => {
+    window.estopUpdates += 1;
     lastUpdate = performance.now();
     lastUpdateWall = Date.now();
     feedLost = false;

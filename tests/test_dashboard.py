@@ -6,8 +6,13 @@ command line. The page itself is tested in tests/test_dashboard_browser.py."""
 from __future__ import annotations
 
 import asyncio
+import http.client
 import json
 import os
+import re
+import subprocess
+import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -15,7 +20,7 @@ from typing import Any
 import aiohttp
 import pytest
 
-from daemon_util import ARMED, R_TCP_STOP, STOPPED, Daemon
+from daemon_util import ARMED, R_TCP_STOP, STOPPED, Daemon, find_estopd
 from estop.cli import main as estop_main
 from estop.dashboard import parse_listen
 from estop.dashboard_feed import FileFollower
@@ -281,3 +286,48 @@ def test_listen_addresses() -> None:
     assert parse_listen("127.0.0.1:8080") == ("127.0.0.1", 8080)
     assert parse_listen("[::1]:0") == ("::1", 0)
     assert parse_listen("0.0.0.0:80") == ("0.0.0.0", 80)
+
+
+def test_demo_serves_the_page_while_it_runs() -> None:
+    """``estop demo --dashboard`` prints the page's address; the page follows the story."""
+    proc = subprocess.Popen([sys.executable, "-m", "estop", "demo", "--estopd", find_estopd(),
+                             "--plain", "--dashboard", "127.0.0.1:0"],
+                            stdin=subprocess.DEVNULL, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    seen: list[dict[str, Any]] = []
+    try:
+        assert proc.stdout is not None
+        m = None
+        for _ in range(5):
+            m = re.search(r"dashboard on http://127\.0\.0\.1:(\d+)/", proc.stdout.readline())
+            if m:
+                break
+        assert m, "no dashboard address from the demo"
+        conn = http.client.HTTPConnection("127.0.0.1", int(m[1]), timeout=5)
+        conn.request("GET", "/events")
+        resp = conn.getresponse()
+
+        def read() -> None:
+            try:
+                for line in resp:
+                    if line.startswith(b"data: "):
+                        seen.append(json.loads(line[6:]))
+            except (OSError, http.client.HTTPException):
+                pass
+
+        reader = threading.Thread(target=read, daemon=True)
+        reader.start()
+        out, err = proc.communicate(timeout=120)
+        reader.join(timeout=10)
+        conn.close()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    assert proc.returncode == 0, out + err
+    states = {(s["state"], s["reason"]) for s in seen}
+    assert {("ARMED", ""), ("SLOWING", ""), ("STOPPED", "lift"), ("STOPPED", "udp timeout"),
+            ("STOPPED", "tcp stop")} <= states, states
+    causes = {c["cause"] for s in seen for c in s["timeline"]}
+    assert {"release", "lift_datagram", "udp_silence", "udp_timeout"} <= causes, causes
+    assert seen[-1]["stops"].get("lift") == 1

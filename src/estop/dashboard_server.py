@@ -20,6 +20,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import json
+import threading
 import time
 from collections.abc import Callable
 from importlib import resources
@@ -28,7 +29,8 @@ from aiohttp import web
 
 from estop.dashboard_model import DashboardModel
 
-__all__ = ["MIN_INTERVAL", "REGULAR_INTERVAL", "DashboardServer", "stop_action_for"]
+__all__ = ["MIN_INTERVAL", "REGULAR_INTERVAL", "DashboardServer", "ServerThread",
+           "stop_action_for"]
 
 MIN_INTERVAL = 0.05  # s between two pushes: at most 20 updates a second
 REGULAR_INTERVAL = 0.2  # s: counters and the heartbeat
@@ -226,3 +228,51 @@ def stop_action_for(host: str, tcp_port: int, udp_port: int, *, key: bytes | Non
 
     return press
 
+
+
+class ServerThread:
+    """The server on a thread of its own, for a program that is not asyncio (``estop demo
+    --dashboard``): :meth:`can_line` from any thread."""
+
+    def __init__(self, host: str, port: int) -> None:
+        self._loop = asyncio.new_event_loop()
+        self.server = DashboardServer(DashboardModel(), host, port)
+        self._started = threading.Event()
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._run, name="dashboard", daemon=True)
+
+    def start(self, wait_s: float = 10.0) -> str:
+        """Start serving; return the page's address (raises OSError if it cannot listen)."""
+        self._thread.start()
+        if not self._started.wait(wait_s):
+            raise OSError("the dashboard did not start")
+        if self._error is not None:
+            raise self._error
+        host = self.server.host
+        return f"http://{f'[{host}]' if ':' in host else host}:{self.server.port}/"
+
+    def _run(self) -> None:
+        asyncio.set_event_loop(self._loop)
+        try:
+            self._loop.run_until_complete(self.server.start())
+        except BaseException as exc:  # reported by start()
+            self._error = exc
+            self._started.set()
+            return
+        self._started.set()
+        self._loop.run_forever()
+        self._loop.run_until_complete(self.server.close())
+        self._loop.close()
+
+    def can_line(self, line: str) -> None:
+        with contextlib.suppress(RuntimeError):  # the loop is closing
+            self._loop.call_soon_threadsafe(self.server.can_line, line, time.time())
+
+    def log_line(self, line: str) -> None:
+        with contextlib.suppress(RuntimeError):
+            self._loop.call_soon_threadsafe(self.server.log_line, line, time.time())
+
+    def close(self) -> None:
+        if self._thread.is_alive():
+            self._loop.call_soon_threadsafe(self._loop.stop)
+            self._thread.join(timeout=5)

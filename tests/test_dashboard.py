@@ -136,6 +136,12 @@ def test_a_log_read_from_its_start_is_not_silent_while_it_is_caught_up() -> None
         assert m.snapshot(now)["state"] == "ARMED"
         now += 0.0001
     assert all(c["state"] != NO_SIGNAL for c in m.snapshot(now)["timeline"])
+    # a silence in what was caught up is in the timeline all the same, dated when it began
+    m.frame(T0 + 2.1, 0x50, u.brake(State.ARMED), now)
+    tl = m.snapshot(now)["timeline"]
+    assert [(c["state"], c["source"]) for c in tl[:2]] == [("ARMED", "frames"),
+                                                           (NO_SIGNAL, "silence")]
+    assert tl[1]["t"] == pytest.approx(T0 + 1.99 + 0.05) and "110 ms" in tl[1]["cause"]
     # and then nothing comes: NO SIGNAL 50 ms later
     assert m.snapshot(now + 0.06)["state"] == NO_SIGNAL
 

@@ -214,6 +214,14 @@ class DashboardModel:
             self.status.take(data)
             return
         assert isinstance(frame, BrakeFrame)
+        if self._times and any(ev.kind == "gap" for ev in verdict.events) \
+                and (self._shown is None or self._shown[0] != NO_SIGNAL):
+            # a silence nobody saw live (a log read from its start, a stalled reader): the
+            # timeline still shows it, dated when it began
+            prev = self._times[-1]
+            self._add(Change(prev + self.signal_timeout, NO_SIGNAL, "", "silence",
+                             f"gap of {(t - prev) * 1000:.0f} ms between good ESTOP_BRAKE "
+                             "frames"))
         self._times.append(t)
         self._delays.append(arrived - t)
         state = state_name(frame.state)

@@ -101,7 +101,7 @@ function render(s) {
 
   rows($("status"), s.status.map((f) => [
     f.name.replace(/_/g, " ") + (f.total === null ? "" : " (total)"),
-    f.value === null ? null : f.value + (f.unit ? " " + f.unit : "") +
+    f.value === null ? null : f.value + (f.unit && /^[\d.]+$/.test(f.value) ? " " + f.unit : "") +
       (f.total === null ? "" : ` (${f.total})`),
     (f.name === "invalid_packets" || f.name === "auth_failures") && f.total > 0,
     f.comment]));

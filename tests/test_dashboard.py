@@ -337,3 +337,59 @@ def test_demo_serves_the_page_while_it_runs() -> None:
     causes = {c["cause"] for s in seen for c in s["timeline"]}
     assert {"release", "lift_datagram", "udp_silence", "udp_timeout"} <= causes, causes
     assert seen[-1]["stops"].get("lift") == 1
+
+
+def test_a_client_that_never_reads_holds_up_only_itself() -> None:
+    async def go() -> tuple[int, int]:
+        server = DashboardServer(DashboardModel(), "127.0.0.1", 0)
+        await server.start()
+        u = Unit()
+        # a page that connects and never reads: its socket fills, its stream waits
+        _, stuck = await asyncio.open_connection("127.0.0.1", server.port)
+        stuck.write(b"GET /events HTTP/1.1\r\nHost: x\r\n\r\n")
+        await stuck.drain()
+
+        async def frames() -> None:
+            for i in range(100):
+                state = State.ARMED if i % 2 else State.SLOWING  # every frame a change
+                server.frame(time.time(), 0x50, u.brake(state))
+                await asyncio.sleep(0.01)
+
+        try:
+            task = asyncio.get_running_loop().create_task(frames())
+            events = await _read_events(f"http://127.0.0.1:{server.port}/", 1.2)
+            await task
+            return len(events), len(server.clients)
+        finally:
+            stuck.close()
+            await server.close()
+
+    got, clients = asyncio.run(asyncio.wait_for(go(), 20))
+    assert clients == 2 and got >= 10, (got, clients)
+
+
+def test_frames_from_a_python_can_bus() -> None:
+    import can
+
+    from estop.dashboard_feed import BusFeed
+
+    async def go() -> dict[str, Any]:
+        model = DashboardModel()
+        feed = BusFeed(can.Bus(interface="virtual", channel="dash-test"),
+                       lambda t, i, d: model.frame(t, i, d, time.time()), model.note)
+        feed.start(asyncio.get_running_loop())
+        u = Unit()
+        with can.Bus(interface="virtual", channel="dash-test") as unit_bus:
+            for _ in range(5):
+                unit_bus.send(can.Message(arbitration_id=0x50, data=u.brake(State.ARMED),
+                                          is_extended_id=False))
+                await asyncio.sleep(0.01)
+            await asyncio.sleep(0.2)
+        feed.close()
+        return model.snapshot(time.time())
+
+    snap = asyncio.run(asyncio.wait_for(go(), 20))
+    assert snap["health"]["accepted"] == 5
+    # ARMED while the frames came, NO SIGNAL since they stopped
+    assert [c["state"] for c in snap["timeline"]] == [NO_SIGNAL, "ARMED"]
+    assert snap["state"] == NO_SIGNAL

@@ -229,14 +229,26 @@ def test_dashboard_follows_the_unit_in_a_real_browser(daemon: Daemon, dashboard:
     lates["no signal"] = assert_prompt(wait_state(page, "NO SIGNAL", after=n))
     shoot(page, "no-signal")
 
-    # the dashboard's server goes away: the page says so instead of an old state
-    gone = time.time()
+    # the dashboard's server hangs: 500 ms without an update, the page says it lost its feed
     n = mark(page)
+    dashboard.proc.send_signal(signal.SIGSTOP)
+    hung = time.time()
+    try:
+        entry = wait_state(page, "LOST FEED", "state unknown", after=n)
+        assert entry["shown"] - hung <= 0.5 + WITHIN_S, entry
+        shoot(page, "lost-feed")
+        n = mark(page)
+    finally:
+        dashboard.proc.send_signal(signal.SIGCONT)
+    wait_state(page, "NO SIGNAL", after=n)  # back, with the state as it is now
+
+    # the dashboard's server goes away: the page says so at once (the stream closed)
+    n = mark(page)
+    gone = time.time()
     dashboard.proc.terminate()
     dashboard.proc.wait(10)
     entry = wait_state(page, "LOST FEED", "state unknown", after=n)
     assert entry["shown"] - gone <= 0.5 + WITHIN_S, entry
-    shoot(page, "lost-feed")
     assert page.evaluate("window.estopRenderErrors") == 0
     (SHOTS / "shown-after-frame.txt").write_text(
         "".join(f"{k}: {v * 1000:.0f} ms\n" for k, v in lates.items()))

@@ -393,3 +393,21 @@ def test_frames_from_a_python_can_bus() -> None:
     # ARMED while the frames came, NO SIGNAL since they stopped
     assert [c["state"] for c in snap["timeline"]] == [NO_SIGNAL, "ARMED"]
     assert snap["state"] == NO_SIGNAL
+
+
+def test_an_input_that_breaks_the_model_is_said_and_the_feed_goes_on() -> None:
+    async def go() -> dict[str, Any]:
+        model = DashboardModel()
+        server = DashboardServer(model, "127.0.0.1", 0)
+
+        def broken(line: str, arrived: float) -> None:
+            raise ZeroDivisionError("planted")
+
+        model.log_line = broken  # type: ignore[method-assign]
+        server.log_line('{"event": "link_histogram"}', time.time())
+        server.can_line("(1800000000.000000) estop 050#0000010000000300", time.time())
+        return model.snapshot(time.time())
+
+    snap = asyncio.run(go())
+    assert "ZeroDivisionError: planted" in snap["inputs"]["notes"][-1]
+    assert snap["health"]["frames"] == 1  # the next input was taken

@@ -307,10 +307,11 @@ class DashboardModel:
             hist = self._link_reader.histogram("log")
             gaps = gaps_from_histogram(hist, self.rate_hz)
             f = fit(gaps, self.rate_hz)
-        except LinkInputError as exc:
-            self.link = {"edges_us": [], "counts": [], "error": str(exc)}
-            return
-        self.link = _link_view(hist.edges_us, hist.counts, f, gaps, self.unit, self.rate_hz)
+            self.link = _link_view(hist.edges_us, hist.counts, f, gaps, self.unit,
+                                   self.rate_hz)
+        except (LinkInputError, ValueError, ArithmeticError) as exc:
+            # an event the fit cannot use: said on the page, the rest goes on
+            self.link = {"edges_us": [], "counts": [], "error": str(exc) or type(exc).__name__}
 
     # ------------------------------------------------------------------------- reading
 
@@ -385,6 +386,11 @@ def _round(x: float | None, digits: int = 1) -> float | None:
     return None if x is None or not math.isfinite(x) else round(x, digits)
 
 
+def _finite(x: float | None) -> float | None:
+    """JSON has no NaN or infinity (the page could not parse the update): None instead."""
+    return None if x is None or not math.isfinite(x) else x
+
+
 def _rate(x: float) -> float | None:
     return None if not math.isfinite(x) else float(f"{x:.3g}")
 
@@ -394,8 +400,8 @@ def _link_view(edges: tuple[int, ...], counts: tuple[int, ...], f: Fit, gaps: An
     """The link box: the histogram's bins, the fit, and what it means at this unit's S and T
     (the unit's own counts beside the model's, when its events carry them)."""
     view: dict[str, Any] = {"edges_us": list(edges), "counts": list(counts),
-                            "loss": f.loss, "mean_burst": f.mean_burst, "hours": f.hours,
-                            "rate_hz": rate_hz, "error": ""}
+                            "loss": _finite(f.loss), "mean_burst": _finite(f.mean_burst),
+                            "hours": _finite(f.hours), "rate_hz": rate_hz, "error": ""}
     checked = check_unit(gaps, f)
     rows: list[dict[str, Any]] = []
     if checked is not None:

@@ -76,24 +76,25 @@ class DashboardServer:
 
     # ------------------------------------------------------------------ feeding the model
 
-    def _after(self, changes: int) -> None:
+    def _take(self, take: Callable[[], None]) -> None:
+        """Give the model one input; a change it shows at once wakes the pusher. Whatever
+        goes wrong inside is said on the page: a feed never stops on one bad input."""
+        changes = self.model.changes
+        try:
+            take()
+        except Exception as exc:  # the feed must go on
+            self.model.note(f"internal error on an input: {type(exc).__name__}: {exc}"[:200])
         if self.model.changes != changes:
             self._urgent.set()
 
     def can_line(self, line: str, arrived: float) -> None:
-        changes = self.model.changes
-        self.model.can_line(line, arrived)
-        self._after(changes)
+        self._take(lambda: self.model.can_line(line, arrived))
 
     def frame(self, t: float, can_id: int, data: bytes) -> None:
-        changes = self.model.changes
-        self.model.frame(t, can_id, data, self.clock())
-        self._after(changes)
+        self._take(lambda: self.model.frame(t, can_id, data, self.clock()))
 
     def log_line(self, line: str, arrived: float) -> None:
-        changes = self.model.changes
-        self.model.log_line(line, arrived)
-        self._after(changes)
+        self._take(lambda: self.model.log_line(line, arrived))
 
     def note(self, text: str) -> None:
         self.model.note(text)
@@ -134,7 +135,12 @@ class DashboardServer:
     def encode(self) -> bytes:
         snap = self.model.snapshot(self.clock())
         snap["allow_stop"] = self.stop_action is not None
-        return b"data: " + json.dumps(snap, separators=(",", ":")).encode() + b"\n\n"
+        try:
+            body = json.dumps(snap, separators=(",", ":"), allow_nan=False)
+        except ValueError:  # a figure that is not finite: the page could not parse it
+            snap["link"] = {"edges_us": [], "counts": [], "error": "a figure is not finite"}
+            body = json.dumps(snap, separators=(",", ":"))
+        return b"data: " + body.encode() + b"\n\n"
 
     async def _push(self) -> None:
         """Push when the page must change at once (a new timeline entry, the 50 ms rule

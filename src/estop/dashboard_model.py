@@ -13,10 +13,7 @@ minus stamp) of the last 100 good frames. So a log read from its start does not 
 while it is caught up, a pipe from another machine whose clock is off is judged by its own
 period, and a frame that came late (a slow reader) counts as late.
 
-The link figures come from the same code as ``estop link``: the events are summed by
-:class:`estop.linklog.HistogramReader`, fitted by :func:`estop.linkfit.fit` and read at this
-unit's slow time S and timeout T (:func:`estop.linkunit.check_unit`, or
-:func:`estop.linkfit.lost_in_row` with the S and T of the daemon's ``start`` event).
+The link figures come from the same code as ``estop link`` (:mod:`estop.dashboard_link`).
 
 Bad input is counted, never fatal: a can-log line that does not parse, a log line that is not
 JSON, a frame that fails a check (by kind), a malformed ``link_histogram``.
@@ -32,10 +29,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 from estop.brakecheck import EVENT_KINDS, BrakeFrameChecker, CheckEvent, grade_text
-from estop.linkfit import Fit, fit, lost_in_row
-from estop.linkgaps import LinkInputError, gaps_from_histogram
-from estop.linklog import HistogramReader
-from estop.linkunit import check_unit
+from estop.dashboard_link import LinkBox
+from estop.linkgaps import LinkInputError
 from estop.protocol.can import (
     BRAKE_ID,
     STATUS_ID,
@@ -163,8 +158,7 @@ class DashboardModel:
         self.stops: Counter[str] = Counter()
         self.unit: dict[str, Any] = {}  # S, T, slow level... from the daemon's `start` event
         self.log_events: Counter[str] = Counter()
-        self.link: dict[str, Any] | None = None
-        self._link_reader = HistogramReader()
+        self.link = LinkBox(rate_hz)
         self._times: deque[float] = deque(maxlen=PERIOD_WINDOW)
         self._delays: deque[float] = deque(maxlen=PERIOD_WINDOW)  # arrival - stamp
         self._shown: tuple[str, str] | None = None  # (state, reason) of the last timeline entry
@@ -279,8 +273,7 @@ class DashboardModel:
         elif kind == "state":
             self._log_state(ev, arrived)
         try:
-            if self._link_reader.feed(ev, "log"):
-                self._link_update()
+            self.link.feed(ev, self.unit)
         except LinkInputError as exc:
             self.inputs.link_bad += 1
             self.inputs.last_bad = f"log: {exc}"[:200]
@@ -301,17 +294,6 @@ class DashboardModel:
             self._add(Change(arrived, to, reason, "log", cause, src))
             return
         self._pending.append(_LogState(to, reason, cause, src, arrived))
-
-    def _link_update(self) -> None:
-        try:
-            hist = self._link_reader.histogram("log")
-            gaps = gaps_from_histogram(hist, self.rate_hz)
-            f = fit(gaps, self.rate_hz)
-            self.link = _link_view(hist.edges_us, hist.counts, f, gaps, self.unit,
-                                   self.rate_hz)
-        except (LinkInputError, ValueError, ArithmeticError) as exc:
-            # an event the fit cannot use: said on the page, the rest goes on
-            self.link = {"edges_us": [], "counts": [], "error": str(exc) or type(exc).__name__}
 
     # ------------------------------------------------------------------------- reading
 
@@ -370,7 +352,7 @@ class DashboardModel:
                                   if k not in ("timeout", "no_brake_frame")},
                        "last_error": "" if ev is None else f"{ev.kind}: {ev.message}"},
             "status": self.status.rows(),
-            "link": self.link,
+            "link": self.link.view,
             "unit": self.unit,
             "timeline": [ch.as_dict() for ch in reversed(self.timeline)],
             "stops": dict(self.stops),
@@ -384,45 +366,3 @@ class DashboardModel:
 
 def _round(x: float | None, digits: int = 1) -> float | None:
     return None if x is None or not math.isfinite(x) else round(x, digits)
-
-
-def _finite(x: float | None) -> float | None:
-    """JSON has no NaN or infinity (the page could not parse the update): None instead."""
-    return None if x is None or not math.isfinite(x) else x
-
-
-def _rate(x: float) -> float | None:
-    return None if not math.isfinite(x) else float(f"{x:.3g}")
-
-
-def _link_view(edges: tuple[int, ...], counts: tuple[int, ...], f: Fit, gaps: Any,
-               unit: dict[str, Any], rate_hz: float) -> dict[str, Any]:
-    """The link box: the histogram's bins, the fit, and what it means at this unit's S and T
-    (the unit's own counts beside the model's, when its events carry them)."""
-    view: dict[str, Any] = {"edges_us": list(edges), "counts": list(counts),
-                            "loss": _finite(f.loss), "mean_burst": _finite(f.mean_burst),
-                            "hours": _finite(f.hours), "rate_hz": rate_hz, "error": ""}
-    checked = check_unit(gaps, f)
-    rows: list[dict[str, Any]] = []
-    if checked is not None:
-        for label, chk in (("slow-downs", checked.slowdowns), ("emergency stops",
-                                                               checked.timeouts)):
-            if chk is None:
-                continue
-            rows.append({"what": label, "time_ms": chk.time_ms, "lost_in_row": chk.lost_in_row,
-                         "model_per_hour": _rate(chk.model), "low": _rate(chk.model_low),
-                         "high": _rate(chk.model_high), "recorded": chk.recorded,
-                         "recorded_per_hour": None if chk.per_hour is None
-                         else _rate(chk.per_hour), "verdict": chk.verdict})
-    else:
-        for label, key in (("slow-downs", "slow_ms"), ("emergency stops", "timeout_ms")):
-            ms = unit.get(key)
-            if isinstance(ms, (int, float)) and ms > 0:
-                n = lost_in_row(ms, rate_hz)
-                lo, hi = f.interval95(n)
-                rows.append({"what": label, "time_ms": ms, "lost_in_row": n,
-                             "model_per_hour": _rate(f.false_stops(n)), "low": _rate(lo),
-                             "high": _rate(hi), "recorded": None, "recorded_per_hour": None,
-                             "verdict": ""})
-    view["rows"] = rows
-    return view

@@ -29,7 +29,7 @@ import tempfile
 import time
 from typing import Any, TextIO
 
-from estop.cliutil import EXIT_USAGE, CliError, ErrorOnlyParser
+from estop.cliutil import EXIT_USAGE, ErrorOnlyParser
 from estop.demo_bus import BusWatch, state_lines
 from estop.demo_car import LiveCar
 from estop.demo_checks import check
@@ -131,6 +131,8 @@ class _Page:
 
 def _start_dashboard(listen: str, out: TextIO) -> _Page | None:
     """Serve the page; None (after one line on stderr) when it cannot."""
+    from estop.cliutil import CliError
+
     try:
         from estop.dashboard import parse_listen
         from estop.dashboard_server import ServerThread

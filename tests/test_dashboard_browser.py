@@ -29,7 +29,10 @@ from daemon_util import ACK, MSG_LIFT, MSG_RELEASE, ROOT, Daemon, udp_packet
 from estop.protocol.can import BRAKE_DATA_ID
 from estop.protocol.crc import e2e_crc8
 
-playwright_api = pytest.importorskip("playwright.sync_api")
+try:
+    from playwright import sync_api as playwright_api
+except ImportError:  # said by the fixture: the test extra (make setup) installs it
+    playwright_api = None  # type: ignore[assignment]
 
 SLOW_MS, TIMEOUT_MS = 300, 1800  # S < T, with time enough between them for a screenshot
 WITHIN_S = 0.300  # the page shows a state at most this long after its frame
@@ -107,6 +110,8 @@ def dashboard(daemon: Daemon) -> Iterator[Dashboard]:
 
 @pytest.fixture
 def page() -> Iterator[Any]:
+    if playwright_api is None:
+        pytest.fail("playwright is missing: make setup installs the test extra")
     with playwright_api.sync_playwright() as pw:
         browser = pw.chromium.launch(executable_path=chromium_path(), headless=True,
                                      args=["--no-sandbox"])

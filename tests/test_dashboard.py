@@ -80,6 +80,10 @@ def test_states_no_signal_timeline_and_stops() -> None:
     assert snap["timeline"][0]["state"] == NO_SIGNAL
     assert snap["timeline"][0]["t"] == pytest.approx(t + 0.05)
     assert m.deadline(t + 0.06) is None
+    # the next frame comes late but stamped 20 ms after the last: the feed was late, not the unit
+    m.frame(t + 0.02, 0x50, u.brake(State.STOPPED, Reason.LIFT), t + 0.06)
+    tl = m.snapshot(t + 0.06)["timeline"]
+    assert tl[0]["state"] == "STOPPED" and "the feed was late" in tl[1]["cause"]
 
 
 def test_bad_input_is_counted_never_fatal() -> None:
@@ -194,11 +198,12 @@ def test_follower_reads_what_is_appended_and_starts_again_on_truncation(tmp_path
     assert got == ["one", "two", "three", "new", "rotated"], got
 
 
-async def _read_events(url: str, seconds: float) -> list[dict[str, Any]]:
-    events = []
+async def _read_events(url: str, seconds: float, enough: int = 0) -> list[dict[str, Any]]:
+    """The updates of ``seconds`` (or fewer, once ``enough`` came)."""
+    events: list[dict[str, Any]] = []
     async with aiohttp.ClientSession() as session, session.get(url + "events") as resp:
         end = time.monotonic() + seconds
-        while time.monotonic() < end:
+        while time.monotonic() < end and not (enough and len(events) >= enough):
             try:
                 line = await asyncio.wait_for(resp.content.readline(), end - time.monotonic())
             except TimeoutError:
@@ -339,7 +344,20 @@ def test_demo_serves_the_page_while_it_runs() -> None:
     assert seen[-1]["stops"].get("lift") == 1
 
 
-def test_a_client_that_never_reads_holds_up_only_itself() -> None:
+def test_a_page_that_never_reads_keeps_only_the_latest_update() -> None:
+    from estop.dashboard_server import _Client
+
+    async def go() -> _Client:
+        c = _Client()
+        for n in range(1000):  # a stream that cannot write keeps one update, not a queue
+            c.put(b"update %d" % n)
+        return c
+
+    c = asyncio.run(go())
+    assert c.latest == b"update 999" and c.ready.is_set()
+
+
+def test_a_client_that_never_reads_does_not_stop_the_others() -> None:
     async def go() -> tuple[int, int]:
         server = DashboardServer(DashboardModel(), "127.0.0.1", 0)
         await server.start()
@@ -350,22 +368,22 @@ def test_a_client_that_never_reads_holds_up_only_itself() -> None:
         await stuck.drain()
 
         async def frames() -> None:
-            for i in range(100):
+            for i in range(500):
                 state = State.ARMED if i % 2 else State.SLOWING  # every frame a change
                 server.frame(time.time(), 0x50, u.brake(state))
                 await asyncio.sleep(0.01)
 
+        task = asyncio.get_running_loop().create_task(frames())
         try:
-            task = asyncio.get_running_loop().create_task(frames())
-            events = await _read_events(f"http://127.0.0.1:{server.port}/", 1.2)
-            await task
+            events = await _read_events(f"http://127.0.0.1:{server.port}/", 10.0, enough=30)
             return len(events), len(server.clients)
         finally:
+            task.cancel()
             stuck.close()
             await server.close()
 
     got, clients = asyncio.run(asyncio.wait_for(go(), 20))
-    assert clients == 2 and got >= 10, (got, clients)
+    assert clients == 2 and got == 30, (got, clients)
 
 
 def test_frames_from_a_python_can_bus() -> None:

@@ -216,6 +216,12 @@ class DashboardModel:
             self._add(Change(prev + self.signal_timeout, NO_SIGNAL, "", "silence",
                              f"gap of {(t - prev) * 1000:.0f} ms between good ESTOP_BRAKE "
                              "frames"))
+        elif self._times and self._shown is not None and self._shown[0] == NO_SIGNAL \
+                and self.timeline and self.timeline[-1].source == "silence":
+            # the frames show no gap: what was silent was the way to this page
+            self.timeline[-1].cause = (f"no good ESTOP_BRAKE here for "
+                                       f"{self.signal_timeout * 1000:g} ms; the frames show "
+                                       f"no gap (the feed was late)")
         self._times.append(t)
         self._delays.append(arrived - t)
         state = state_name(frame.state)

@@ -242,7 +242,8 @@ def test_server_sends_at_most_20_updates_a_second() -> None:
 
 
 def test_stop_button_only_with_allow_stop_and_it_stops(tmp_path: Path) -> None:
-    with Daemon(tmp_path) as d:
+    # a timeout longer than the test, so that only the button can stop the unit
+    with Daemon(tmp_path, "--timeout-ms", "60000") as d:
         d.arm()
         seen = len(d.frames())
 
@@ -273,7 +274,7 @@ def test_stop_button_only_with_allow_stop_and_it_stops(tmp_path: Path) -> None:
         no_stop, no_header, status, body = asyncio.run(asyncio.wait_for(go(), 20))
         assert (no_stop, no_header, status) == (403, 403, 200)
         assert "ACK" in body["outcome"] and "STOPPED" in body["outcome"], body
-        frame = d.wait_frame(lambda f: f.is_brake and f.state == STOPPED, after=seen)
+        frame = d.wait_frame(lambda f: f.can_id == 0x50 and f.state == STOPPED, after=seen)
         assert frame.reason == R_TCP_STOP
         assert d.request(1, 9).state == STOPPED != ARMED
 

@@ -9,7 +9,8 @@ const FEED_QUIET_MS = 500;
 const shown = [];
 window.estopShown = shown;
 window.estopRenderErrors = 0;
-window.estopUpdates = 0;  // updates received (the benchmark counts them per second)
+window.estopUpdates = 0;  // updates received, and when (the benchmark counts them)
+window.estopUpdateTimes = [];  // [received (ms, the page's clock), sent (s, the server's)]
 let lastUpdate = 0;       // performance.now() of the latest update
 let lastUpdateWall = 0;   // Date.now() of the same
 let feedLost = true;
@@ -213,11 +214,15 @@ function connect() {
   es.onmessage = (e) => {
     window.estopUpdates += 1;
     lastUpdate = performance.now();
+    const times = window.estopUpdateTimes;
+    times.push([lastUpdate, null]);
+    if (times.length > 2000) times.shift();
     lastUpdateWall = Date.now();
     feedLost = false;
     let s;
     try {
       s = JSON.parse(e.data);
+      window.estopUpdateTimes[window.estopUpdateTimes.length - 1][1] = s.now;
       render(s);
     } catch (err) {
       window.estopRenderErrors += 1;  // a bad update never freezes the page

@@ -14,6 +14,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -198,12 +199,15 @@ def test_follower_reads_what_is_appended_and_starts_again_on_truncation(tmp_path
     assert got == ["one", "two", "three", "new", "rotated"], got
 
 
-async def _read_events(url: str, seconds: float, enough: int = 0) -> list[dict[str, Any]]:
-    """The updates of ``seconds`` (or fewer, once ``enough`` came)."""
+async def _read_events(url: str, seconds: float, enough: int = 0,
+                       until: Callable[[dict[str, Any]], bool] | None = None,
+                       ) -> list[dict[str, Any]]:
+    """The updates of ``seconds`` (or fewer, once ``enough`` came or one met ``until``)."""
     events: list[dict[str, Any]] = []
     async with aiohttp.ClientSession() as session, session.get(url + "events") as resp:
         end = time.monotonic() + seconds
-        while time.monotonic() < end and not (enough and len(events) >= enough):
+        while time.monotonic() < end and not (enough and len(events) >= enough) \
+                and not (until and events and until(events[-1])):
             try:
                 line = await asyncio.wait_for(resp.content.readline(), end - time.monotonic())
             except TimeoutError:
@@ -430,3 +434,47 @@ def test_an_input_that_breaks_the_model_is_said_and_the_feed_goes_on() -> None:
     snap = asyncio.run(go())
     assert "ZeroDivisionError: planted" in snap["inputs"]["notes"][-1]
     assert snap["health"]["frames"] == 1  # the next input was taken
+
+
+def test_a_named_pipe_is_followed_across_writers(tmp_path: Path) -> None:
+    from estop.dashboard_feed import open_line_feed
+
+    fifo = tmp_path / "log.fifo"
+    os.mkfifo(fifo)
+    got: list[str] = []
+
+    async def go() -> None:
+        feed = open_line_feed(str(fifo), lambda line, t: got.append(line.strip()), got.append)
+        feed.start(asyncio.get_running_loop())
+        for word in ("first", "second"):  # two writers, one after the other
+            fd = os.open(fifo, os.O_WRONLY)
+            os.write(fd, f"{word}\n".encode())
+            os.close(fd)
+            await asyncio.sleep(0.2)
+        feed.close()
+
+    asyncio.run(asyncio.wait_for(go(), 10))
+    assert got == ["first", "second"], got
+
+
+def test_can_log_from_standard_input() -> None:
+    """``candump -L can0 | estop dashboard --can-log -``: the page follows what comes in."""
+    proc = subprocess.Popen([sys.executable, "-m", "estop", "dashboard", "--can-log", "-",
+                             "--listen", "127.0.0.1:0"], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdin is not None and proc.stdout is not None
+        m = re.search(r"listening on http://127\.0\.0\.1:(\d+)/", proc.stdout.readline())
+        assert m, proc.stderr.read() if proc.stderr else ""
+        u = Unit()
+        for _ in range(3):
+            data = u.brake(State.STOPPED, Reason.LIFT).hex().upper()
+            proc.stdin.write(f"({time.time():.6f}) can0 050#{data}\n")
+            proc.stdin.flush()
+        events = asyncio.run(_read_events(f"http://127.0.0.1:{m[1]}/", 10.0,
+                                          until=lambda e: e["health"]["accepted"] == 3))
+        assert events[-1]["health"]["accepted"] == 3, events[-1]["health"]
+        assert events[-1]["timeline"][-1]["reason"] == "lift"
+    finally:
+        proc.terminate()
+        assert proc.wait(10) == 0  # SIGTERM ends it as Ctrl-C does

@@ -17,6 +17,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import os
+import select
 import stat
 import sys
 import threading
@@ -114,53 +115,75 @@ class FileFollower(LineFeed):
 
 
 class StreamFeed(LineFeed):
-    """Lines of a stream that blocks (standard input, a pipe), read on a thread."""
+    """Lines of a stream that blocks (standard input, a pipe), read on a thread: select with
+    a short timeout, so that :meth:`close` ends the thread (closing a file another thread
+    is reading would wait for that read)."""
 
-    def __init__(self, name: str, stream: IO[str], on_line: LineSink, on_note: NoteSink,
-                 close_stream: bool) -> None:
+    def __init__(self, name: str, fd: int, on_line: LineSink, on_note: NoteSink,
+                 close_fd: bool) -> None:
         self.name = name
-        self._stream = stream
+        self._fd = fd
         self._on_line = on_line
         self._on_note = on_note
-        self._close_stream = close_stream
+        self._close_fd = close_fd
+        self._stop = threading.Event()
         self._thread: threading.Thread | None = None
 
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
-        def read() -> None:
-            try:
-                for line in self._stream:
-                    loop.call_soon_threadsafe(self._on_line, line, time.time())
-            except (OSError, ValueError) as exc:
-                with contextlib.suppress(RuntimeError):
-                    loop.call_soon_threadsafe(self._on_note, f"{self.name}: {exc}")
-                return
+        def deliver(call: Callable[..., None], *args: object) -> None:
             with contextlib.suppress(RuntimeError):  # the loop may be gone at exit
-                loop.call_soon_threadsafe(self._on_note, f"{self.name}: ended")
+                loop.call_soon_threadsafe(call, *args)
+
+        def read() -> None:
+            buf = b""
+            while not self._stop.is_set():
+                try:
+                    ready, _, _ = select.select([self._fd], [], [], 0.2)
+                    chunk = os.read(self._fd, CHUNK) if ready else None
+                except OSError as exc:
+                    deliver(self._on_note, f"{self.name}: {exc.strerror or exc}")
+                    return
+                if chunk is None:
+                    continue
+                if not chunk:
+                    deliver(self._on_note, f"{self.name}: ended")
+                    return
+                *done, buf = (buf + chunk).split(b"\n")
+                if len(buf) > CHUNK:  # a "line" without end: taken as a (bad) line
+                    done.append(buf)
+                    buf = b""
+                now = time.time()
+                for raw in done:
+                    deliver(self._on_line, raw.decode("utf-8", errors="replace"), now)
 
         self._thread = threading.Thread(target=read, name=f"feed {self.name}", daemon=True)
         self._thread.start()
 
     def close(self) -> None:
-        if self._close_stream:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        if self._close_fd:
             with contextlib.suppress(OSError):
-                self._stream.close()
+                os.close(self._fd)
 
 
 def open_line_feed(path: str, on_line: LineSink, on_note: NoteSink) -> LineFeed:
     """``-``: standard input; a regular file (or one not there yet): followed; anything
     else (a named pipe): read as a stream."""
     if path == "-":
-        return StreamFeed("standard input", sys.stdin, on_line, on_note, close_stream=False)
+        return StreamFeed("standard input", sys.stdin.fileno(), on_line, on_note,
+                          close_fd=False)
     try:
         mode = os.stat(path).st_mode
     except OSError:
         mode = stat.S_IFREG
     if stat.S_ISREG(mode):
         return FileFollower(path, on_line, on_note)
-    fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)  # a FIFO without a writer yet
-    os.set_blocking(fd, True)
-    stream = os.fdopen(fd, encoding="utf-8", errors="replace")
-    return StreamFeed(path, stream, on_line, on_note, close_stream=True)
+    # a named pipe: opened read-write, so that the open does not wait for a writer and the
+    # reads do not end when one writer goes (another, a restarted journalctl, may come)
+    fd = os.open(path, os.O_RDWR if stat.S_ISFIFO(mode) else os.O_RDONLY)
+    return StreamFeed(path, fd, on_line, on_note, close_fd=True)
 
 
 class BusFeed:

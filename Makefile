@@ -21,8 +21,10 @@ $(VENV)/bin/estopd: $(STAMP) $(wildcard firmware/core/* firmware/estopd/*)
 	$(MAKE) -C firmware
 	install -m 0755 firmware/build/estopd $@
 
+# DEMO_ARGS passes options to the demo: `make demo DEMO_ARGS=--dashboard` serves the live
+# status page beside it (needs `scripts/ensure-debs browser` only to test it, not to view it).
 demo: setup
-	$(VENV)/bin/estop demo
+	$(VENV)/bin/estop demo $(DEMO_ARGS)
 
 test: setup
 	$(MAKE) check
@@ -43,7 +45,7 @@ check: setup
 # (UB aborts the process), then the spec vectors run again on the installed optimised build.
 # The MCU tests (tests/test_mcu_*.py) build the core for Cortex-M and need the toolchain.
 coverage: setup
-	scripts/ensure-debs mcu
+	scripts/ensure-debs mcu browser
 	rm -rf $(COVDIR) && mkdir -p $(COVDIR)
 	$(VPY) pyext/build_instrumented.py $(COVDIR)
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" PYTHONPATH=$(COVDIR) ESTOP_CORE_MODULE=_estop_core_cov \
@@ -61,13 +63,15 @@ gamepad-vm: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" tools/vm-pytest tests/test_gamepad_uinput.py
 
 # Benchmarks (not part of `make test`): stop latency vs the asyncio baseline, memory soak,
-# instructions per input (host and Cortex-M). Reports land in bench/out/.
+# instructions per input (host and Cortex-M), the dashboard's cost. Reports land in bench/out/.
 bench: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/stop_latency.py
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/rss_soak.py
 	$(VPY) bench/core_instructions.py
 	scripts/ensure-debs mcu
 	$(VPY) bench/mcu_instructions.py
+	scripts/ensure-debs browser
+	$(VPY) bench/dashboard_load.py
 
 # The core on Cortex-M0+ and M4 (-Os, -O2) under build/mcu/: footprint, stack per entry point,
 # instructions per call in the emulator, checked against the budget (docs/MCU.md).

@@ -193,7 +193,9 @@ class Daemon:
 
     # -- life cycle
     def start(self, wait_s: float = 10.0) -> Daemon:
-        with self.out_path.open("wb") as out, self.err_path.open("wb") as err:
+        # append mode: a test may add lines of its own (the dashboard's bad-input test), and
+        # O_APPEND keeps each process's whole lines intact
+        with self.out_path.open("ab") as out, self.err_path.open("ab") as err:
             self.proc = subprocess.Popen(self.argv, stdin=subprocess.DEVNULL, stdout=out,
                                          stderr=err, env={**os.environ, **self.env})
         deadline = time.monotonic() + wait_s

@@ -11,6 +11,7 @@
 ``estop keygen PATH``                write a fresh key file, mode 0600 (:mod:`estop.keyfile`)
 ``estop link``                       false stops per hour per timeout from a recording of the
                                      control link (:mod:`estop.link`)
+``estop dashboard``                  the live status page (:mod:`estop.dashboard`)
 ===================================  =======================================================
 
 Every command takes the common settings (``--host``, ``--udp-port``, ``--tcp-port``,
@@ -57,7 +58,7 @@ _SUB_EPILOG = "exit codes: as for every estop command (estop --help)"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from estop import keyfile, link, monitor, oneshot, remote
+    from estop import dashboard, keyfile, link, monitor, oneshot, remote
 
     parser = ErrorOnlyParser(prog="estop", description="Tools for the estop emergency-stop "
                              "unit (wire contract: docs/PROTOCOL.md).", epilog=_EPILOG,
@@ -90,6 +91,11 @@ def build_parser() -> argparse.ArgumentParser:
                        description=link.DESCRIPTION, epilog=f"{link.EPILOG} {_SUB_EPILOG}")
     link.add_arguments(p)
     p.set_defaults(handler=link.run)
+
+    p = sub.add_parser("dashboard", help="serve the live status page (state, frames, link, "
+                       "timeline)", description=dashboard.DESCRIPTION, epilog=dashboard.EPILOG)
+    dashboard.add_arguments(p)
+    p.set_defaults(handler=dashboard.run)
 
     # `estop demo ...` is dispatched before parsing (see main); listed here for --help
     sub.add_parser("demo", help="run estopd on loopback and play a scripted drive "

@@ -21,10 +21,12 @@ The daemon runner lives in :mod:`estop.loopback`, shared with the benchmarks.
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 import tempfile
 import time
+from typing import Any, TextIO
 
 from estop.cliutil import EXIT_NOT_INSTALLED, EXIT_USAGE, ErrorOnlyParser
 from estop.demo_bus import BusWatch, state_lines
@@ -89,9 +91,55 @@ def _parser() -> ErrorOnlyParser:
     ap.add_argument("--speed-kmh", type=speed_kmh, default=15.0,
                     help=f"the car's speed at each moment that matters, {SPEED_KMH_MIN:g}.."
                          f"{SPEED_KMH_MAX:g} (default 15)")
+    ap.add_argument("--dashboard", nargs="?", const="127.0.0.1:8080", metavar="ADDR:PORT",
+                    help="also serve the live status page of the unit (estop dashboard) "
+                         "while the demo runs, on ADDR:PORT (default 127.0.0.1:8080); the "
+                         "address is printed at the start")
     ap.add_argument("--plain", action="store_true",
                     help="plain lines instead of a refreshing status line (default off a TTY)")
     return ap
+
+
+class _Page:
+    """``--dashboard``: the status page, fed the unit's can-log and the ``state`` events of
+    its log (text here: given to the page as the JSON events they stand for)."""
+
+    def __init__(self, thread: Any) -> None:
+        self.thread = thread
+
+    def tee(self, stream: str, line: str) -> None:
+        if stream == "can_log":
+            self.thread.can_line(line)
+            return
+        for ev in state_lines([line]):
+            self.thread.log_line(json.dumps({
+                "t_mono": ev.t_mono, "event": "state", "from": ev.frm, "to": ev.to,
+                "reason": ev.reason, "src": ev.src, "cause": ev.cause}))
+
+    def close(self) -> None:
+        self.thread.close()
+
+
+def _start_dashboard(listen: str, out: TextIO) -> _Page | None:
+    """Serve the page; None (after one line on stderr) when it cannot."""
+    from estop.cliutil import CliError
+
+    try:
+        from estop.dashboard import parse_listen
+        from estop.dashboard_server import ServerThread
+
+        host, port = parse_listen(listen)
+        thread = ServerThread(host, port)
+        url = thread.start()
+    except (ModuleNotFoundError, OSError, CliError) as exc:
+        why = (f"the 'dashboard' extra is missing ({exc.name})"
+               if isinstance(exc, ModuleNotFoundError) else str(exc))
+        sys.stderr.write(f"estop demo: error: --dashboard: {why}\n")
+        return None
+    out.write(f"estop demo: dashboard on {url} (the unit's live status page, while the demo "
+              f"runs)\n")
+    out.flush()
+    return _Page(thread)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -123,11 +171,16 @@ def main(argv: list[str] | None = None) -> int:
               f"packet, STOPPED at T = {settings.timeout_ms} ms; beside it a version-2 unit "
               f"(T = {V2_TIMEOUT_MS} ms, one stage); the car at {args.speed_kmh:g} km/h; CAN "
               f"frames logged to a pipe (no CAN hardware, no root)\n")
+    page = None
+    if args.dashboard:
+        page = _start_dashboard(args.dashboard, out)
+        if page is None:
+            return 2
     keydir = tempfile.TemporaryDirectory(prefix="estop-demo-")
     key_path = os.path.join(keydir.name, "key")
     key = write_key_file(key_path)  # a fresh key, mode 0600
     unit = Daemon([exe], timeout_ms=settings.timeout_ms, extra_args=settings.unit_args(),
-                  key_file=key_path)
+                  key_file=key_path, tee=None if page is None else page.tee)
     twin = V2Twin(exe, key_path, key)
     res = Result(settings)
     try:
@@ -143,6 +196,8 @@ def main(argv: list[str] | None = None) -> int:
     finally:
         rc, twin_rc = finish_run(unit, view, res, twin)
         keydir.cleanup()
+        if page is not None:
+            page.close()
     final = view.watch.brake.brake_request if view.watch.brake is not None else None
     view.event(time.time(), f"estopd ended (pid {unit.pid}, exit code {rc}); its last brake "
                             f"frame: brake_request={final}")

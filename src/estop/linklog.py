@@ -19,7 +19,7 @@ from typing import Any
 
 from estop.linkgaps import U32_MAX, Histogram, LinkInputError, UnitRecord
 
-__all__ = ["UNIT_KEYS", "open_text", "read_histogram_log"]
+__all__ = ["UNIT_KEYS", "HistogramReader", "open_text", "read_histogram_log"]
 
 # syslog-style prefix of plain journalctl output (short, short-iso, short-precise,
 # short-monotonic ...): anything, then `identifier[pid]: ` right before the message
@@ -149,21 +149,104 @@ class _Run:
         self.stop_clock(self.last_t)
 
 
+class HistogramReader:
+    """estopd's --log-json events, one at a time (a file, or a log being followed): sums the
+    last ``link_histogram`` event of every run. A run starts at a ``start`` event (or where
+    the counts go down); events other than ``link_histogram``, ``state``, ``exit`` and
+    ``output_dropped`` are ignored. ``estop link`` reads a file with it
+    (:func:`read_histogram_log`), ``estop dashboard`` a log as it is written."""
+
+    def __init__(self) -> None:
+        self._runs: list[tuple[_Run, dict[str, Any]]] = []
+        self._run = _Run()
+        self._edges: list[int] | None = None
+        self._dropped = False
+        self.histograms = 0  # link_histogram events taken
+
+    def _finish(self) -> None:
+        self._run.close()
+        if self._run.last is not None:
+            self._runs.append((self._run, self._run.last))
+
+    def feed_line(self, line: str, where: str) -> bool:
+        """One log line, as written or as journalctl prints it (lines without an event are
+        skipped); True if it was a ``link_histogram``. Raises :class:`LinkInputError` for a
+        malformed one."""
+        ev = _event(line.strip())
+        return ev is not None and self.feed(ev, where)
+
+    def feed(self, ev: dict[str, Any], where: str) -> bool:
+        """One decoded event; True if it was a ``link_histogram``."""
+        kind = ev.get("event")
+        t = _t_mono(ev)
+        run = self._run
+        if kind == "start":
+            self._finish()
+            self._run = _Run(started=True)
+            self._run.saw(t)
+            return False
+        if kind == "output_dropped" and ev.get("stream", "log") == "log":
+            self._dropped = True
+        if kind == "state":
+            run.state(ev.get("to"), t)
+        elif kind == "exit":
+            run.stop_clock(t)  # the daemon brakes as it ends
+        if kind != "link_histogram":
+            run.saw(t)
+            return False
+        _check_histogram(ev, where)
+        if self._edges is None:
+            self._edges = ev["edges_us"]
+        elif ev["edges_us"] != self._edges:
+            raise LinkInputError(f"{where}: link_histogram bins differ from earlier "
+                                 "events (logs of different daemons mixed?)")
+        if run.last is not None and any(
+                b < a for a, b in zip(run.last["counts"], ev["counts"], strict=True)):
+            self._finish()  # counts went down: a restart without `start`
+            self._run = run = _Run()
+        run.last = ev
+        run.saw(t)
+        self.histograms += 1
+        return True
+
+    def histogram(self, path: str, skipped_note: str = "") -> Histogram:
+        """The sum so far (the current run up to its latest event); ``path`` names the log in
+        the error raised when there is no ``link_histogram`` yet, ``skipped_note`` says which
+        lines held no event."""
+        current = self._run
+        runs = list(self._runs)
+        if current.last is not None:
+            # a copy, so that the run goes on counting its time moving as events come
+            snap = _Run(current.started, current.last, current.moving_s, current.moving_since,
+                        current.last_t, current.states)
+            snap.close()
+            runs.append((snap, current.last))
+        edges = self._edges
+        if not runs or edges is None:
+            why = f"; {skipped_note}" if skipped_note else ""
+            raise LinkInputError(f"{path}: no link_histogram event (is it estopd's --log-json "
+                                 f"log?){why}")
+        total = [0] * len(edges)
+        valid = invalid = silences = 0
+        saturated = False
+        for _, ev in runs:
+            for i, x in enumerate(ev["counts"]):
+                total[i] += x
+                saturated |= x >= U32_MAX
+            valid += ev["valid"]
+            invalid += ev["invalid"]
+            silences += ev["silences"]
+        unit, note = _unit_record(runs, self._dropped)
+        return Histogram(tuple(edges), tuple(total), valid, invalid, silences,
+                         runs[-1][1]["warn_us"], len(runs), saturated, unit, note, skipped_note)
+
+
 def read_histogram_log(path: str) -> Histogram:
-    """Sum the last ``link_histogram`` event of every run in estopd's --log-json log. A run
-    starts at a ``start`` event (or where the counts go down); events other than
-    ``link_histogram``, ``state`` and ``exit`` are ignored."""
-    runs: list[tuple[_Run, dict[str, Any]]] = []
-    run = _Run()
-    edges: list[int] | None = None
-    dropped = False
+    """Sum the last ``link_histogram`` event of every run in estopd's --log-json log, as
+    written or as journalctl prints it (see :class:`HistogramReader`); lines that hold no
+    event are counted and the first is named."""
+    reader = HistogramReader()
     skipped = _Skipped()
-
-    def finish() -> None:
-        run.close()
-        if run.last is not None:
-            runs.append((run, run.last))
-
     try:
         with open_text(path) as f:
             for no, raw in enumerate(f, 1):
@@ -172,56 +255,11 @@ def read_histogram_log(path: str) -> Histogram:
                 if ev is None:
                     skipped.add(no, line)
                     continue
-                kind = ev.get("event")
-                t = _t_mono(ev)
-                if kind == "start":
-                    finish()
-                    run = _Run(started=True)
-                    run.saw(t)
-                    continue
-                if kind == "output_dropped" and ev.get("stream", "log") == "log":
-                    dropped = True
-                if kind == "state":
-                    run.state(ev.get("to"), t)
-                elif kind == "exit":
-                    run.stop_clock(t)  # the daemon brakes as it ends
-                if kind != "link_histogram":
-                    run.saw(t)
-                    continue
-                where = f"{path}:{no}"
-                _check_histogram(ev, where)
-                if edges is None:
-                    edges = ev["edges_us"]
-                elif ev["edges_us"] != edges:
-                    raise LinkInputError(f"{where}: link_histogram bins differ from earlier "
-                                         "events (logs of different daemons mixed?)")
-                if run.last is not None and any(
-                        b < a for a, b in zip(run.last["counts"], ev["counts"], strict=True)):
-                    finish()  # counts went down: a restart without `start`
-                    run = _Run()
-                run.last = ev
-                run.saw(t)
+                reader.feed(ev, f"{path}:{no}")
     except UnicodeDecodeError:
         raise LinkInputError(f"{path}: not a text file (use --format pcap for captures)") \
             from None
-    finish()
-    if not runs or edges is None:
-        why = f"; {skipped.note()}" if skipped.count else ""
-        raise LinkInputError(f"{path}: no link_histogram event (is it estopd's --log-json "
-                             f"log?){why}")
-    total = [0] * len(edges)
-    valid = invalid = silences = 0
-    saturated = False
-    for _, ev in runs:
-        for i, x in enumerate(ev["counts"]):
-            total[i] += x
-            saturated |= x >= U32_MAX
-        valid += ev["valid"]
-        invalid += ev["invalid"]
-        silences += ev["silences"]
-    unit, note = _unit_record(runs, dropped)
-    return Histogram(tuple(edges), tuple(total), valid, invalid, silences,
-                     runs[-1][1]["warn_us"], len(runs), saturated, unit, note, skipped.note())
+    return reader.histogram(path, skipped.note())
 
 
 def _unit_record(runs: list[tuple[_Run, dict[str, Any]]],

@@ -19,7 +19,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO
 
@@ -102,13 +102,14 @@ class Daemon:
 
     def __init__(self, command: Sequence[str], *, timeout_ms: int = 200,
                  extra_args: Sequence[str] = (), key_file: str | None = None,
-                 reader_rt_prio: int = 0) -> None:
+                 reader_rt_prio: int = 0, tee: Callable[[str, str], None] | None = None) -> None:
         auth_args = ["--key-file", key_file] if key_file is not None else ["--no-auth"]
         self.argv = [*command, "--bind", "127.0.0.1", "--udp-port", "0", "--tcp-port", "0",
                      "--timeout-ms", str(timeout_ms), "--can-log", "-", *auth_args,
                      *extra_args]
         self.timeout_ms = timeout_ms
         self.reader_rt_prio = reader_rt_prio
+        self.tee = tee  # also given every line: ("can_log", line) and ("log", line)
         self.frames: queue.Queue[canlog.CanLogRecord] = queue.Queue()
         self.log_lines: list[str] = []
         self.loss = CanLogLoss()
@@ -155,6 +156,8 @@ class Daemon:
 
     def _read_frames(self, stream: IO[str]) -> None:
         for line in stream:
+            if self.tee is not None:
+                self.tee("can_log", line)
             try:
                 rec = canlog.parse_line(line)
             except canlog.CanLogError:
@@ -165,6 +168,8 @@ class Daemon:
 
     def _read_log(self, stream: IO[str]) -> None:
         for line in stream:
+            if self.tee is not None:
+                self.tee("log", line)
             self.log_lines.append(line.rstrip("\n"))
             if not self._started.is_set():
                 ports = parse_start_ports(line)

@@ -181,8 +181,10 @@ def sc_auth_spoof(run: Run, res: Result) -> None:
     drops1 = udp_drops(run.udp_port)
     if t_first is not None:
         drops = drops1[1] - drops0[1] if drops0 and drops1 else None
+        # Every kind fails authentication: the plain heartbeat too (no tag; issue 16).
         count_check(run, res, t_first, time.time() - 0.1, sum(sent.values()),
-                    sent.get("wrong_key", 0) + sent.get("replay", 0), drops)
+                    sent.get("plain", 0) + sent.get("wrong_key", 0) + sent.get("replay", 0),
+                    drops)
     judge_spoiled(res, spoiled, run.args.repeat, len(over), "not every run stopped",
                   keepalive=False)
 

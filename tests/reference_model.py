@@ -249,11 +249,15 @@ class Model:
         """(valid, gas_brake) of a control datagram in the form this unit expects."""
         if self.cfg.key is None:
             return parse_control(data)
-        if len(data) != 60 or data[:4] != CONTROL_MAGIC:
+        if len(data) != 60:
+            if parse_control(data)[0]:
+                self._fail("bad tag")  # a plain packet: the key holder's are tagged
             return False, 0.0
         ok, gas = parse_control(data[24:44])  # the body first: a bad one keeps no counter
         if not ok:
             return False, 0.0
+        if data[:4] != CONTROL_MAGIC:
+            return self._fail("bad tag"), 0.0  # no tag the unit can check
         remote_id, session, counter = struct.unpack_from("<IQQ", data, 4)
         return self._authenticate(data[:44], data[44:], remote_id, session, counter, UDP), gas
 
@@ -347,7 +351,10 @@ class Model:
         if crc32(frame[:12]) != crc:
             self.bad_crc += 1
             return False
-        # A plain RELEASE is the keyless unit's; a unit with a key wants it authenticated.
+        # A plain RELEASE is the keyless unit's; a unit with a key wants it authenticated, and
+        # counts a plain one as an authentication failure.
+        if msg_id == RELEASE_ID and self.cfg.key is not None:
+            self._fail("bad tag")
         nak = self._message(msg_id, self.cfg.key is None, step)
         body = struct.pack("<IIBBBB", NAK if nak else ACK, seq, self.state, self.reason,
                            self.flags(), nak)

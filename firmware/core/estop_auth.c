@@ -40,19 +40,20 @@ int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, s
     uint8_t tag[ESTOP_TAG_LEN];
     const uint8_t bit = (uint8_t)(1u << channel);
     int ok = 0;
-    (void)estop_b2s_mac(&core->mac, msg, tag_at, tag);
-    if (!estop_ct_equal(tag, &msg[tag_at], ESTOP_TAG_LEN)) {
-        core->counters.auth_bad_tag++;
+    /* A MAC that cannot be made (a broken key state) authenticates nothing. */
+    if ((estop_b2s_mac(&core->mac, msg, tag_at, tag) != 0) ||
+        !estop_ct_equal(tag, &msg[tag_at], ESTOP_TAG_LEN)) {
+        sat32_inc(&core->counters.auth_bad_tag);
     } else if (rd_u64le(&msg[ids_at + SESSION_AFTER_ID]) != core->cfg.session) {
-        core->counters.auth_bad_session++;
+        sat32_inc(&core->counters.auth_bad_session);
     } else {
         /* A new remote id gets a place only here, with a right tag and session. */
         estop_remote_t *r = find_remote(core, rd_u32le(&msg[ids_at]));
         const uint64_t counter = rd_u64le(&msg[ids_at + COUNTER_AFTER_ID]);
         if (r == NULL) {
-            core->counters.auth_table_full++;
+            sat32_inc(&core->counters.auth_table_full);
         } else if (((r->seen & bit) != 0u) && (counter <= r->counter[channel])) {
-            core->counters.auth_old_counter++;
+            sat32_inc(&core->counters.auth_old_counter);
         } else {
             r->counter[channel] = counter;
             r->seen = (uint8_t)(r->seen | bit);
@@ -63,4 +64,13 @@ int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, s
         core->status_auth_failed = sat8_inc(core->status_auth_failed);
     }
     return ok;
+}
+
+/* Section 5: a message that needs authentication on this unit but carries no tag it can check
+ * (a plain control packet or a plain RELEASE, a 60-byte packet without the ESU2 magic) fails
+ * it as a bad tag does (docs/PROTOCOL.md 4, ESTOP_STATUS byte 2). */
+void estop__unauthenticated(estop_core_t *core)
+{
+    sat32_inc(&core->counters.auth_bad_tag);
+    core->status_auth_failed = sat8_inc(core->status_auth_failed);
 }

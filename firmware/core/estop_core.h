@@ -174,6 +174,7 @@ typedef struct {
     uint8_t data[ESTOP_CAN_DLC];
 } estop_can_frame_t;
 
+/* Every counter saturates at UINT32_MAX: it never wraps back to a small number. */
 typedef struct {
     uint32_t udp_valid;
     uint32_t udp_invalid;
@@ -189,7 +190,8 @@ typedef struct {
     uint32_t faults;          /* faults reported by the host, in any state */
     /* Messages that needed authentication (control packets and RELEASE on a unit with a key)
      * and failed it, by the first check that failed (PROTOCOL.md 5). */
-    uint32_t auth_bad_tag;
+    uint32_t auth_bad_tag;     /* wrong tag, or none: a plain control packet or RELEASE, a
+                                  60-byte packet without the ESU2 magic */
     uint32_t auth_bad_session;
     uint32_t auth_old_counter; /* replayed or stale: not above the highest kept */
     uint32_t auth_table_full;  /* a 9th remote id */

@@ -186,10 +186,10 @@ def test_counters_are_kept_per_remote_id_and_per_channel() -> None:
 
 def test_a_ninth_remote_id_is_not_authenticated() -> None:
     u = Keyed()
-    for rid in range(8):
-        u.wait(5 * MS)
+    for rid in range(8):  # 10 ms apart: within the tag checks for new ids (10 per 100 ms)
+        u.wait(10 * MS)
         u.udp(u.heartbeat(rid=rid, counter=1))
-    u.wait(5 * MS)
+    u.wait(10 * MS)
     u.udp(u.heartbeat(rid=8, counter=1))
     c = u.wd.status().counters
     assert (c.udp_valid, c.auth_table_full) == (8, 1)
@@ -200,9 +200,11 @@ def test_a_ninth_remote_id_is_not_authenticated() -> None:
 def test_forged_packets_from_new_remote_ids_do_not_take_the_places() -> None:
     u = Keyed()
     for rid in range(100, 120):  # wrong key or wrong session: no place given
+        u.wait(50 * MS)  # a new window of tag checks for the ids without a place
         u.udp(u.heartbeat(rid=rid, key=bytes(32), counter=1))
         u.udp(u.heartbeat(rid=rid, session=N ^ 1, counter=1))
     for rid in range(8):
+        u.wait(10 * MS)
         u.udp(u.heartbeat(rid=rid, counter=1))
     c = u.wd.status().counters
     assert (c.udp_valid, c.auth_table_full, c.auth_bad_tag, c.auth_bad_session) == (8, 0, 20, 20)

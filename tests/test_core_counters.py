@@ -4,7 +4,7 @@ set to its top through the core's state, then every path that counts runs once."
 
 from __future__ import annotations
 
-from core_util import MS, STOP_ID, Unit, packet, request
+from core_util import MS, STOP_ID, Unit, request
 from estop.core import Config, Watchdog
 from estop.protocol import auth
 from estop.protocol.udp import ControlPacket, Gear
@@ -15,7 +15,8 @@ N = 0x0123456789ABCDEF
 RELEASE, STATUS, LIFT = 2, 1, 3
 COUNTERS = ("udp_valid", "udp_invalid", "udp_stops", "tcp_frames", "tcp_bad_crc",
             "tcp_unknown_id", "releases_accepted", "releases_refused", "slowdowns", "rearms",
-            "faults", "auth_bad_tag", "auth_bad_session", "auth_old_counter", "auth_table_full")
+            "faults", "auth_bad_tag", "auth_bad_session", "auth_old_counter", "auth_table_full",
+            "auth_unchecked")
 
 
 def fill(wd: Watchdog) -> None:
@@ -81,4 +82,7 @@ def test_every_authentication_counter_saturates() -> None:
     u.udp(auth.AuthControlPacket(0, N, 5, body).encode(K))  # an old counter
     u.udp(auth.AuthControlPacket(0, N + 1, 9, body).encode(K))  # another session
     u.udp(auth.AuthControlPacket(0, N, 9, body).encode(bytes(32)))  # a forged tag
+    for i in range(12):  # over the tag-check budget of remote 0 in this window
+        u.udp(auth.AuthControlPacket(0, N, 10 + i, body).encode(bytes(32)))
+    assert u.wd._core.remotes[0].checks == 10  # the budget was reached: unchecked counted
     assert_all_top(u.wd)

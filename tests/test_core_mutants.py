@@ -175,6 +175,7 @@ def test_config_default_sets_every_field_and_writes_nothing_else() -> None:
     assert (cfg.release_packets, cfg.brake_period_us, cfg.status_period_us) == (5, 10_000,
                                                                                 100_000)
     assert (cfg.session, cfg.key_len) == (0, 0)
+    assert (cfg.tag_checks, cfg.tag_window_us) == (10, 100_000)
     assert bytes(ffi.buffer(cfg.key, 32)) == bytes(32)
     end_of_key = ffi.offsetof("estop_config_t", "key") + 32
     assert bytes(ffi.buffer(cfg, size))[end_of_key:] == b"\xa5" * (size - end_of_key)
@@ -393,13 +394,13 @@ def test_the_remote_table_never_reaches_past_its_8_entries() -> None:
         buf, core = guarded_core(extra)
         out = ffi.new("estop_out_t *")
         assert lib.estop_init(core, Config(key=K).to_c(), 0) == lib.ESTOP_OK
-        for rid in range(8):
+        for rid in range(8):  # 20 ms apart: each in a window of tag checks of its own
             data = auth_packet(rid, 1)
-            assert lib.estop_udp_rx(core, ffi.from_buffer("uint8_t[]", data), 60, rid,
-                                    out) == lib.ESTOP_OK
+            assert lib.estop_udp_rx(core, ffi.from_buffer("uint8_t[]", data), 60,
+                                    20_000 * (rid + 1), out) == lib.ESTOP_OK
         data = auth_packet(99, 5)
-        assert lib.estop_udp_rx(core, ffi.from_buffer("uint8_t[]", data), 60, 9, out) == \
-            lib.ESTOP_OK
+        assert lib.estop_udp_rx(core, ffi.from_buffer("uint8_t[]", data), 60, 9 * 20_000,
+                                out) == lib.ESTOP_OK
         st = ffi.new("estop_status_t *")
         assert lib.estop_get_status(core, st) == lib.ESTOP_OK
         assert st.counters.udp_valid == 8 and st.counters.auth_table_full == 1

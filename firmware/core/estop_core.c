@@ -55,6 +55,8 @@ void estop_config_default(estop_config_t *cfg)
         cfg->release_packets = ESTOP_DEFAULT_RELEASE_PACKETS;
         cfg->brake_period_us = ESTOP_DEFAULT_BRAKE_PERIOD_US;
         cfg->status_period_us = ESTOP_DEFAULT_STATUS_PERIOD_US;
+        cfg->tag_checks = (uint8_t)ESTOP_DEFAULT_TAG_CHECKS;
+        cfg->tag_window_us = ESTOP_DEFAULT_TAG_WINDOW_US;
         cfg->session = 0u; /* the host's to draw (estop_init refuses 0) */
         cfg->key_len = 0u;
         for (i = 0u; i < ESTOP_KEY_LEN; i++) {
@@ -96,6 +98,11 @@ estop_err_t estop_config_check(const estop_config_t *cfg)
                (cfg->status_period_us > ESTOP_STATUS_PERIOD_MAX_US) ||
                (cfg->status_period_us < cfg->brake_period_us)) {
         err = ESTOP_ERR_STATUS_PERIOD;
+    } else if ((cfg->tag_checks < ESTOP_TAG_CHECKS_MIN) ||
+               (cfg->tag_checks > ESTOP_TAG_CHECKS_MAX) ||
+               (cfg->tag_window_us < ESTOP_TAG_WINDOW_MIN_US) ||
+               (cfg->tag_window_us > ESTOP_TAG_WINDOW_MAX_US)) {
+        err = ESTOP_ERR_TAG_BUDGET;
     } else if ((cfg->key_len != 0u) && (cfg->key_len != ESTOP_KEY_LEN)) {
         err = ESTOP_ERR_KEY;
     } else if (cfg->session == 0u) {
@@ -129,6 +136,7 @@ estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t n
             core->counters.stops[ESTOP_REASON_BOOT] = 1u;
             core->brake_due_us = now_us; /* the boot frames are due at once */
             core->status_due_us = now_us;
+            core->tag_window_us = now_us; /* the first tag-check window starts at boot */
             core->magic = CORE_MAGIC;
         }
     }
@@ -595,7 +603,7 @@ const char *estop_err_name(estop_err_t err)
         "bad_stop_id",  "bad_can_id",       "bad_data_id",  "bad_release_count",
         "bad_brake_period", "bad_status_period", "not_initialised", "bad_slot",
         "slot_closed",  "bad_key",          "bad_session",  "bad_slow_time",
-        "bad_slow_level"};
+        "bad_slow_level", "bad_tag_budget"};
     const char *name = "unknown_error";
     const size_t n = sizeof(names) / sizeof(names[0]);
     const int count = (int)n;

@@ -371,6 +371,10 @@ def test_the_counter_is_compared_as_the_whole_u64_at_its_offset() -> None:
     assert r.status().counters.auth_old_counter == 1  # type: ignore[attr-defined]
 
 
+def ninth_of() -> int:
+    return int(ffi.offsetof("estop_core_t", "remotes") + 8 * ffi.sizeof("estop_remote_t"))
+
+
 def guarded_core(extra: bytes) -> tuple[object, object]:
     """A core in a buffer with a guard zone after it: `extra` where a 9th remote entry would
     be, zeros elsewhere."""
@@ -389,6 +393,7 @@ def test_the_remote_table_never_reaches_past_its_8_entries() -> None:
     entry = ffi.new("estop_remote_t *")
     entry.used = 1
     entry.id = 99
+    entry.checks = 7  # a 9th entry's allowance, which a new window must not clear
     used = bytes(ffi.buffer(entry))
     for extra in (b"", used):
         buf, core = guarded_core(extra)
@@ -404,6 +409,8 @@ def test_the_remote_table_never_reaches_past_its_8_entries() -> None:
         st = ffi.new("estop_status_t *")
         assert lib.estop_get_status(core, st) == lib.ESTOP_OK
         assert st.counters.udp_valid == 8 and st.counters.auth_table_full == 1
+        assert core.tag_window_us > 0  # windows began anew (and cleared 8 allowances only)
+        assert bytes(ffi.buffer(buf, len(buf)))[ninth_of():ninth_of() + len(extra)] == extra
         del buf
 
 

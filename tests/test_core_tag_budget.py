@@ -171,3 +171,95 @@ def test_forging_the_remotes_own_id_can_only_stop_the_car() -> None:
     assert (st.state, st.reason) == (STOPPED, UDP_TIMEOUT)
     assert u.t - t_last_valid > 500 * MS  # starved: no valid packet since the flood began
     assert st.counters.auth_bad_tag <= CHECKS * (800 // WINDOW_MS + 1)  # still bounded
+
+
+# -- the edges of the budget (mutation tests) -------------------------------------------------
+def spend_shared(u: Keyed, n: int = CHECKS) -> None:
+    """Spends the shared allowance of the current window with forgeries from new ids."""
+    for i in range(n):
+        u.udp(forged(5000 + i + u.t))
+
+
+def test_the_remotes_own_allowance_serves_counters_up_to_65536_ahead() -> None:
+    for ahead, valid in ((65536, True), (65537, False)):
+        u = Keyed()
+        u.arm()
+        u.wait(WINDOW_MS * MS)
+        spend_shared(u)
+        u.counter += ahead - 1  # the remote lost ahead - 1 packets: its next is ahead above
+        before = u.wd.status().counters
+        u.udp(u.genuine())
+        c = u.wd.status().counters
+        assert (c.udp_valid - before.udp_valid == 1) == valid, ahead
+        assert (c.auth_unchecked - before.auth_unchecked == 1) == (not valid), ahead
+
+
+def test_a_window_ends_exactly_tag_window_us_after_it_began() -> None:
+    """The remote's allowance, spent at the window's start, is whole again exactly one window
+    later, and not a microsecond before; the shared one likewise."""
+    for delay, valid in ((WINDOW_MS * MS - 1, False), (WINDOW_MS * MS, True)):
+        u = Keyed()
+        u.arm()
+        u.wait(WINDOW_MS * MS)  # a new window starts with the next check
+        start = u.t
+        for i in range(CHECKS):
+            u.udp(forged(i, rid=RID, counter=u.counter + 1 + i))
+        spend_shared(u)
+        u.at(start + delay)
+        before = u.wd.status().counters
+        u.udp(u.genuine())
+        u.udp(forged(99, rid=RID + 100))  # a new id: from the shared allowance
+        c = u.wd.status().counters
+        assert (c.udp_valid - before.udp_valid == 1) == valid, delay
+        assert (c.auth_bad_tag - before.auth_bad_tag == 1) == valid, delay
+
+
+def test_every_remotes_allowance_is_whole_again_in_a_new_window() -> None:
+    """Two remotes, each spending its allowance in one window, are checked again in the
+    next; dropped packets count as invalid, never as authentication failures (byte 2)."""
+    u = Keyed()
+    u.arm()
+    ctr = {RID: u.counter, 8: 0}
+    valid_before = u.wd.status().counters.udp_valid
+    for _ in range(2):
+        u.wait(WINDOW_MS * MS)
+        for rid in (RID, 8):
+            for _ in range(CHECKS + 2):
+                ctr[rid] += 1
+                u.udp(auth.AuthControlPacket(rid, N, ctr[rid], BODY).encode(K))
+    c = u.wd.status().counters
+    assert c.udp_valid - valid_before == 4 * CHECKS + 1  # remote 8: its first from the shared
+    u.wait(WINDOW_MS * MS)
+    status = [d for (_t, can_id, d) in u.frames if can_id == 0x051]
+    assert all(d[2] == 0 for d in status), "unchecked packets counted as failures"
+
+
+def test_a_remote_that_began_on_tcp_takes_any_first_udp_counter() -> None:
+    """A new remote id authenticated first by a RELEASE (TCP) keeps no UDP counter yet: its
+    first control packet may carry counter 0."""
+    u = Keyed()
+    for _ in range(5):
+        u.wait(20 * MS)
+        u.udp(u.genuine())
+    new = 9
+    steps = u.send(auth.AuthRequest(RELEASE, 1, new, N, 5).encode(K))
+    assert steps[-1].state == ARMED  # the request gave remote 9 its place
+    before = u.wd.status().counters.udp_valid
+    u.udp(auth.AuthControlPacket(new, N, 0, BODY).encode(K))
+    assert u.wd.status().counters.udp_valid == before + 1
+
+
+def test_a_remote_without_a_udp_counter_draws_on_the_shared_allowance() -> None:
+    """Its own allowance is for its next counters, which a remote that has only spoken TCP
+    does not have yet: its first control packet waits, like a new id's, for the shared one."""
+    u = Keyed()
+    u.arm()
+    steps = u.send(auth.AuthRequest(1, 2, 9, N, 1).encode(K))  # STATUS: no place
+    steps = u.send(auth.AuthRequest(RELEASE, 3, 9, N, 1).encode(K))  # remote 9: a place
+    assert steps[-1].reply is not None
+    u.wait(WINDOW_MS * MS)
+    spend_shared(u)
+    before = u.wd.status().counters
+    u.udp(auth.AuthControlPacket(9, N, 1, BODY).encode(K))
+    c = u.wd.status().counters
+    assert (c.udp_valid, c.auth_unchecked) == (before.udp_valid, before.auth_unchecked + 1)

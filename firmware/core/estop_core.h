@@ -278,10 +278,10 @@ typedef struct {
     estop_counters_t counters;
     estop_slot_t slots[ESTOP_MAX_SLOTS];
     estop_b2s_key_t mac;       /* the state after the key block (the key itself is not kept) */
-    estop_remote_t remotes[ESTOP_MAX_REMOTES];
     uint32_t tag_window_us;    /* tick at which the current tag-check window began */
     uint8_t newcomer_checks;   /* tag checks this window from the shared allowance (new ids,
                                   counters far ahead) */
+    estop_remote_t remotes[ESTOP_MAX_REMOTES];
 } estop_core_t;
 
 /* A read-out of everything observable. */

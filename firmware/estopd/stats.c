@@ -66,20 +66,22 @@ static void report_link(stats_t *s, const stats_src_t *src, uint64_t now,
 }
 
 /* auth_failures: control packets and RELEASEs that failed authentication, by the first check
- * that failed (PROTOCOL.md 5), cumulative since start. Written only when they changed. */
+ * that failed (PROTOCOL.md 5), and the control packets dropped unchecked over the tag-check
+ * budget (unchecked), cumulative since start. Written only when they changed. */
 static void report_auth(stats_t *s, uint64_t now, const estop_counters_t *c)
 {
     uint64_t sum = (uint64_t)c->auth_bad_tag + c->auth_bad_session + c->auth_old_counter +
-                   c->auth_table_full;
+                   c->auth_table_full + c->auth_unchecked;
     if (sum != s->auth_reported) {
         log_kv_t kv[] = {
             KV_NUM("tag", c->auth_bad_tag),
             KV_NUM("session", c->auth_bad_session),
             KV_NUM("counter", c->auth_old_counter),
             KV_NUM("table_full", c->auth_table_full),
+            KV_NUM("unchecked", c->auth_unchecked),
         };
         s->auth_reported = sum;
-        log_event(now, "auth_failures", NULL, kv, 4u);
+        log_event(now, "auth_failures", NULL, kv, 5u);
     }
 }
 

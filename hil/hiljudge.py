@@ -9,22 +9,14 @@ import time
 from collections.abc import Callable
 
 from estop.protocol.can import BRAKE_ID
-from hilcheck import (
-    BRAKE_SILENCE_S,
-    STALL_EXCUSE_S,
-    StatusWindow,
-    enough_frames,
-    excused,
-    judge_latencies,
-    late,
-    overlap,
-    status_windows,
-    summary,
-)
-from hilrig import NEUTRAL, Daemon, Exchange, UdpRemote
+from hilclients import NEUTRAL, Exchange, UdpRemote
+from hildaemon import Daemon
+from hilemu import BRAKE_SILENCE_S
 from hilroll import Roll
 from hilrun import EARLY_TOL_MS, TIMEOUT_MS, Result, Run, ms
+from hilstalls import STALL_EXCUSE_S, enough_frames, excused, judge_latencies, late, overlap
 from hilstates import LogChange, log_changes
+from hilstats import StatusWindow, status_windows, summary
 
 
 def judge(run: Run, res: Result, key: str, label: str, pairs: list[tuple[float, float]],
@@ -32,7 +24,7 @@ def judge(run: Run, res: Result, key: str, label: str, pairs: list[tuple[float, 
     """Latency samples (reference time, frame time) against the profile's limits.
 
     Value = frame - reference. A value before its time is never excused; for the other limits
-    (median, max: the profile's plus ``slack_ms``) see :func:`hilcheck.judge_latencies`: a
+    (median, max: the profile's plus ``slack_ms``) see :func:`hilstalls.judge_latencies`: a
     sample during which a CPU stood still counts only as an upper bound.
     """
     stalls = run.stalls()
@@ -93,7 +85,7 @@ def judge_late(run: Run, res: Result, key: str, what: str, t0: float, t1: float,
 def judge_frames(run: Run, res: Result, key: str, what: str, t0: float, t1: float,
                  want: int) -> None:
     """At least ``want`` ESTOP_BRAKE frames in ``[t0, t1]``; fewer, with CPU stalls that could
-    explain the missing periods, is inconclusive (see :func:`hilcheck.enough_frames`)."""
+    explain the missing periods, is inconclusive (see :func:`hilstalls.enough_frames`)."""
     run.mon.sync()
     ts = [f.ts for f in run.mon.window(t0, t1) if f.can_id == BRAKE_ID]
     n, verdict = enough_frames(ts, t0, t1, want, 0.010, run.stalls())
@@ -109,7 +101,7 @@ def judge_frames(run: Run, res: Result, key: str, what: str, t0: float, t1: floa
 
 def frame_gap_check(run: Run, res: Result, key: str, t0: float, t1: float) -> None:
     """No ESTOP_BRAKE gap of 50 ms in ``[t0, t1]``. A gap the CPU stalls explain
-    (hilcheck.excused) is not a pass either: the row is inconclusive and runs once more."""
+    (hilstalls.excused) is not a pass either: the row is inconclusive and runs once more."""
     run.mon.sync()
     ts = [f.ts for f in run.mon.window(t0, t1) if f.can_id == BRAKE_ID]
     gaps = [(a, b) for a, b in zip(ts, ts[1:], strict=False)]

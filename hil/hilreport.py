@@ -113,7 +113,7 @@ def rollouts(doc: dict) -> list[tuple[str, dict]]:
 
 
 def median(values: list[float]) -> float:
-    """The interpolated median, as the rows' figures (hilcheck.summary) give it."""
+    """The interpolated median, as the rows' figures (hilstats.summary) give it."""
     xs = sorted(values)
     mid = (len(xs) - 1) / 2
     return (xs[math.floor(mid)] + xs[math.ceil(mid)]) / 2 if xs else float("nan")

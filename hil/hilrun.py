@@ -20,22 +20,12 @@ import can
 
 from estop.keyfile import KeyFileError, load_key_file, write_key_file
 from estop.protocol.can import BRAKE_ID, BrakeFrame
-from hilcheck import Frame
-from hilrig import (
-    NEUTRAL,
-    AuthRemote,
-    BusMonitor,
-    Candump,
-    Daemon,
-    Flooder,
-    RigError,
-    StallMonitor,
-    StopClient,
-    UdpRemote,
-    connect_retry,
-    free_port,
-    setup_vcan,
-)
+from hilbus import BusMonitor
+from hilclients import NEUTRAL, AuthRemote, StopClient, UdpRemote, connect_retry
+from hildaemon import Daemon
+from hilemu import Frame
+from hilload import Flooder
+from hilrig import Candump, RigError, StallMonitor, free_port, setup_vcan
 
 TIMEOUT_MS = 200
 WARN_MS = TIMEOUT_MS / 2

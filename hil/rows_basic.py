@@ -6,13 +6,15 @@ import signal
 import time
 
 from estop.protocol.can import BRAKE_ID, STATUS_ID, BrakeFrame, StatusFrame
-from hilcheck import BRAKE_SILENCE_S, periods, summary
+from hilclients import DRIVE_GAS, NEUTRAL
+from hilemu import BRAKE_SILENCE_S
 from hiljudge import judge, judge_rolls, judge_spoiled, last_packet
-from hilrig import DRIVE_GAS, NEUTRAL
 from hilroll import MODEL_TEXT, Roll, roll, single_stage_distance
 from hilrun import EARLY_TOL_MS, KEEPALIVE_GAP_S, TIMEOUT_MS, WARN_MS, Result, Row, Run, ms
+from hilstalls import periods
+from hilstats import summary
 
-# Boot: the mean periods are judged on stall-free stretches (hilcheck.periods); the daemon is
+# Boot: the mean periods are judged on stall-free stretches (hilstalls.periods); the daemon is
 # watched for at least 1 s, longer (up to BOOT_WATCH_MAX_S) until the stretches hold this many
 # gaps.
 BOOT_MIN_BRAKE_GAPS = 20
@@ -43,7 +45,7 @@ def sc_boot(run: Run, res: Result) -> None:
                                   f"reason={ex.reply.reason}"
     res.check(ex.reply.ack and ex.reply.state == 0 and ex.reply.reason == 1,
               "STATUS does not answer ACK STOPPED boot")
-    # The mean periods are judged on stall-free stretches only (hilcheck.periods): watch for
+    # The mean periods are judged on stall-free stretches only (hilstalls.periods): watch for
     # 1 s, and on (at most BOOT_WATCH_MAX_S) until the stretches hold enough gaps.
     end = first.ts + 1.0
     while True:

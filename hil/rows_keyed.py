@@ -11,8 +11,9 @@ import time
 
 from estop.protocol import auth, udp
 from estop.protocol.can import BRAKE_ID
+from hilclients import NEUTRAL, AuthClient, AuthRemote, UdpRemote, wrong_key
 from hiljudge import judge, judge_spoiled, last_packet, show_ex, windows_in
-from hilrig import NEUTRAL, AuthClient, AuthRemote, UdpRemote, udp_drops, wrong_key
+from hilload import udp_drops
 from hilrun import EARLY_TOL_MS, KEEPALIVE_GAP_S, TIMEOUT_MS, Result, Row, Run
 
 # The attacker's send period.
@@ -21,7 +22,7 @@ ATTACK_PERIOD_S = 0.005
 
 # ------------------------------------------------------------------ keyed rows (spec section 5)
 # These run last, on a daemon started with --key-file (a key made for the run, mode 0600, in
-# the output directory). The key holder's remote (hilrig.AuthRemote) learns the session with a
+# the output directory). The key holder's remote (hilclients.AuthRemote) learns the session with a
 # STATUS request frame and verifies every reply's tag under the key.
 
 def attack_packets(ar: AuthRemote, key: bytes, replay: list[bytes]) -> list[tuple[str, bytes]]:

@@ -5,7 +5,8 @@ Writes ``results.json`` (and candump.log, estopd-*.log) into ``--out``; ``hilrep
 that into the test protocol table and the latency plot.
 
 The rows live in modules of their own, imported one way (scenarios -> rows_* and wholerun ->
-hiljudge -> hilrun -> hilrig, hilcheck): ``rows_basic`` (boot, RELEASE, dead-man, TCP STOP),
+hiljudge -> hilrun -> the live parts: hilrig, hilbus, hildaemon, hilclients, hilload -> the
+pure logic: hilemu, hilstalls, hilstats, hilcandump): ``rows_basic`` (boot, RELEASE, dead-man, TCP STOP),
 ``rows_fault`` (flood, link down, full queue, kill, restart, SIGTERM), ``rows_v3`` (the lift,
 the two-stage stop), ``rows_keyed`` (spec section 5), ``wholerun`` (the checks of the whole
 run). This module runs them in order.
@@ -40,7 +41,7 @@ import rows_basic  # noqa: E402
 import rows_fault  # noqa: E402
 import rows_keyed  # noqa: E402
 import rows_v3  # noqa: E402
-from hilrig import LAG_MAX_S  # noqa: E402
+from hilbus import LAG_MAX_S  # noqa: E402
 from hilroll import MODEL_TEXT  # noqa: E402
 from hilrun import TIMEOUT_MS, Limits, Result, Row, Run, log, ms  # noqa: E402
 from rows_keyed import KEYED  # noqa: E402

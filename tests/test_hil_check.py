@@ -261,11 +261,11 @@ def test_scenario_criteria_format_in_both_profiles() -> None:
 
 def test_invalid_packets_really_are_invalid() -> None:
     import flood
-    import hilrig
+    import hilclients
     from estop.protocol import udp
 
     assert not any(udp.is_valid(p) for p in flood.INVALID_PACKETS)
-    assert udp.is_valid(hilrig.NEUTRAL) and udp.is_valid(hilrig.DRIVE_GAS)
+    assert udp.is_valid(hilclients.NEUTRAL) and udp.is_valid(hilclients.DRIVE_GAS)
 
 
 def test_run_command_line() -> None:
@@ -527,7 +527,7 @@ def test_attack_packets_are_made_without_the_key() -> None:
 
     import rows_keyed
     from estop.protocol import auth, udp
-    from hilrig import NEUTRAL
+    from hilclients import NEUTRAL
 
     key = bytes(range(32))
     remote = SimpleNamespace(remote_id=7, session=0x0123456789ABCDEF, udp_counter=41)

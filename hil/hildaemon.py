@@ -1,10 +1,11 @@
-"""The daemon under test as the HIL harness runs it: its process, and its JSON log (stderr)
-read by a thread.
+"""The daemon under test as the HIL harness runs it: its process, its JSON log (stderr) read
+by a thread, and the scheduling the kernel gives its threads (``--rt-prio``, as deployed).
 """
 
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import threading
 import time
@@ -40,6 +41,7 @@ class Daemon:
         self.signal_mono: float | None = None  # the daemon's clock (t_mono) at the signal
         self.keyed = "--key-file" in argv  # the unit has a key (spec section 5)
         self.opts: dict[str, str] = {}  # the options a row asked for (Run.want_opts)
+        self.sched: list[ThreadSched] = []  # its threads' scheduling once it ran (Run)
 
     def _read(self) -> None:
         assert self.proc.stderr is not None
@@ -100,3 +102,58 @@ class Daemon:
             self.proc.kill()
             self.proc.wait(timeout=5)
         self._reader.join(timeout=2)
+
+
+# --------------------------------------------------------------------------- its scheduling
+
+SCHED_RESET_ON_FORK = 0x40000000  # or'ed into the policy sched_getscheduler(2) returns
+POLICY_NAMES = {os.SCHED_OTHER: "OTHER", os.SCHED_FIFO: "FIFO", os.SCHED_RR: "RR",
+                os.SCHED_BATCH: "BATCH", os.SCHED_IDLE: "IDLE"}
+
+
+@dataclass(frozen=True, slots=True)
+class ThreadSched:
+    """How the kernel schedules one thread of a process."""
+
+    tid: int
+    name: str
+    policy: str  # FIFO, RR, OTHER, ...
+    priority: int  # the real-time priority (0 for OTHER)
+    reset_on_fork: bool
+
+    def text(self) -> str:
+        prio = f" {self.priority}" if self.policy in ("FIFO", "RR") else ""
+        return f"{self.policy}{prio}{' reset-on-fork' if self.reset_on_fork else ''}"
+
+
+def threads_sched(pid: int) -> list[ThreadSched]:
+    """Every thread of ``pid`` (the main thread first) as the kernel schedules it now."""
+    out: list[ThreadSched] = []
+    try:
+        tids = sorted(int(t) for t in os.listdir(f"/proc/{pid}/task"))
+    except OSError:
+        return out
+    for tid in sorted(tids, key=lambda t: t != pid):
+        try:
+            raw = os.sched_getscheduler(tid)
+            prio = os.sched_getparam(tid).sched_priority
+            name = Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip()
+        except OSError:
+            continue  # the thread ended meanwhile
+        policy = raw & ~SCHED_RESET_ON_FORK
+        out.append(ThreadSched(tid, name, POLICY_NAMES.get(policy, str(policy)), prio,
+                               bool(raw & SCHED_RESET_ON_FORK)))
+    return out
+
+
+def sched_text(threads: list[ThreadSched]) -> str:
+    """``loop FIFO 50 reset-on-fork; 2 other threads OTHER`` (the main thread, the loop, first;
+    the others grouped by what they run with)."""
+    if not threads:
+        return "unknown (process gone)"
+    main, rest = threads[0], threads[1:]
+    groups: dict[str, int] = {}
+    for t in rest:
+        groups[t.text()] = groups.get(t.text(), 0) + 1
+    more = "; ".join(f"{n} other thread{'s' if n > 1 else ''} {g}" for g, n in groups.items())
+    return f"loop {main.text()}" + (f"; {more}" if more else "")

@@ -10,7 +10,7 @@ from collections.abc import Callable
 
 from estop.protocol.can import BRAKE_ID
 from hilclients import NEUTRAL, Exchange, UdpRemote
-from hildaemon import Daemon
+from hildaemon import Daemon, sched_text
 from hilemu import BRAKE_SILENCE_S
 from hilroll import Roll
 from hilrun import EARLY_TOL_MS, TIMEOUT_MS, Result, Run, ms
@@ -182,6 +182,23 @@ def judge_rolls(res: Result, key: str, label: str, rolls: list[Roll], model_m: f
         if not r.agree:
             res.check(False, f"{label}: the two ways to the distance disagree: "
                              f"{r.disagreement()}")
+
+
+def judge_sched(run: Run, res: Result, d: Daemon) -> None:
+    """How the daemon ran, as deployed (hilrun.RT_PRIO): its start line's ``rt_prio`` and how
+    the kernel schedules its threads; with a priority asked, the loop (the main thread) must
+    run SCHED_FIFO at it."""
+    res.figures["scheduling"] = sched_text(d.sched)
+    start = d.events("start")
+    if start:
+        res.figures["start_line_rt_prio"] = start[0].get("rt_prio")
+    if run.rt_prio:
+        res.figures["started_under"] = (f"chrt -f -R {run.rt_prio}" if run.chrt else
+                                        "no chrt on PATH: the daemon's own --rt-prio only")
+        main = d.sched[0] if d.sched else None
+        res.check(main is not None and main.policy == "FIFO" and main.priority == run.rt_prio,
+                  f"the daemon's loop does not run SCHED_FIFO {run.rt_prio}: "
+                  f"{res.figures['scheduling']}")
 
 
 def show_ex(ex: Exchange) -> str:

@@ -1,11 +1,15 @@
 """The load the HIL harness puts on the daemon from processes of its own, and what it watches
-of it: the UDP flooder (flood.py) and the daemon's UDP receive queue.
+of it: the UDP flooder (flood.py), the connect storm (storm.py), the daemon's UDP receive
+queue, and a tap on loopback that times the datagrams a command sends.
 """
 
 from __future__ import annotations
 
+import ctypes
 import json
 import queue
+import socket
+import struct
 import subprocess
 import sys
 import threading
@@ -16,18 +20,20 @@ from hilrig import RigError
 from hilstats import udp_socket_drops
 
 
-class Flooder:
-    """``flood.py`` in a process of its own (see there): bursts and floods of invalid UDP."""
+class Helper:
+    """A helper script of this folder in a process of its own, started with the run (a Python
+    start under TCG on a busy host can take tens of seconds): commands one per line on its
+    standard input, every answer one JSON line on its standard output."""
 
-    def __init__(self, port: int, rate: float, python: str = sys.executable) -> None:
-        script = str(Path(__file__).resolve().parent / "flood.py")
-        self.proc = subprocess.Popen([python, "-B", script, str(port), "--rate", str(rate)],
-                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
-                                     bufsize=1)
+    def __init__(self, script: str, args: list[str], python: str = sys.executable) -> None:
+        self.name = Path(script).stem
+        path = str(Path(__file__).resolve().parent / script)
+        self.proc = subprocess.Popen([python, "-B", path, *args], stdin=subprocess.PIPE,
+                                     stdout=subprocess.PIPE, text=True, bufsize=1)
         self.t_start = time.time()
         self.t_ready: float | None = None
         self._answers: queue.Queue[str] = queue.Queue()
-        self._reader = threading.Thread(target=self._read, name="flood-out", daemon=True)
+        self._reader = threading.Thread(target=self._read, name=f"{self.name}-out", daemon=True)
         self._reader.start()
 
     def _read(self) -> None:
@@ -41,32 +47,26 @@ class Flooder:
             self.proc.stdin.write(line + "\n")
             self.proc.stdin.flush()
         except OSError as exc:
-            raise RigError(f"flooder gone ({exc})") from exc
+            raise RigError(f"{self.name} gone ({exc})") from exc
 
     def _answer(self, timeout: float) -> dict:
         try:
             rec = json.loads(self._answers.get(timeout=timeout))
         except queue.Empty:
-            raise RigError(f"flooder did not answer within {timeout} s "
+            raise RigError(f"{self.name} did not answer within {timeout} s "
                            f"(exit code {self.proc.poll()})") from None
         if not isinstance(rec, dict) or "error" in rec:
-            raise RigError(f"flooder: {rec}")
+            raise RigError(f"{self.name}: {rec}")
         return rec
 
     def ready(self, timeout: float = 20.0) -> float:
-        """Wait for the line the flooder writes once it is up; returns its time."""
+        """Wait for the line the helper writes once it is up; returns its time."""
         if self.t_ready is None:
             self.t_ready = float(self._answer(timeout)["t"])
         return self.t_ready
 
-    def burst(self, n: int, timeout: float = 10.0) -> dict:
-        self._say(f"burst {n}")
-        return self._answer(timeout)
-
-    def start(self) -> None:
-        self._say("flood")
-
     def stop(self, timeout: float = 10.0) -> dict:
+        """End what runs (a flood, a storm); its answer."""
         self._say("stop")
         return self._answer(timeout)
 
@@ -79,6 +79,35 @@ class Flooder:
                 self.proc.kill()
                 self.proc.wait(timeout=3)
         self._reader.join(timeout=2)
+
+
+class Flooder(Helper):
+    """``flood.py`` (see there): bursts and floods of invalid UDP."""
+
+    def __init__(self, port: int, rate: float, python: str = sys.executable) -> None:
+        super().__init__("flood.py", [str(port), "--rate", str(rate)], python)
+
+    def burst(self, n: int, timeout: float = 10.0) -> dict:
+        self._say(f"burst {n}")
+        return self._answer(timeout)
+
+    def start(self) -> None:
+        self._say("flood")
+
+
+class Storm(Helper):
+    """``storm.py`` (see there): busy connections that hold every place of the stop channel
+    and a storm of new connections."""
+
+    def __init__(self, port: int, busy: int, busy_ms: float, connect_ms: float,
+                 python: str = sys.executable) -> None:
+        super().__init__("storm.py", [str(port), "--busy", str(busy), "--busy-ms", str(busy_ms),
+                                      "--connect-ms", str(connect_ms)], python)
+
+    def start(self, timeout: float = 10.0) -> dict:
+        """Start the storm; returns once every busy connection has had a reply."""
+        self._say("storm")
+        return self._answer(timeout)
 
 
 class QueueWatch:
@@ -115,3 +144,77 @@ def udp_drops(port: int) -> tuple[int, int] | None:
         return udp_socket_drops(Path("/proc/net/udp").read_text(), port)
     except OSError:
         return None
+
+
+# --------------------------------------------------------------------------- loopback tap
+
+ETH_P_IP = 0x0800
+SO_ATTACH_FILTER = 26
+SO_TIMESTAMPNS = 35  # SCM_TIMESTAMPNS: the kernel's time of the packet, a struct timespec
+PACKET_OUTGOING = 4
+
+
+class _SockFilter(ctypes.Structure):
+    _fields_ = [("code", ctypes.c_uint16), ("jt", ctypes.c_uint8), ("jf", ctypes.c_uint8),
+                ("k", ctypes.c_uint32)]
+
+
+class _SockFprog(ctypes.Structure):
+    _fields_ = [("len", ctypes.c_uint16), ("filter", ctypes.POINTER(_SockFilter))]
+
+
+def udp_port_filter(port: int) -> list[tuple[int, int, int, int]]:
+    """A classic BPF program for a packet socket without link header (SOCK_DGRAM): IPv4 UDP,
+    not a fragment, to ``port`` (what ``tcpdump -dd 'udp dst port P'`` makes, less the
+    link layer)."""
+    return [
+        (0x30, 0, 0, 9),            # ldb [9]: protocol
+        (0x15, 0, 6, 17),           # jeq UDP, else drop
+        (0x28, 0, 0, 6),            # ldh [6]: flags and fragment offset
+        (0x45, 4, 0, 0x1FFF),       # jset fragment: drop
+        (0xB1, 0, 0, 0),            # ldxb 4*([0]&0xf): header length
+        (0x48, 0, 0, 2),            # ldh [x+2]: destination port
+        (0x15, 0, 1, port),         # jeq port, else drop
+        (0x06, 0, 0, 0xFFFF),       # ret: take it
+        (0x06, 0, 0, 0),            # ret: drop
+    ]
+
+
+class UdpTap:
+    """A packet socket on ``lo`` that keeps every UDP datagram to ``port`` with the kernel's
+    time of it (SO_TIMESTAMPNS, CLOCK_REALTIME as the CAN frames' stamps). It sees a datagram
+    as it is sent (and again as it is received): so it tells when another process, e.g. the
+    ``estop`` command, sent its first datagram, to the microsecond, without touching it."""
+
+    def __init__(self, port: int, iface: str = "lo") -> None:
+        self.sock = socket.socket(socket.AF_PACKET, socket.SOCK_DGRAM, socket.htons(ETH_P_IP))
+        prog = udp_port_filter(port)
+        insns = (_SockFilter * len(prog))(*(_SockFilter(*i) for i in prog))
+        fprog = _SockFprog(len(prog), insns)
+        self.sock.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER,
+                             bytes(ctypes.string_at(ctypes.addressof(fprog),
+                                                    ctypes.sizeof(fprog))))
+        self.sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+        self.sock.bind((iface, 0))
+        self.sock.setblocking(False)
+
+    def read(self) -> list[tuple[float, bytes]]:
+        """Every datagram queued so far: (kernel time, UDP payload), in order."""
+        out: list[tuple[float, bytes]] = []
+        while True:
+            try:
+                data, anc, _flags, _addr = self.sock.recvmsg(
+                    2048, socket.CMSG_SPACE(struct.calcsize("ll")))
+            except BlockingIOError:
+                return out
+            ts = time.time()  # no stamp: the time it was read (later, never earlier)
+            for level, kind, raw in anc:
+                if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS:
+                    sec, nsec = struct.unpack("ll", raw[:struct.calcsize("ll")])
+                    ts = sec + nsec / 1e9
+            ihl = (data[0] & 0x0F) * 4
+            out.append((ts, data[ihl + 8:]))
+
+    def close(self) -> None:
+        self.sock.close()

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import shutil
 import signal
 import socket
 import sys
@@ -22,9 +23,9 @@ from estop.keyfile import KeyFileError, load_key_file, write_key_file
 from estop.protocol.can import BRAKE_ID, BrakeFrame
 from hilbus import BusMonitor
 from hilclients import NEUTRAL, AuthRemote, StopClient, UdpRemote, connect_retry
-from hildaemon import Daemon
+from hildaemon import Daemon, sched_text, threads_sched
 from hilemu import Frame
-from hilload import Flooder
+from hilload import Flooder, Storm
 from hilrig import Candump, RigError, StallMonitor, free_port, setup_vcan
 
 TIMEOUT_MS = 200
@@ -45,6 +46,16 @@ ARM_PACKETS = 7
 FLOOD_RATE = float(os.environ.get("HIL_FLOOD_RATE", "20000"))
 # Keyed rows: the remote id of the key holder's remote.
 AUTH_REMOTE_ID = 7
+# The daemon runs as deployed (deploy/estopd.service.in): SCHED_FIFO at this priority, set
+# before it starts with reset-on-fork (chrt -f -R, as systemd's CPUSchedulingResetOnFork=yes),
+# asked again with --rt-prio, and --mlock. 0 (--rt-prio 0 of the runner, HIL_RT_PRIO=0): an
+# ordinary process (the Python stand-in: at real-time priority it would starve the harness).
+RT_PRIO = int(os.environ.get("HIL_RT_PRIO", "50"))
+# The connect storm (storm.py, rows_storm.py): busy connections holding every place (the unit
+# keeps 8), each with a STATUS every few ms, and a new connection every few ms.
+STORM_BUSY = 8
+STORM_BUSY_MS = 4.0
+STORM_CONNECT_MS = 4.0
 
 
 @dataclass(frozen=True)
@@ -130,6 +141,10 @@ class Run:
         self.aremote: AuthRemote | None = None
         self.aremote_daemon: Daemon | None = None
         self.flooder: Flooder | None = None
+        self.storm: Storm | None = None
+        self.rt_prio: int = getattr(args, "rt_prio", 0)
+        self.chrt = shutil.which("chrt") if self.rt_prio else None
+        self.scheds: list[str] = []  # how each daemon started was scheduled (threads_sched)
 
     # ---- plumbing
     @property
@@ -149,7 +164,13 @@ class Run:
     def argv(self) -> list[str]:
         keying = ["--key-file", str(self.key_path)] if self.want_key else ["--no-auth"]
         opts = {"--timeout-ms": str(TIMEOUT_MS), **self.want_opts}
-        return [*self.dut, "--can", self.iface, "--udp-port", str(self.udp_port),
+        rt: list[str] = []
+        pre: list[str] = []
+        if self.rt_prio:
+            rt = ["--rt-prio", str(self.rt_prio), "--mlock"]
+            if self.chrt is not None:
+                pre = [self.chrt, "-f", "-R", str(self.rt_prio)]
+        return [*pre, *self.dut, *rt, "--can", self.iface, "--udp-port", str(self.udp_port),
                 "--tcp-port", str(self.tcp_port), "--bind", "127.0.0.1",
                 *(x for kv in opts.items() for x in kv), "--log-json", *keying]
 
@@ -180,10 +201,17 @@ class Run:
             code = d.wait(0.1)
             raise RigError(f"daemon sent no ESTOP_BRAKE frame within 5 s (exit code {code}; "
                            f"log: {' | '.join(ln.raw for ln in d.lines[-3:])})")
+        d.sched = threads_sched(d.proc.pid)
+        self.scheds.append(sched_text(d.sched))
+        log(f"  daemon pid {d.proc.pid}: {self.scheds[-1]}")
+        self.reconnect_clients()
+        return d, fr
+
+    def reconnect_clients(self) -> None:
+        """The harness's 4 stop clients, on fresh connections."""
         for c in self.clients:
             c.close()
         self.clients = [connect_retry(self.tcp_port, 5.0) for _ in range(4)]
-        return d, fr
 
     def ensure_daemon(self) -> None:
         if self.daemons and self.daemon.alive and self.daemon.keyed != self.want_key:
@@ -239,6 +267,7 @@ class Run:
         # The flooder's interpreter starts now, long before its row: under TCG on a busy host
         # a Python start can take tens of seconds.
         self.flooder = Flooder(self.udp_port, FLOOD_RATE)
+        self.storm = Storm(self.tcp_port, STORM_BUSY, STORM_BUSY_MS, STORM_CONNECT_MS)
 
     def teardown(self) -> None:
         self.windows.append((time.time() - 0.01, math.inf, "teardown"))
@@ -248,6 +277,8 @@ class Run:
             self.aremote.close()
         if self.flooder is not None:
             self.flooder.close()
+        if self.storm is not None:
+            self.storm.close()
         for c in self.clients:
             c.close()
         for d in self.daemons:

@@ -8,7 +8,7 @@ import time
 from estop.protocol.can import BRAKE_ID, STATUS_ID, BrakeFrame, StatusFrame
 from hilclients import DRIVE_GAS, NEUTRAL
 from hilemu import BRAKE_SILENCE_S
-from hiljudge import judge, judge_rolls, judge_spoiled, last_packet
+from hiljudge import judge, judge_rolls, judge_sched, judge_spoiled, last_packet
 from hilroll import MODEL_TEXT, Roll, roll, single_stage_distance
 from hilrun import EARLY_TOL_MS, KEEPALIVE_GAP_S, TIMEOUT_MS, WARN_MS, Result, Row, Run, ms
 from hilstalls import periods
@@ -40,6 +40,7 @@ def sc_boot(run: Run, res: Result) -> None:
               f"first ESTOP_BRAKE {first.data.hex(' ')} is not the boot frame "
               "01 64 00 01 00 00 00 9c (STOPPED, boot, counter 0)")
     res.check(b.brakes, "first frame does not request the brake")
+    judge_sched(run, res, d)
     ex = run.clients[0].status()
     res.figures["status_reply"] = f"ack={ex.reply.ack} state={ex.reply.state} " \
                                   f"reason={ex.reply.reason}"

@@ -13,7 +13,7 @@ from hilclients import NEUTRAL, Exchange, UdpRemote
 from hildaemon import Daemon, sched_text
 from hilemu import BRAKE_SILENCE_S
 from hilroll import Roll
-from hilrun import EARLY_TOL_MS, TIMEOUT_MS, Result, Run, ms
+from hilrun import EARLY_TOL_MS, KEEPALIVE_GAP_S, TIMEOUT_MS, Result, Run, ms
 from hilstalls import STALL_EXCUSE_S, enough_frames, excused, judge_latencies, late, overlap
 from hilstates import LogChange, log_changes
 from hilstats import StatusWindow, status_windows, summary
@@ -182,6 +182,21 @@ def judge_rolls(res: Result, key: str, label: str, rolls: list[Roll], model_m: f
         if not r.agree:
             res.check(False, f"{label}: the two ways to the distance disagree: "
                              f"{r.disagreement()}")
+
+
+def no_armed_frame(run: Run, res: Result, start: int,
+                   what: str = "an ARMED frame appeared on the bus") -> None:
+    """No ESTOP_BRAKE frame with state ARMED from index ``start`` on (the record synced)."""
+    run.mon.sync()
+    armed = [f for f in run.mon.since(start) if f.can_id == BRAKE_ID and f.data[2] == 1]
+    res.check(not armed, what)
+
+
+def link_died_first(remote: UdpRemote, t_arm: float, t_send: float, reason: int | None) -> bool:
+    """Whether a stop sample is void: the unit stopped for the timeout (reason 3) and the
+    harness's own keepalive had paused KEEPALIVE_GAP_S or more between arming and sending the
+    stop request, so the link may have died before the request (the harness's doing)."""
+    return reason == 3 and remote.max_gap(t_arm, t_send) >= KEEPALIVE_GAP_S
 
 
 def judge_sched(run: Run, res: Result, d: Daemon) -> None:

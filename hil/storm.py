@@ -1,7 +1,7 @@
 """Connect storm of the HIL harness: an attacker who holds every place of the stop channel,
 from a process of its own (the harness's threads keep the GIL).
 
-    python storm.py PORT [--busy 8] [--busy-ms 4] [--connect-ms 4] [--keep 2]
+    python storm.py PORT [--busy 8] [--busy-ms 4] [--connect-ms 4] [--keep 2] [--nice 19]
 
 The unit keeps 8 connections and, when a new one comes, closes the one quiet longest (no
 complete frame for the longest time; docs/PROTOCOL.md section 2). So an attacker
@@ -28,17 +28,15 @@ from __future__ import annotations
 
 import argparse
 import errno
-import json
 import os
 import select
 import socket
 import sys
 import time
 from collections import deque
-from collections.abc import Callable
 
 from estop.protocol import tcp
-from flood import Lines  # this folder (run as a script)
+from helperio import Lines, answer, serve  # this folder (run as a script)
 
 READY_TIMEOUT_S = 5.0  # every busy connection has a reply within this, or the answer says not
 
@@ -96,8 +94,7 @@ def new_connection(port: int) -> socket.socket | None:
     return s
 
 
-def storm(args: argparse.Namespace, lines: Lines,
-          answer: Callable[[dict[str, object]], None]) -> dict[str, object]:
+def storm(args: argparse.Namespace, lines: Lines) -> dict[str, object]:
     t0 = time.time()
     busy = [Busy(args.port) for _ in range(args.busy)]
     fresh: deque[socket.socket] = deque()
@@ -162,31 +159,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--busy-ms", type=float, default=4.0, help="STATUS period of each, ms")
     p.add_argument("--connect-ms", type=float, default=4.0, help="a new connection every ... ms")
     p.add_argument("--keep", type=int, default=2, help="new connections held open")
+    p.add_argument("--nice", type=int, default=19,
+                   help="niceness: on the rig the attacker shares the CPUs with the harness "
+                        "and the command under test; a real one would run on its own machine")
     args = p.parse_args(argv)
+    os.nice(args.nice)
 
-    def answer(obj: dict[str, object]) -> None:
-        sys.stdout.write(json.dumps(obj) + "\n")
-        sys.stdout.flush()
+    def do_storm(_words: list[str], lines: Lines) -> None:
+        try:
+            res = storm(args, lines)
+        except OSError as exc:
+            answer({"error": f"storm: {exc}"})
+            return
+        lines.readline()  # the line that ended the storm ("stop")
+        answer(res)
 
-    answer({"ready": True, "pid": os.getpid(), "t": time.time()})
-    lines = Lines(sys.stdin.fileno())
-    while (line := lines.readline()) is not None:
-        cmd = line.split()
-        if not cmd:
-            continue
-        if cmd[0] == "storm":
-            try:
-                res = storm(args, lines, answer)
-            except OSError as exc:
-                answer({"error": f"storm: {exc}"})
-                continue
-            lines.readline()  # the line that ended the storm ("stop")
-            answer(res)
-        elif cmd[0] == "quit":
-            break
-        else:
-            answer({"error": f"unknown command {line.strip()!r}"})
-    return 0
+    return serve({"storm": do_storm})
 
 
 if __name__ == "__main__":

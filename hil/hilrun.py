@@ -54,8 +54,8 @@ RT_PRIO = int(os.environ.get("HIL_RT_PRIO", "50"))
 # The connect storm (storm.py, rows_storm.py): busy connections holding every place (the unit
 # keeps 8), each with a STATUS every few ms, and a new connection every few ms.
 STORM_BUSY = 8
-STORM_BUSY_MS = 4.0
-STORM_CONNECT_MS = 4.0
+STORM_BUSY_MS = 5.0
+STORM_CONNECT_MS = 5.0
 
 
 @dataclass(frozen=True)

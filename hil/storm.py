@@ -7,10 +7,10 @@ The unit keeps 8 connections and, when a new one comes, closes the one quiet lon
 complete frame for the longest time; docs/PROTOCOL.md section 2). So an attacker
 
 - keeps ``--busy`` connections busy: each sends a STATUS request every ``--busy-ms`` and reads
-  its replies; one the unit closes is opened again at once;
-- and opens a new connection every ``--connect-ms`` (holding the newest ``--keep``, closing
-  the older ones): each one makes the unit close the quietest connection. A genuine client
-  that is idle for a few ms is that one, every time.
+  its replies;
+- and opens a new connection every ``--connect-ms``: a busy one the unit closed, else a fresh
+  one (holding the newest ``--keep``, closing the older ones). Each makes the unit close the
+  quietest connection: a genuine client that is idle for a few ms is that one, every time.
 
 Once up it writes ``{"ready": true, "t": ...}``; then commands, one per line on standard input,
 every answer one JSON line on standard output:
@@ -95,56 +95,68 @@ def new_connection(port: int) -> socket.socket | None:
 
 
 def storm(args: argparse.Namespace, lines: Lines) -> dict[str, object]:
+    """Run until a command line comes. One new connection every ``connect_ms``: a busy one the
+    unit closed is opened again first, else a fresh one (so the connects, each of which makes
+    the unit close its quietest, come at that rate, not faster: a busy one opened again at
+    once would close another busy one, and so on as fast as the CPU goes)."""
     t0 = time.time()
-    busy = [Busy(args.port) for _ in range(args.busy)]
+    busy: list[Busy | None] = [Busy(args.port) for _ in range(args.busy)]
     fresh: deque[socket.socket] = deque()
-    connects = refused = sent = closed_by_unit = 0
+    connects = refused = sent = closed_by_unit = replies_lost = 0
     announced = False
     next_connect = time.monotonic()
     period = args.busy_ms / 1000.0
     for i, b in enumerate(busy):  # spread the busy requests over the period
+        assert b is not None
         b.due = time.monotonic() + period * i / len(busy)
     while True:
         now = time.monotonic()
         for i, b in enumerate(busy):
+            if b is None:
+                continue
             ok = b.read()
             if ok and now >= b.due:
                 ok = b.send()
                 sent += 1
                 b.due = max(b.due + period, now)
-            if not ok:  # the unit closed it (made room): open it again at once
+            if not ok:  # the unit closed it (made room): opened again at the next connect
                 closed_by_unit += 1
-                replies = b.replies
+                replies_lost += b.replies
                 b.close()
-                try:
-                    busy[i] = Busy(args.port)
-                except OSError:
-                    continue
-                busy[i].replies = replies
-                busy[i].due = now
+                busy[i] = None
         if now >= next_connect:
-            s = new_connection(args.port)
-            if s is None:
-                refused += 1
-            else:
-                connects += 1
-                fresh.append(s)
-                while len(fresh) > args.keep:
-                    fresh.popleft().close()
             next_connect = max(next_connect + args.connect_ms / 1000.0, now)
-        if not announced and (all(b.replies for b in busy)
+            gone = [i for i, b in enumerate(busy) if b is None]
+            if gone:
+                try:
+                    busy[gone[0]] = Busy(args.port)
+                    connects += 1
+                except OSError:
+                    refused += 1
+            else:
+                s = new_connection(args.port)
+                if s is None:
+                    refused += 1
+                else:
+                    connects += 1
+                    fresh.append(s)
+                    while len(fresh) > args.keep:
+                        fresh.popleft().close()
+        held = [b for b in busy if b is not None]
+        if not announced and ((len(held) == len(busy) and all(b.replies for b in held))
                               or time.time() - t0 > READY_TIMEOUT_S):
             announced = True
-            answer({"busy": all(b.replies for b in busy), "t": time.time(),
-                    "connections": len(busy) + len(fresh)})
+            answer({"busy": len(held) == len(busy) and all(b.replies for b in held),
+                    "t": time.time(), "connections": len(held) + len(fresh)})
         if announced and lines.waiting():
             break
-        wake = min(min(b.due for b in busy), next_connect) - time.monotonic()
-        select.select([b.sock for b in busy], [], [], max(0.0, min(wake, 0.001)))
+        wake = min([b.due for b in held] + [next_connect]) - time.monotonic()
+        select.select([b.sock for b in held], [], [], max(0.0, min(wake, 0.001)))
     t1 = time.time()
-    replies = sum(b.replies for b in busy)
+    replies = replies_lost + sum(b.replies for b in busy if b is not None)
     for b in busy:
-        b.close()
+        if b is not None:
+            b.close()
     for s in fresh:
         s.close()
     return {"t0": t0, "t1": t1, "busy": args.busy, "busy_ms": args.busy_ms,

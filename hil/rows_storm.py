@@ -32,12 +32,13 @@ from hilrun import (
     Run,
     ms,
 )
+from hilstalls import overlap
 from hilstats import summary
 
 STORM_RUNS = 3  # presses of the stop button (each a start of the real command)
 STORM_SETTLE_S = 0.15  # the storm runs this long before the press: the idle clients are gone
 STOP_DEADLINE_MS = 3000  # estop stop's own deadline (its default)
-COMMAND_LIMIT_S = 60.0  # a Python start under TCG on a busy host can take tens of seconds
+COMMAND_LIMIT_S = 30.0  # a Python start under TCG on a busy host can take tens of seconds
 STOPPED, TCP_STOP = 0, 2
 
 
@@ -63,10 +64,12 @@ def is_stop_datagram(payload: bytes) -> bool:
 
 # What the ``estop`` script runs (its console entry point: ``estop.cli.main`` on its
 # arguments), with a pause between the imports and the call: the command's process and code,
-# without its interpreter's start (seconds under TCG on a busy host) inside the storm.
+# without its interpreter's start and imports (seconds under TCG on a busy host: the modules
+# `estop stop` loads took 60-80 ms natively) inside the storm.
 LAUNCH = """import sys
 sys.argv[0] = "estop"
 from estop.cli import main
+import estop.keyfile, estop.oneshot, estop.stopchannel
 print("ready", flush=True)
 sys.stdin.readline()
 sys.exit(main())
@@ -96,14 +99,16 @@ class Press:
             self.close()
             raise RigError(f"estop stop did not start within {timeout:g} s")
 
-    def go(self) -> tuple[int, str]:
-        """Run it; its exit code and output (bounded: its deadline and then some)."""
+    def go(self) -> tuple[int | None, str]:
+        """Run it; its exit code and output, or None when it did not end within its deadline
+        and COMMAND_LIMIT_S more (it is killed)."""
         self.t_go = time.time()
         try:
-            out, err = self.proc.communicate("go\n", timeout=STOP_DEADLINE_MS / 1000 + 10)
-        except subprocess.TimeoutExpired as exc:
+            out, err = self.proc.communicate("go\n", timeout=STOP_DEADLINE_MS / 1000
+                                             + COMMAND_LIMIT_S)
+        except subprocess.TimeoutExpired:
             self.close()
-            raise RigError("estop stop did not end after its deadline") from exc
+            return None, ""
         return self.proc.returncode, (out or err).strip()
 
     def close(self) -> None:
@@ -120,7 +125,7 @@ class Pressed:
     t_go: float  # when the command was told to run
     t_first: float | None  # the kernel's time of its first stop datagram (the loopback tap)
     stop: tuple[Frame, BrakeFrame] | None  # the first STOPPED frame after the press began
-    code: int  # the command's exit code
+    code: int | None  # the command's exit code (None: it did not end, and was killed)
     output: str  # its output line
     idle_closed: int  # the harness's idle stop clients the storm had closed before the press
     storm: dict  # storm.py's counts
@@ -164,7 +169,7 @@ def sc_storm_stop(run: Run, res: Result) -> None:
     d = run.daemon
     lat: list[tuple[float, float]] = []
     cmd_ms: list[float] = []
-    acks = idle_gone = spoiled = 0
+    acks = idle_gone = spoiled = presses = 0
     counts: dict[str, float] = {}
     tap = UdpTap(run.udp_port)
     try:
@@ -173,10 +178,21 @@ def sc_storm_stop(run: Run, res: Result) -> None:
                 run.reconnect_clients()  # the storm closed them
             since = time.monotonic()
             pr = press_in_storm(run, res, i, estop, tap)
+            presses += 1
             idle_gone += pr.idle_closed
             for k in ("connects", "status_sent", "busy_closed_by_unit", "refused"):
                 counts[k] = counts.get(k, 0) + float(pr.storm[k])
             counts["storm_s"] = counts.get("storm_s", 0) + pr.storm["t1"] - pr.storm["t0"]
+            if pr.code is None:
+                # Not ended 30 s past its deadline: with the CPUs standing still most of the
+                # time (a host far too busy), the command never ran: inconclusive, not a pass.
+                stall = overlap(run.stalls(), pr.t_go, time.time())
+                why = (f"run {i}: estop stop did not end {COMMAND_LIMIT_S:g} s after its "
+                       f"deadline; a CPU stood still {ms(stall)} ms meanwhile")
+                if stall >= COMMAND_LIMIT_S / 2:
+                    res.inconclusive = why
+                res.check(False, why)
+                break
             if pr.t_first is None:
                 res.check(False, f"run {i}: no stop datagram from estop stop seen on loopback")
                 continue
@@ -207,7 +223,7 @@ def sc_storm_stop(run: Run, res: Result) -> None:
     judge(run, res, "stop_frame_latency_ms", "estop stop: first stop datagram -> stop frame", lat)
     res.figures["command_run_to_first_datagram_ms"] = summary(cmd_ms)
     res.figures["command_acked"] = f"{acks} of {len(lat)}"
-    res.figures["idle_clients_closed_by_the_storm"] = f"{idle_gone} of {4 * STORM_RUNS}"
+    res.figures["idle_clients_closed_by_the_storm"] = f"{idle_gone} of {4 * presses}"
     secs = max(counts.get("storm_s", 0.0), 0.001)
     res.figures["storm"] = (f"{STORM_BUSY} busy connections (STATUS every {STORM_BUSY_MS:g} ms "
                             f"asked, {counts.get('status_sent', 0) / secs:.0f}/s sent), new "
@@ -216,9 +232,9 @@ def sc_storm_stop(run: Run, res: Result) -> None:
                             f"{counts.get('refused', 0)} refused), busy ones the unit closed "
                             f"{counts.get('busy_closed_by_unit', 0)}; {secs:.2f} s of storm")
     # The storm must really have held every place: the genuine idle clients were closed.
-    res.check(idle_gone == 4 * STORM_RUNS,
+    res.check(idle_gone == 4 * presses,
               f"the storm did not close every idle client ({idle_gone} of "
-              f"{4 * STORM_RUNS}): the attack this row is about did not happen")
+              f"{4 * presses}): the attack this row is about did not happen")
     ex = run.clients[0].status()
     res.figures["status_after"] = show_ex(ex)
     res.check(ex.reply.state == STOPPED and (ex.reply.reason == TCP_STOP or spoiled > 0),

@@ -1,6 +1,7 @@
 """The load the HIL harness puts on the daemon from processes of its own, and what it watches
-of it: the UDP flooder (flood.py), the connect storm (storm.py), the daemon's UDP receive
-queue, and a tap on loopback that times the datagrams a command sends.
+of it: the UDP flooder (flood.py), the connect storm (storm.py), the ``estop`` command started
+ahead, the daemon's UDP receive queue, and a tap on loopback that times the datagrams a command
+sends.
 """
 
 from __future__ import annotations
@@ -8,6 +9,8 @@ from __future__ import annotations
 import ctypes
 import json
 import queue
+import select
+import shutil
 import socket
 import struct
 import subprocess
@@ -108,6 +111,68 @@ class Storm(Helper):
         """Start the storm; returns once every busy connection has had a reply."""
         self._say("storm")
         return self._answer(timeout)
+
+
+# What the ``estop`` script runs (its console entry point: ``estop.cli.main`` on its
+# arguments), with a pause between the imports and the call: the command's process and code,
+# without its interpreter's start and imports (seconds under TCG on a busy host: the modules
+# `estop stop` loads took 60-80 ms natively) inside the row that runs it.
+LAUNCH = """import sys
+sys.argv[0] = "estop"
+from estop.cli import main
+import estop.keyfile, estop.oneshot, estop.stopchannel
+print("ready", flush=True)
+sys.stdin.readline()
+sys.exit(main())
+"""
+
+
+class EstopCommand:
+    """The ``estop`` command with ``args`` in a process of its own, started ahead (with the run:
+    a Python start under TCG on a busy host can take tens of seconds) and run on :meth:`go`.
+    Never closed by closing its input (that would run it): :meth:`close` kills it."""
+
+    def __init__(self, args: list[str]) -> None:
+        estop = shutil.which("estop")
+        if estop is None:
+            raise RigError("the estop command is not on PATH (make setup)")
+        with open(estop) as f:  # the interpreter the script names (#!)
+            first = f.readline()
+        python = first[2:].strip() if first.startswith("#!") else sys.executable
+        self.args = args
+        self.proc = subprocess.Popen([python, "-B", "-c", LAUNCH, *args],
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True)
+        self.t_go = 0.0
+        self.is_ready = False
+
+    def ready(self, timeout: float) -> None:
+        """Wait until its imports are done (bounded)."""
+        assert self.proc.stdout is not None
+        if self.is_ready:
+            return
+        if not select.select([self.proc.stdout], [], [], timeout)[0] or \
+                self.proc.stdout.readline().strip() != "ready":
+            self.close()
+            raise RigError(f"estop {' '.join(self.args[:1])} did not start within {timeout:g} s")
+        self.is_ready = True
+
+    def go(self, timeout: float) -> tuple[int | None, str]:
+        """Run it; its exit code and output, or None when it did not end within ``timeout``
+        (it is killed)."""
+        self.t_go = time.time()
+        try:
+            out, err = self.proc.communicate("go\n", timeout=timeout)
+        except subprocess.TimeoutExpired:
+            self.close()
+            return None, ""
+        return self.proc.returncode, (out or err).strip()
+
+    def close(self) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.communicate(timeout=5)
+
 
 
 class QueueWatch:

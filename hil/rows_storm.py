@@ -9,11 +9,7 @@ attacker closes it. What still stops the car is the stop datagram, which needs n
 
 from __future__ import annotations
 
-import select
-import shutil
 import socket
-import subprocess
-import sys
 import time
 from dataclasses import dataclass
 
@@ -22,11 +18,12 @@ from estop.protocol.can import BrakeFrame
 from hilemu import Frame
 from hiljudge import judge, judge_spoiled, link_died_first, show_ex, wait_state_lines
 from hilload import UdpTap
-from hilrig import RigError
 from hilrun import (
+    STOP_DEADLINE_MS,
     STORM_BUSY,
     STORM_BUSY_MS,
     STORM_CONNECT_MS,
+    STORM_RUNS,
     Result,
     Row,
     Run,
@@ -35,9 +32,7 @@ from hilrun import (
 from hilstalls import overlap
 from hilstats import summary
 
-STORM_RUNS = 3  # presses of the stop button (each a start of the real command)
 STORM_SETTLE_S = 0.15  # the storm runs this long before the press: the idle clients are gone
-STOP_DEADLINE_MS = 3000  # estop stop's own deadline (its default)
 COMMAND_LIMIT_S = 30.0  # a Python start under TCG on a busy host can take tens of seconds
 STOPPED, TCP_STOP = 0, 2
 
@@ -62,61 +57,6 @@ def is_stop_datagram(payload: bytes) -> bool:
             and int.from_bytes(payload[4:8], "little") == tcp.DEFAULT_STOP_ID)
 
 
-# What the ``estop`` script runs (its console entry point: ``estop.cli.main`` on its
-# arguments), with a pause between the imports and the call: the command's process and code,
-# without its interpreter's start and imports (seconds under TCG on a busy host: the modules
-# `estop stop` loads took 60-80 ms natively) inside the storm.
-LAUNCH = """import sys
-sys.argv[0] = "estop"
-from estop.cli import main
-import estop.keyfile, estop.oneshot, estop.stopchannel
-print("ready", flush=True)
-sys.stdin.readline()
-sys.exit(main())
-"""
-
-
-class Press:
-    """One press of the stop button: ``estop stop`` (stop datagram and STOP over TCP, tried
-    again until an answer or its deadline) in a process of its own, started ahead and run on
-    :meth:`go`."""
-
-    def __init__(self, run: Run, estop: str) -> None:
-        with open(estop) as f:  # the interpreter the script names (#!)
-            first = f.readline()
-        python = first[2:].strip() if first.startswith("#!") else sys.executable
-        self.proc = subprocess.Popen(
-            [python, "-B", "-c", LAUNCH, "stop", "--host", "127.0.0.1",
-             "--tcp-port", str(run.tcp_port), "--udp-port", str(run.udp_port),
-             "--stop-deadline-ms", str(STOP_DEADLINE_MS), "--json"],
-            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        self.t_go = 0.0
-
-    def ready(self, timeout: float = COMMAND_LIMIT_S) -> None:
-        assert self.proc.stdout is not None
-        if not select.select([self.proc.stdout], [], [], timeout)[0] or \
-                self.proc.stdout.readline().strip() != "ready":
-            self.close()
-            raise RigError(f"estop stop did not start within {timeout:g} s")
-
-    def go(self) -> tuple[int | None, str]:
-        """Run it; its exit code and output, or None when it did not end within its deadline
-        and COMMAND_LIMIT_S more (it is killed)."""
-        self.t_go = time.time()
-        try:
-            out, err = self.proc.communicate("go\n", timeout=STOP_DEADLINE_MS / 1000
-                                             + COMMAND_LIMIT_S)
-        except subprocess.TimeoutExpired:
-            self.close()
-            return None, ""
-        return self.proc.returncode, (out or err).strip()
-
-    def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.kill()
-            self.proc.communicate(timeout=5)
-
-
 @dataclass
 class Pressed:
     """What one press under the storm gave."""
@@ -131,13 +71,13 @@ class Pressed:
     storm: dict  # storm.py's counts
 
 
-def press_in_storm(run: Run, res: Result, i: int, estop: str, tap: UdpTap) -> Pressed:
+def press_in_storm(run: Run, res: Result, i: int, tap: UdpTap) -> Pressed:
     """Arm, start the storm, let it close the idle clients, press the stop button, end the
     storm. The command's process starts first (its interpreter's start is not the test)."""
     assert run.storm is not None
-    cmd = Press(run, estop)
+    cmd = run.estop_stop()
     try:
-        cmd.ready()
+        cmd.ready(COMMAND_LIMIT_S)
         t_arm = time.time()
         run.arm(res)
         start = run.mon.index()
@@ -148,7 +88,7 @@ def press_in_storm(run: Run, res: Result, i: int, estop: str, tap: UdpTap) -> Pr
                                               f"not all get a reply: {busy}")
             time.sleep(STORM_SETTLE_S)
             idle = evicted(run)
-            code, output = cmd.go()
+            code, output = cmd.go(STOP_DEADLINE_MS / 1000 + COMMAND_LIMIT_S)
         finally:
             figures = run.storm.stop()
     finally:
@@ -161,9 +101,6 @@ def press_in_storm(run: Run, res: Result, i: int, estop: str, tap: UdpTap) -> Pr
 
 
 def sc_storm_stop(run: Run, res: Result) -> None:
-    estop = shutil.which("estop")
-    if estop is None:
-        raise RigError("the estop command is not on PATH (make setup)")
     assert run.storm is not None
     run.storm.ready()
     d = run.daemon
@@ -177,7 +114,7 @@ def sc_storm_stop(run: Run, res: Result) -> None:
             if i:
                 run.reconnect_clients()  # the storm closed them
             since = time.monotonic()
-            pr = press_in_storm(run, res, i, estop, tap)
+            pr = press_in_storm(run, res, i, tap)
             presses += 1
             idle_gone += pr.idle_closed
             for k in ("connects", "status_sent", "busy_closed_by_unit", "refused"):

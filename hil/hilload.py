@@ -116,10 +116,12 @@ class Storm(Helper):
 # What the ``estop`` script runs (its console entry point: ``estop.cli.main`` on its
 # arguments), with a pause between the imports and the call: the command's process and code,
 # without its interpreter's start and imports (seconds under TCG on a busy host: the modules
-# `estop stop` loads took 60-80 ms natively) inside the row that runs it.
+# `estop stop` loads took 60-80 ms natively, 3-8 s in a loaded TCG VM, where nothing is
+# compiled ahead) inside the row that runs it.
 LAUNCH = """import sys
 sys.argv[0] = "estop"
-from estop.cli import main
+from estop.cli import build_parser, main
+build_parser()  # what main() imports as it builds its parser, loaded now
 import estop.keyfile, estop.oneshot, estop.stopchannel
 print("ready", flush=True)
 sys.stdin.readline()
@@ -216,7 +218,7 @@ def udp_drops(port: int) -> tuple[int, int] | None:
 ETH_P_IP = 0x0800
 SO_ATTACH_FILTER = 26
 SO_TIMESTAMPNS = 35  # SCM_TIMESTAMPNS: the kernel's time of the packet, a struct timespec
-PACKET_OUTGOING = 4
+SO_RCVBUFFORCE = 33
 
 
 class _SockFilter(ctypes.Structure):
@@ -228,39 +230,46 @@ class _SockFprog(ctypes.Structure):
     _fields_ = [("len", ctypes.c_uint16), ("filter", ctypes.POINTER(_SockFilter))]
 
 
-def udp_port_filter(port: int) -> list[tuple[int, int, int, int]]:
+def udp_port_filter(port: int, payload: int) -> list[tuple[int, int, int, int]]:
     """A classic BPF program for a packet socket without link header (SOCK_DGRAM): IPv4 UDP,
-    not a fragment, to ``port`` (what ``tcpdump -dd 'udp dst port P'`` makes, less the
-    link layer)."""
+    not a fragment, to ``port``, with ``payload`` bytes (as ``tcpdump -dd 'udp dst port P and
+    udp[4:2] = 8 + N'`` makes it, less the link layer). The kernel drops everything else, so
+    the queue holds only what is looked for (the keepalive's datagrams filled it once)."""
     return [
         (0x30, 0, 0, 9),            # ldb [9]: protocol
-        (0x15, 0, 6, 17),           # jeq UDP, else drop
+        (0x15, 0, 8, 17),           # jeq UDP, else drop
         (0x28, 0, 0, 6),            # ldh [6]: flags and fragment offset
-        (0x45, 4, 0, 0x1FFF),       # jset fragment: drop
+        (0x45, 6, 0, 0x1FFF),       # jset fragment: drop
         (0xB1, 0, 0, 0),            # ldxb 4*([0]&0xf): header length
         (0x48, 0, 0, 2),            # ldh [x+2]: destination port
-        (0x15, 0, 1, port),         # jeq port, else drop
+        (0x15, 0, 3, port),         # jeq port, else drop
+        (0x48, 0, 0, 4),            # ldh [x+4]: UDP length
+        (0x15, 0, 1, 8 + payload),  # jeq header + payload, else drop
         (0x06, 0, 0, 0xFFFF),       # ret: take it
         (0x06, 0, 0, 0),            # ret: drop
     ]
 
 
 class UdpTap:
-    """A packet socket on ``lo`` that keeps every UDP datagram to ``port`` with the kernel's
-    time of it (SO_TIMESTAMPNS, CLOCK_REALTIME as the CAN frames' stamps). It sees a datagram
-    as it is sent (and again as it is received): so it tells when another process, e.g. the
-    ``estop`` command, sent its first datagram, to the microsecond, without touching it."""
+    """A packet socket on ``lo`` that keeps every UDP datagram of ``payload`` bytes to ``port``
+    with the kernel's time of it (SO_TIMESTAMPNS, CLOCK_REALTIME as the CAN frames' stamps).
+    It sees a datagram as it is sent (and again as it is received): so it tells when another
+    process, e.g. the ``estop`` command, sent its first datagram, to the microsecond, without
+    touching it."""
 
-    def __init__(self, port: int, iface: str = "lo") -> None:
+    def __init__(self, port: int, payload: int, iface: str = "lo") -> None:
         self.sock = socket.socket(socket.AF_PACKET, socket.SOCK_DGRAM, socket.htons(ETH_P_IP))
-        prog = udp_port_filter(port)
+        prog = udp_port_filter(port, payload)
         insns = (_SockFilter * len(prog))(*(_SockFilter(*i) for i in prog))
         fprog = _SockFprog(len(prog), insns)
         self.sock.setsockopt(socket.SOL_SOCKET, SO_ATTACH_FILTER,
                              bytes(ctypes.string_at(ctypes.addressof(fprog),
                                                     ctypes.sizeof(fprog))))
         self.sock.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
+        try:
+            self.sock.setsockopt(socket.SOL_SOCKET, SO_RCVBUFFORCE, 4 << 20)  # root: past rmem_max
+        except OSError:
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4 << 20)
         self.sock.bind((iface, 0))
         self.sock.setblocking(False)
 

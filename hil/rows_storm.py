@@ -13,7 +13,7 @@ import socket
 import time
 from dataclasses import dataclass
 
-from estop.protocol import tcp
+from estop.protocol import auth, tcp
 from estop.protocol.can import BrakeFrame
 from hilemu import Frame
 from hiljudge import judge, judge_spoiled, link_died_first, show_ex, wait_state_lines
@@ -53,7 +53,7 @@ def evicted(run: Run) -> int:
 
 def is_stop_datagram(payload: bytes) -> bool:
     """A 48-byte request frame (spec section 5.2) with the default stop ID."""
-    return (len(payload) == 48 and payload[:4] == tcp.REQUEST_MAGIC
+    return (len(payload) == auth.REQUEST_SIZE and payload[:4] == tcp.REQUEST_MAGIC
             and int.from_bytes(payload[4:8], "little") == tcp.DEFAULT_STOP_ID)
 
 
@@ -109,7 +109,7 @@ def sc_storm_stop(run: Run, res: Result) -> None:
     cmd_ms: list[float] = []
     acks = idle_gone = spoiled = presses = 0
     counts: dict[str, float] = {}
-    tap = UdpTap(run.udp_port)
+    tap = UdpTap(run.udp_port, auth.REQUEST_SIZE)
     try:
         for i in range(STORM_RUNS):
             if i:
@@ -122,8 +122,8 @@ def sc_storm_stop(run: Run, res: Result) -> None:
                 counts[k] = counts.get(k, 0) + float(pr.storm[k])
             counts["storm_s"] = counts.get("storm_s", 0) + pr.storm["t1"] - pr.storm["t0"]
             if pr.code is None:
-                # Not ended 30 s past its deadline: with the CPUs standing still most of the
-                # time (a host far too busy), the command never ran: inconclusive, not a pass.
+                # Not ended a minute past its deadline: with the CPUs standing still most of
+                # that time (a host far too busy) it never ran: inconclusive, not a pass.
                 stall = overlap(run.stalls(), pr.t_go, time.time())
                 why = (f"run {i}: estop stop did not end {COMMAND_LIMIT_S:g} s after its "
                        f"deadline; a CPU stood still {ms(stall)} ms meanwhile")

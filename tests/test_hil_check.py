@@ -1030,3 +1030,39 @@ def test_sched_text_and_the_stop_datagram_the_storm_row_looks_for() -> None:
     assert rows_storm.is_stop_datagram(auth.stop_datagram(1, 1))
     assert not rows_storm.is_stop_datagram(auth.stop_datagram(1, 1, stop_id=0x12345678))
     assert not rows_storm.is_stop_datagram(tcp.Request(tcp.DEFAULT_STOP_ID, 1).encode())
+
+
+def test_udp_tap_times_only_the_datagrams_asked_for() -> None:
+    """hilload.UdpTap (a packet socket on lo, root only): the kernel's time of each datagram of
+    the size asked for to the port asked for; the others (a keepalive's 20-byte packets, in
+    thousands) never reach its queue."""
+    import socket
+    import time
+
+    from estop.protocol import auth
+    from hilload import UdpTap
+
+    rx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    rx.bind(("127.0.0.1", 0))
+    port = rx.getsockname()[1]
+    try:
+        tap = UdpTap(port, auth.REQUEST_SIZE)
+    except PermissionError:
+        rx.close()
+        pytest.skip("a packet socket needs root")
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        for _ in range(3000):
+            tx.sendto(bytes(20), ("127.0.0.1", port))
+        t0 = time.time()
+        tx.sendto(auth.stop_datagram(1, 1), ("127.0.0.1", port))
+        t1 = time.time()
+        tx.sendto(bytes(auth.REQUEST_SIZE), ("127.0.0.1", port + 1 if port < 65535 else 1))
+        got = tap.read()
+        assert [p for _, p in got][:1] == [auth.stop_datagram(1, 1)]
+        assert all(p == auth.stop_datagram(1, 1) for _, p in got)  # sent, maybe received too
+        assert t0 - 1e-3 <= got[0][0] <= t1 + 1e-3
+    finally:
+        tap.close()
+        tx.close()
+        rx.close()

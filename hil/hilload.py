@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import ctypes
 import json
+import os
 import queue
 import select
 import shutil
@@ -114,25 +115,34 @@ class Storm(Helper):
 
 
 # What the ``estop`` script runs (its console entry point: ``estop.cli.main`` on its
-# arguments), with a pause between the imports and the call: the command's process and code,
-# without its interpreter's start and imports (seconds under TCG on a busy host: the modules
+# arguments), once for every line on standard input: the command's code in a process of its
+# own, without its interpreter's start and imports inside the row that runs it (the modules
 # `estop stop` loads took 60-80 ms natively, 3-8 s in a loaded TCG VM, where nothing is
-# compiled ahead) inside the row that runs it.
-LAUNCH = """import sys
+# compiled ahead; a Python start there takes 10-35 s). It starts niced, not to slow the rows
+# running meanwhile, and runs each press at normal priority again, as an operator's would.
+LAUNCH = """import os, sys
+os.nice(19)
 sys.argv[0] = "estop"
 from estop.cli import build_parser, main
 build_parser()  # what main() imports as it builds its parser, loaded now
 import estop.keyfile, estop.oneshot, estop.stopchannel
 print("ready", flush=True)
-sys.stdin.readline()
-sys.exit(main())
+while sys.stdin.readline():
+    try:
+        os.setpriority(os.PRIO_PROCESS, 0, 0)
+    except OSError:
+        pass
+    code = main()
+    print(f"\\n#exit {code}", flush=True)
+    os.nice(19)
 """
+EXIT_MARK = "#exit "
 
 
 class EstopCommand:
-    """The ``estop`` command with ``args`` in a process of its own, started ahead (with the run:
-    a Python start under TCG on a busy host can take tens of seconds) and run on :meth:`go`.
-    Never closed by closing its input (that would run it): :meth:`close` kills it."""
+    """The ``estop`` command with ``args``, in a process of its own started ahead (with the run)
+    and run on every :meth:`go` (its output and exit code). Never closed by closing its input
+    (that only ends it after a press): :meth:`close` kills it."""
 
     def __init__(self, args: list[str]) -> None:
         estop = shutil.which("estop")
@@ -144,37 +154,65 @@ class EstopCommand:
         self.args = args
         self.proc = subprocess.Popen([python, "-B", "-c", LAUNCH, *args],
                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True)
+                                     stderr=subprocess.STDOUT, text=True, bufsize=1)
+        # its output is read from the descriptor (_line), never through self.proc.stdout
         self.t_go = 0.0
         self.is_ready = False
+        self._buf = b""
+
+    def _line(self, end: float) -> str | None:
+        """The next line of its output ("" when it ended), or None when none came by ``end``
+        (monotonic). Read from the descriptor with a buffer of its own: a buffered reader
+        could hold the next line where select() does not see it."""
+        assert self.proc.stdout is not None
+        fd = self.proc.stdout.fileno()
+        while b"\n" not in self._buf:
+            if not select.select([fd], [], [], max(0.0, end - time.monotonic()))[0]:
+                return None
+            chunk = os.read(fd, 65536)
+            if not chunk:
+                rest, self._buf = self._buf, b""
+                return rest.decode(errors="replace")
+            self._buf += chunk
+        line, self._buf = self._buf.split(b"\n", 1)
+        return line.decode(errors="replace") + "\n"
 
     def ready(self, timeout: float) -> None:
         """Wait until its imports are done (bounded)."""
-        assert self.proc.stdout is not None
         if self.is_ready:
             return
-        if not select.select([self.proc.stdout], [], [], timeout)[0] or \
-                self.proc.stdout.readline().strip() != "ready":
+        line = self._line(time.monotonic() + timeout)
+        if line is None or line.strip() != "ready":
             self.close()
-            raise RigError(f"estop {' '.join(self.args[:1])} did not start within {timeout:g} s")
+            raise RigError(f"estop {' '.join(self.args[:1])} did not start within {timeout:g} s"
+                           + (f": {line.strip()[:200]}" if line else ""))
         self.is_ready = True
 
     def go(self, timeout: float) -> tuple[int | None, str]:
-        """Run it; its exit code and output, or None when it did not end within ``timeout``
-        (it is killed)."""
+        """Run it once; its exit code and output, or None when it did not end within
+        ``timeout`` (then it is killed)."""
+        assert self.proc.stdin is not None
+        end = time.monotonic() + timeout
         self.t_go = time.time()
-        try:
-            out, err = self.proc.communicate("go\n", timeout=timeout)
-        except subprocess.TimeoutExpired:
-            self.close()
-            return None, ""
-        return self.proc.returncode, (out or err).strip()
+        self.proc.stdin.write("go\n")
+        self.proc.stdin.flush()
+        out: list[str] = []
+        while (line := self._line(end)) is not None:
+            if not line:  # it ended
+                break
+            if line.startswith(EXIT_MARK):
+                return int(line[len(EXIT_MARK):]), "".join(out).strip()
+            out.append(line)
+        self.close()
+        return None, "".join(out).strip()
 
     def close(self) -> None:
         if self.proc.poll() is None:
             self.proc.kill()
-            self.proc.communicate(timeout=5)
-
+        self.proc.wait(timeout=5)
+        for f in (self.proc.stdin, self.proc.stdout):
+            if f is not None:
+                f.close()
 
 
 class QueueWatch:

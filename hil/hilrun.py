@@ -56,7 +56,7 @@ RT_PRIO = int(os.environ.get("HIL_RT_PRIO", "50"))
 STORM_BUSY = 8
 STORM_BUSY_MS = 5.0
 STORM_CONNECT_MS = 5.0
-STORM_RUNS = 3  # presses of the stop button under the storm (each its own estop process)
+STORM_RUNS = 3  # presses of the stop button under the storm
 STOP_DEADLINE_MS = 3000  # estop stop's own deadline in those presses (its default)
 
 
@@ -144,7 +144,7 @@ class Run:
         self.aremote_daemon: Daemon | None = None
         self.flooder: Flooder | None = None
         self.storm: Storm | None = None
-        self.stop_presses: list[EstopCommand] = []  # `estop stop` processes started ahead
+        self.stop_press: EstopCommand | None = None  # `estop stop`, started ahead
         self.rt_prio: int = getattr(args, "rt_prio", 0)
         self.chrt = shutil.which("chrt") if self.rt_prio else None
         self.scheds: list[str] = []  # how each daemon started was scheduled (threads_sched)
@@ -240,13 +240,14 @@ class Run:
 
     def estop_stop(self) -> EstopCommand:
         """``estop stop`` against the unit (stop datagram and STOP over TCP, tried again until
-        an answer or STOP_DEADLINE_MS), started now, run later: one started with the run if
-        one is left (rows_storm takes them), else a new one."""
-        if self.stop_presses:
-            return self.stop_presses.pop(0)
-        return EstopCommand(["stop", "--host", "127.0.0.1", "--tcp-port", str(self.tcp_port),
-                             "--udp-port", str(self.udp_port),
-                             "--stop-deadline-ms", str(STOP_DEADLINE_MS), "--json"])
+        an answer or STOP_DEADLINE_MS): the process started with the run, run once for every
+        press (rows_storm); a new one if it is gone."""
+        if self.stop_press is None or self.stop_press.proc.poll() is not None:
+            self.stop_press = EstopCommand(
+                ["stop", "--host", "127.0.0.1", "--tcp-port", str(self.tcp_port),
+                 "--udp-port", str(self.udp_port), "--stop-deadline-ms", str(STOP_DEADLINE_MS),
+                 "--json"])
+        return self.stop_press
 
     def auth_remote(self) -> AuthRemote:
         """The key holder's remote, knowing the running daemon's session. One object for the
@@ -281,7 +282,7 @@ class Run:
         # a Python start can take tens of seconds.
         self.flooder = Flooder(self.udp_port, FLOOD_RATE)
         self.storm = Storm(self.tcp_port, STORM_BUSY, STORM_BUSY_MS, STORM_CONNECT_MS)
-        self.stop_presses = [self.estop_stop() for _ in range(STORM_RUNS)]
+        self.estop_stop()
 
     def teardown(self) -> None:
         self.windows.append((time.time() - 0.01, math.inf, "teardown"))
@@ -293,8 +294,8 @@ class Run:
             self.flooder.close()
         if self.storm is not None:
             self.storm.close()
-        for cmd in self.stop_presses:
-            cmd.close()
+        if self.stop_press is not None:
+            self.stop_press.close()
         for c in self.clients:
             c.close()
         for d in self.daemons:

@@ -73,27 +73,25 @@ class Pressed:
 
 def press_in_storm(run: Run, res: Result, i: int, tap: UdpTap) -> Pressed:
     """Arm, start the storm, let it close the idle clients, press the stop button, end the
-    storm. The command's process starts first (its interpreter's start is not the test)."""
+    storm. The command's process was started with the run (its interpreter's start is not the
+    test)."""
     assert run.storm is not None
     cmd = run.estop_stop()
+    cmd.ready(COMMAND_LIMIT_S)
+    t_arm = time.time()
+    run.arm(res)
+    start = run.mon.index()
+    tap.read()  # what came before this press
+    busy = run.storm.start()
     try:
-        cmd.ready(COMMAND_LIMIT_S)
-        t_arm = time.time()
-        run.arm(res)
-        start = run.mon.index()
-        tap.read()  # what came before this press
-        busy = run.storm.start()
-        try:
-            if not busy.get("busy"):  # the idle clients' fate below says whether it held
-                res.notes.append(f"run {i}: not every busy connection of the storm had a reply "
-                                 f"within 5 s: {busy}")
-            time.sleep(STORM_SETTLE_S)
-            idle = evicted(run)
-            code, output = cmd.go(STOP_DEADLINE_MS / 1000 + COMMAND_LIMIT_S)
-        finally:
-            figures = run.storm.stop()
+        if not busy.get("busy"):  # the idle clients' fate below says whether it held
+            res.notes.append(f"run {i}: not every busy connection of the storm had a reply "
+                             f"within 5 s: {busy}")
+        time.sleep(STORM_SETTLE_S)
+        idle = evicted(run)
+        code, output = cmd.go(STOP_DEADLINE_MS / 1000 + COMMAND_LIMIT_S)
     finally:
-        cmd.close()
+        figures = run.storm.stop()
     sent = [ts for ts, p in tap.read() if ts >= cmd.t_go and is_stop_datagram(p)]
     got = run.brake_after(start, lambda b: b.state == STOPPED, 1.0)
     run.udp.stop()

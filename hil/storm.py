@@ -1,7 +1,7 @@
 """Connect storm of the HIL harness: an attacker who holds every place of the stop channel,
 from a process of its own (the harness's threads keep the GIL).
 
-    python storm.py PORT [--busy 8] [--busy-ms 4] [--connect-ms 4] [--keep 2] [--nice 19]
+    python storm.py PORT [--busy 8] [--busy-ms 4] [--connect-ms 4] [--keep 2] [--nice 10]
 
 The unit keeps 8 connections and, when a new one comes, closes the one quiet longest (no
 complete frame for the longest time; docs/PROTOCOL.md section 2). So an attacker
@@ -172,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--busy-ms", type=float, default=4.0, help="STATUS period of each, ms")
     p.add_argument("--connect-ms", type=float, default=4.0, help="a new connection every ... ms")
     p.add_argument("--keep", type=int, default=2, help="new connections held open")
-    p.add_argument("--nice", type=int, default=19,
+    p.add_argument("--nice", type=int, default=10,
                    help="niceness: on the rig the attacker shares the CPUs with the harness "
                         "and the command under test; a real one would run on its own machine")
     args = p.parse_args(argv)

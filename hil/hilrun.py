@@ -358,7 +358,10 @@ class Run:
                 raise RigError(f"RELEASE with a live neutral link not accepted: {ex.reply}")
             res.notes.append(f"RELEASE NAK 2 after a {ms(rem.max_gap(t0, ex.t_send))} ms pause "
                              "of the harness's keepalive: armed once more")
-        got = self.brake_after(start, lambda b: b.state == 1, 1.0)
+        # Stamped after the RELEASE: a bus monitor that lags (seen: 1.7 s) still holds ARMED
+        # frames of an earlier try past ``start`` (a retried release row took one 1441 ms
+        # before its RELEASE).
+        got = self.brake_after(start, lambda b: b.state == 1, 1.0, after=ex.t_send)
         if got is None:
             raise RigError("ACK for RELEASE, but no ARMED frame on the bus within 1 s")
         return ex.t_send, got[0]

@@ -56,7 +56,7 @@ RT_PRIO = int(os.environ.get("HIL_RT_PRIO", "50"))
 STORM_BUSY = 8
 STORM_BUSY_MS = 5.0
 STORM_CONNECT_MS = 5.0
-STORM_RUNS = 3  # presses of the stop button under the storm
+STORM_RUNS = 5  # presses of the stop button under the storm (a median of 3 swung on one)
 STOP_DEADLINE_MS = 3000  # estop stop's own deadline in those presses (its default)
 
 

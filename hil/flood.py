@@ -31,17 +31,15 @@ from __future__ import annotations
 import argparse
 import ctypes
 import errno
-import json
 import math
-import os
-import select
 import socket
 import struct
 import sys
 import time
 
 from estop.protocol import udp
-from mmsg import Iovec, Mmsghdr  # this folder (run as a script)
+from helperio import Lines, answer, serve  # this folder (run as a script)
+from mmsg import Iovec, Mmsghdr
 
 NEUTRAL = udp.ControlPacket(0.0, 0.0, udp.Gear.NEUTRAL).encode()
 
@@ -184,30 +182,6 @@ class Sender:
         return got
 
 
-class Lines:
-    """Command lines from a file descriptor, unbuffered beyond what was read (so that
-    :meth:`waiting` can ask the kernel whether another line has come)."""
-
-    def __init__(self, fd: int) -> None:
-        self.fd = fd
-        self.buf = b""
-        self.eof = False
-
-    def waiting(self) -> bool:
-        return b"\n" in self.buf or self.eof or bool(select.select([self.fd], [], [], 0)[0])
-
-    def readline(self) -> str | None:
-        while b"\n" not in self.buf:
-            chunk = os.read(self.fd, 4096)
-            if not chunk:
-                self.eof = True
-                rest, self.buf = self.buf, b""
-                return rest.decode(errors="replace") if rest else None
-            self.buf += chunk
-        line, self.buf = self.buf.split(b"\n", 1)
-        return line.decode(errors="replace")
-
-
 def burst(s: Sender, n: int) -> dict[str, object]:
     start, err0 = s.sent, s.errors
     t0 = time.time()
@@ -254,29 +228,17 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     s = Sender(args.port, args.batch, INVALID_PACKETS, gso=not args.no_gso)
 
-    def answer(obj: dict[str, object]) -> None:
-        sys.stdout.write(json.dumps(obj) + "\n")
-        sys.stdout.flush()
+    def do_burst(words: list[str], _lines: Lines) -> None:
+        if len(words) != 1:
+            raise ValueError("burst takes a number")
+        answer(burst(s, int(words[0])))
 
-    answer({"ready": True, "pid": os.getpid(), "t": time.time()})
-    lines = Lines(sys.stdin.fileno())
-    while (line := lines.readline()) is not None:
-        cmd = line.split()
-        if not cmd:
-            continue
-        if cmd[0] == "ready?":
-            answer({"ready": True, "pid": os.getpid(), "t": time.time()})
-        elif cmd[0] == "burst" and len(cmd) == 2:
-            answer(burst(s, int(cmd[1])))
-        elif cmd[0] == "flood":
-            res = flood(s, args.rate, args.batch, lines)
-            lines.readline()  # the line that ended the flood ("stop")
-            answer(res)
-        elif cmd[0] == "quit":
-            break
-        else:
-            answer({"error": f"unknown command {line.strip()!r}"})
-    return 0
+    def do_flood(_words: list[str], lines: Lines) -> None:
+        res = flood(s, args.rate, args.batch, lines)
+        lines.readline()  # the line that ended the flood ("stop")
+        answer(res)
+
+    return serve({"burst": do_burst, "flood": do_flood})
 
 
 if __name__ == "__main__":

@@ -9,22 +9,14 @@ import time
 from collections.abc import Callable
 
 from estop.protocol.can import BRAKE_ID
-from hilcheck import (
-    BRAKE_SILENCE_S,
-    STALL_EXCUSE_S,
-    StatusWindow,
-    enough_frames,
-    excused,
-    judge_latencies,
-    late,
-    overlap,
-    status_windows,
-    summary,
-)
-from hilrig import NEUTRAL, Daemon, Exchange, UdpRemote
+from hilclients import NEUTRAL, Exchange, UdpRemote
+from hildaemon import Daemon, sched_text
+from hilemu import BRAKE_SILENCE_S
 from hilroll import Roll
-from hilrun import EARLY_TOL_MS, TIMEOUT_MS, Result, Run, ms
+from hilrun import EARLY_TOL_MS, KEEPALIVE_GAP_S, TIMEOUT_MS, Result, Run, ms
+from hilstalls import STALL_EXCUSE_S, enough_frames, excused, judge_latencies, late, overlap
 from hilstates import LogChange, log_changes
+from hilstats import StatusWindow, status_windows, summary
 
 
 def judge(run: Run, res: Result, key: str, label: str, pairs: list[tuple[float, float]],
@@ -32,7 +24,7 @@ def judge(run: Run, res: Result, key: str, label: str, pairs: list[tuple[float, 
     """Latency samples (reference time, frame time) against the profile's limits.
 
     Value = frame - reference. A value before its time is never excused; for the other limits
-    (median, max: the profile's plus ``slack_ms``) see :func:`hilcheck.judge_latencies`: a
+    (median, max: the profile's plus ``slack_ms``) see :func:`hilstalls.judge_latencies`: a
     sample during which a CPU stood still counts only as an upper bound.
     """
     stalls = run.stalls()
@@ -93,7 +85,7 @@ def judge_late(run: Run, res: Result, key: str, what: str, t0: float, t1: float,
 def judge_frames(run: Run, res: Result, key: str, what: str, t0: float, t1: float,
                  want: int) -> None:
     """At least ``want`` ESTOP_BRAKE frames in ``[t0, t1]``; fewer, with CPU stalls that could
-    explain the missing periods, is inconclusive (see :func:`hilcheck.enough_frames`)."""
+    explain the missing periods, is inconclusive (see :func:`hilstalls.enough_frames`)."""
     run.mon.sync()
     ts = [f.ts for f in run.mon.window(t0, t1) if f.can_id == BRAKE_ID]
     n, verdict = enough_frames(ts, t0, t1, want, 0.010, run.stalls())
@@ -109,7 +101,7 @@ def judge_frames(run: Run, res: Result, key: str, what: str, t0: float, t1: floa
 
 def frame_gap_check(run: Run, res: Result, key: str, t0: float, t1: float) -> None:
     """No ESTOP_BRAKE gap of 50 ms in ``[t0, t1]``. A gap the CPU stalls explain
-    (hilcheck.excused) is not a pass either: the row is inconclusive and runs once more."""
+    (hilstalls.excused) is not a pass either: the row is inconclusive and runs once more."""
     run.mon.sync()
     ts = [f.ts for f in run.mon.window(t0, t1) if f.can_id == BRAKE_ID]
     gaps = [(a, b) for a, b in zip(ts, ts[1:], strict=False)]
@@ -190,6 +182,38 @@ def judge_rolls(res: Result, key: str, label: str, rolls: list[Roll], model_m: f
         if not r.agree:
             res.check(False, f"{label}: the two ways to the distance disagree: "
                              f"{r.disagreement()}")
+
+
+def no_armed_frame(run: Run, res: Result, start: int,
+                   what: str = "an ARMED frame appeared on the bus") -> None:
+    """No ESTOP_BRAKE frame with state ARMED from index ``start`` on (the record synced)."""
+    run.mon.sync()
+    armed = [f for f in run.mon.since(start) if f.can_id == BRAKE_ID and f.data[2] == 1]
+    res.check(not armed, what)
+
+
+def link_died_first(remote: UdpRemote, t_arm: float, t_send: float, reason: int | None) -> bool:
+    """Whether a stop sample is void: the unit stopped for the timeout (reason 3) and the
+    harness's own keepalive had paused KEEPALIVE_GAP_S or more between arming and sending the
+    stop request, so the link may have died before the request (the harness's doing)."""
+    return reason == 3 and remote.max_gap(t_arm, t_send) >= KEEPALIVE_GAP_S
+
+
+def judge_sched(run: Run, res: Result, d: Daemon) -> None:
+    """How the daemon ran, as deployed (hilrun.RT_PRIO): its start line's ``rt_prio`` and how
+    the kernel schedules its threads; with a priority asked, the loop (the main thread) must
+    run SCHED_FIFO at it."""
+    res.figures["scheduling"] = sched_text(d.sched)
+    start = d.events("start")
+    if start:
+        res.figures["start_line_rt_prio"] = start[0].get("rt_prio")
+    if run.rt_prio:
+        res.figures["started_under"] = (f"chrt -f -R {run.rt_prio}" if run.chrt else
+                                        "no chrt on PATH: the daemon's own --rt-prio only")
+        main = d.sched[0] if d.sched else None
+        res.check(main is not None and main.policy == "FIFO" and main.priority == run.rt_prio,
+                  f"the daemon's loop does not run SCHED_FIFO {run.rt_prio}: "
+                  f"{res.figures['scheduling']}")
 
 
 def show_ex(ex: Exchange) -> str:

@@ -79,6 +79,11 @@ def protocol_md(doc: dict, extra: dict | None = None) -> str:
         f"- Daemon timeout {meta.get('timeout_ms', '?')} ms; latency scenarios repeated "
         f"{meta.get('repeat', '?')}x; scenario runtime {meta.get('runtime_s', '?')} s",
     ]
+    if meta.get("dut_scheduling"):
+        asked = meta.get("dut_rt_prio")
+        how = (f"as deployed: chrt -f -R {asked} and --rt-prio {asked} --mlock" if asked
+               else "an ordinary process")
+        lines.append(f"- Daemon scheduling ({how}): {'; '.join(meta['dut_scheduling'])}")
     if meta.get("two_stage"):
         lines.append(f"- Two-stage daemon: {meta['two_stage']}")
     if meta.get("car"):
@@ -113,7 +118,7 @@ def rollouts(doc: dict) -> list[tuple[str, dict]]:
 
 
 def median(values: list[float]) -> float:
-    """The interpolated median, as the rows' figures (hilcheck.summary) give it."""
+    """The interpolated median, as the rows' figures (hilstats.summary) give it."""
     xs = sorted(values)
     mid = (len(xs) - 1) / 2
     return (xs[math.floor(mid)] + xs[math.ceil(mid)]) / 2 if xs else float("nan")

@@ -6,7 +6,7 @@ Two ways to the same figure, so that each checks the other:
 
 - :func:`bus_roll_out`: ``estop.rollout.roll_out`` on the frames on the bus (the project's
   brake controller emulation, ``estop.brakecheck``, into ``estop.vehicle``);
-- :func:`emulator_roll_out`: the harness's own emulator (:class:`hilcheck.BrakeController`,
+- :func:`emulator_roll_out`: the harness's own emulator (:class:`hilemu.BrakeController`,
   replayed on the same frames) commanding ``estop.vehicle.Vehicle``.
 
 The car: 15 km/h at the moment, emergency deceleration 8 m/s^2, no actuator delay (the
@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 from estop.rollout import RollOut, roll_out
 from estop.vehicle import Vehicle, VehicleParams, kmh, stopping_distance
-from hilcheck import BrakeChange, Frame, replay, share_at
+from hilemu import BrakeChange, Frame, replay, share_at
 
 SPEED_KMH = 15.0  # a typical research-car speed (docs/VEHICLE.md)
 PARAMS = VehicleParams(emergency_decel=8.0, actuator_delay=0.0)  # the model's defaults

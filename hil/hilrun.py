@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import shutil
 import signal
 import socket
 import sys
@@ -20,22 +21,12 @@ import can
 
 from estop.keyfile import KeyFileError, load_key_file, write_key_file
 from estop.protocol.can import BRAKE_ID, BrakeFrame
-from hilcheck import Frame
-from hilrig import (
-    NEUTRAL,
-    AuthRemote,
-    BusMonitor,
-    Candump,
-    Daemon,
-    Flooder,
-    RigError,
-    StallMonitor,
-    StopClient,
-    UdpRemote,
-    connect_retry,
-    free_port,
-    setup_vcan,
-)
+from hilbus import BusMonitor
+from hilclients import NEUTRAL, AuthRemote, StopClient, UdpRemote, connect_retry
+from hildaemon import Daemon, sched_text, threads_sched
+from hilemu import Frame
+from hilload import EstopCommand, Flooder, Storm
+from hilrig import Candump, RigError, StallMonitor, free_port, setup_vcan
 
 TIMEOUT_MS = 200
 WARN_MS = TIMEOUT_MS / 2
@@ -55,6 +46,18 @@ ARM_PACKETS = 7
 FLOOD_RATE = float(os.environ.get("HIL_FLOOD_RATE", "20000"))
 # Keyed rows: the remote id of the key holder's remote.
 AUTH_REMOTE_ID = 7
+# The daemon runs as deployed (deploy/estopd.service.in): SCHED_FIFO at this priority, set
+# before it starts with reset-on-fork (chrt -f -R, as systemd's CPUSchedulingResetOnFork=yes),
+# asked again with --rt-prio, and --mlock. 0 (--rt-prio 0 of the runner, HIL_RT_PRIO=0): an
+# ordinary process (the Python stand-in: at real-time priority it would starve the harness).
+RT_PRIO = int(os.environ.get("HIL_RT_PRIO", "50"))
+# The connect storm (storm.py, rows_storm.py): busy connections holding every place (the unit
+# keeps 8), each with a STATUS every few ms, and a new connection every few ms.
+STORM_BUSY = 8
+STORM_BUSY_MS = 5.0
+STORM_CONNECT_MS = 5.0
+STORM_RUNS = 5  # presses of the stop button under the storm (a median of 3 swung on one)
+STOP_DEADLINE_MS = 3000  # estop stop's own deadline in those presses (its default)
 
 
 @dataclass(frozen=True)
@@ -140,6 +143,11 @@ class Run:
         self.aremote: AuthRemote | None = None
         self.aremote_daemon: Daemon | None = None
         self.flooder: Flooder | None = None
+        self.storm: Storm | None = None
+        self.stop_press: EstopCommand | None = None  # `estop stop`, started ahead
+        self.rt_prio: int = getattr(args, "rt_prio", 0)
+        self.chrt = shutil.which("chrt") if self.rt_prio else None
+        self.scheds: list[str] = []  # how each daemon started was scheduled (threads_sched)
 
     # ---- plumbing
     @property
@@ -159,7 +167,13 @@ class Run:
     def argv(self) -> list[str]:
         keying = ["--key-file", str(self.key_path)] if self.want_key else ["--no-auth"]
         opts = {"--timeout-ms": str(TIMEOUT_MS), **self.want_opts}
-        return [*self.dut, "--can", self.iface, "--udp-port", str(self.udp_port),
+        rt: list[str] = []
+        pre: list[str] = []
+        if self.rt_prio:
+            rt = ["--rt-prio", str(self.rt_prio), "--mlock"]
+            if self.chrt is not None:
+                pre = [self.chrt, "-f", "-R", str(self.rt_prio)]
+        return [*pre, *self.dut, *rt, "--can", self.iface, "--udp-port", str(self.udp_port),
                 "--tcp-port", str(self.tcp_port), "--bind", "127.0.0.1",
                 *(x for kv in opts.items() for x in kv), "--log-json", *keying]
 
@@ -190,10 +204,17 @@ class Run:
             code = d.wait(0.1)
             raise RigError(f"daemon sent no ESTOP_BRAKE frame within 5 s (exit code {code}; "
                            f"log: {' | '.join(ln.raw for ln in d.lines[-3:])})")
+        d.sched = threads_sched(d.proc.pid)
+        self.scheds.append(sched_text(d.sched))
+        log(f"  daemon pid {d.proc.pid}: {self.scheds[-1]}")
+        self.reconnect_clients()
+        return d, fr
+
+    def reconnect_clients(self) -> None:
+        """The harness's 4 stop clients, on fresh connections."""
         for c in self.clients:
             c.close()
         self.clients = [connect_retry(self.tcp_port, 5.0) for _ in range(4)]
-        return d, fr
 
     def ensure_daemon(self) -> None:
         if self.daemons and self.daemon.alive and self.daemon.keyed != self.want_key:
@@ -216,6 +237,17 @@ class Run:
         got = self.start_daemon()
         self.windows.append((t - 0.01, time.time() + 0.1, f"restart ({why})"))
         return got
+
+    def estop_stop(self) -> EstopCommand:
+        """``estop stop`` against the unit (stop datagram and STOP over TCP, tried again until
+        an answer or STOP_DEADLINE_MS): the process started with the run, run once for every
+        press (rows_storm); a new one if it is gone."""
+        if self.stop_press is None or self.stop_press.proc.poll() is not None:
+            self.stop_press = EstopCommand(
+                ["stop", "--host", "127.0.0.1", "--tcp-port", str(self.tcp_port),
+                 "--udp-port", str(self.udp_port), "--stop-deadline-ms", str(STOP_DEADLINE_MS),
+                 "--json"])
+        return self.stop_press
 
     def auth_remote(self) -> AuthRemote:
         """The key holder's remote, knowing the running daemon's session. One object for the
@@ -249,6 +281,8 @@ class Run:
         # The flooder's interpreter starts now, long before its row: under TCG on a busy host
         # a Python start can take tens of seconds.
         self.flooder = Flooder(self.udp_port, FLOOD_RATE)
+        self.storm = Storm(self.tcp_port, STORM_BUSY, STORM_BUSY_MS, STORM_CONNECT_MS)
+        self.estop_stop()
 
     def teardown(self) -> None:
         self.windows.append((time.time() - 0.01, math.inf, "teardown"))
@@ -258,6 +292,10 @@ class Run:
             self.aremote.close()
         if self.flooder is not None:
             self.flooder.close()
+        if self.storm is not None:
+            self.storm.close()
+        if self.stop_press is not None:
+            self.stop_press.close()
         for c in self.clients:
             c.close()
         for d in self.daemons:
@@ -320,7 +358,10 @@ class Run:
                 raise RigError(f"RELEASE with a live neutral link not accepted: {ex.reply}")
             res.notes.append(f"RELEASE NAK 2 after a {ms(rem.max_gap(t0, ex.t_send))} ms pause "
                              "of the harness's keepalive: armed once more")
-        got = self.brake_after(start, lambda b: b.state == 1, 1.0)
+        # Stamped after the RELEASE: a bus monitor that lags (seen: 1.7 s) still holds ARMED
+        # frames of an earlier try past ``start`` (a retried release row took one 1441 ms
+        # before its RELEASE).
+        got = self.brake_after(start, lambda b: b.state == 1, 1.0, after=ex.t_send)
         if got is None:
             raise RigError("ACK for RELEASE, but no ARMED frame on the bus within 1 s")
         return ex.t_send, got[0]

@@ -14,7 +14,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 from estop.protocol.can import BRAKE_ID, BrakeFrame, reason_name, state_name
-from hilcheck import Frame
+from hilemu import Frame
 
 # The cause each kind of change may carry (firmware/estopd/README.md, "Events"): into STOPPED
 # by its reason, the others by where they lead from and to.

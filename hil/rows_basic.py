@@ -6,13 +6,23 @@ import signal
 import time
 
 from estop.protocol.can import BRAKE_ID, STATUS_ID, BrakeFrame, StatusFrame
-from hilcheck import BRAKE_SILENCE_S, periods, summary
-from hiljudge import judge, judge_rolls, judge_spoiled, last_packet
-from hilrig import DRIVE_GAS, NEUTRAL
+from hilclients import DRIVE_GAS, NEUTRAL
+from hilemu import BRAKE_SILENCE_S
+from hiljudge import (
+    judge,
+    judge_rolls,
+    judge_sched,
+    judge_spoiled,
+    last_packet,
+    link_died_first,
+    no_armed_frame,
+)
 from hilroll import MODEL_TEXT, Roll, roll, single_stage_distance
-from hilrun import EARLY_TOL_MS, KEEPALIVE_GAP_S, TIMEOUT_MS, WARN_MS, Result, Row, Run, ms
+from hilrun import EARLY_TOL_MS, TIMEOUT_MS, WARN_MS, Result, Row, Run, ms
+from hilstalls import periods
+from hilstats import summary
 
-# Boot: the mean periods are judged on stall-free stretches (hilcheck.periods); the daemon is
+# Boot: the mean periods are judged on stall-free stretches (hilstalls.periods); the daemon is
 # watched for at least 1 s, longer (up to BOOT_WATCH_MAX_S) until the stretches hold this many
 # gaps.
 BOOT_MIN_BRAKE_GAPS = 20
@@ -38,12 +48,13 @@ def sc_boot(run: Run, res: Result) -> None:
               f"first ESTOP_BRAKE {first.data.hex(' ')} is not the boot frame "
               "01 64 00 01 00 00 00 9c (STOPPED, boot, counter 0)")
     res.check(b.brakes, "first frame does not request the brake")
+    judge_sched(run, res, d)
     ex = run.clients[0].status()
     res.figures["status_reply"] = f"ack={ex.reply.ack} state={ex.reply.state} " \
                                   f"reason={ex.reply.reason}"
     res.check(ex.reply.ack and ex.reply.state == 0 and ex.reply.reason == 1,
               "STATUS does not answer ACK STOPPED boot")
-    # The mean periods are judged on stall-free stretches only (hilcheck.periods): watch for
+    # The mean periods are judged on stall-free stretches only (hilstalls.periods): watch for
     # 1 s, and on (at most BOOT_WATCH_MAX_S) until the stretches hold enough gaps.
     end = first.ts + 1.0
     while True:
@@ -107,9 +118,7 @@ def sc_nak2(run: Run, res: Result) -> None:
     res.check(not ex2.reply.ack and ex2.reply.nak_code == 2,
               "RELEASE after only 3 valid packets (5 needed): not NAK 2")
     time.sleep(0.1)
-    run.mon.sync()
-    armed = [f for f in run.mon.since(start) if f.can_id == BRAKE_ID and f.data[2] == 1]
-    res.check(not armed, "an ARMED frame appeared on the bus")
+    no_armed_frame(run, res, start)
     res.check(ex.reply.state == 0 and ex2.reply.state == 0, "reply state not STOPPED")
 
 
@@ -124,9 +133,7 @@ def sc_nak3(run: Run, res: Result) -> None:
     res.check(not ex.reply.ack and ex.reply.nak_code == 3,
               "RELEASE with gas 0.3 in the latest packet: not NAK 3")
     time.sleep(0.05)
-    run.mon.sync()
-    armed = [f for f in run.mon.since(start) if f.can_id == BRAKE_ID and f.data[2] == 1]
-    res.check(not armed, "an ARMED frame appeared on the bus")
+    no_armed_frame(run, res, start)
     time.sleep(0.25)  # let the link die before the next scenario
 
 
@@ -223,7 +230,7 @@ def sc_tcp_stop(run: Run, res: Result) -> None:
         ex = run.clients[k].stop()
         got = run.brake_after(start, lambda b: b.state == 0, 1.0)
         run.udp.stop()
-        if run.udp.max_gap(t_arm, ex.t_send) >= KEEPALIVE_GAP_S and ex.reply.reason == 3:
+        if link_died_first(run.udp, t_arm, ex.t_send, ex.reply.reason):
             spoiled += 1  # the harness let the link die before its STOP: not a sample
             continue
         res.check(ex.reply.ack and ex.reply.state == 0 and ex.reply.reason == 2,

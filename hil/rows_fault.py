@@ -11,10 +11,14 @@ import time
 import can
 
 from estop.protocol.can import BRAKE_ID, STATUS_ID, BrakeFrame
-from hilcheck import BRAKE_SILENCE_S, judge_drops, overlap, replay, sent_between
+from hilclients import NEUTRAL
+from hilemu import BRAKE_SILENCE_S, replay
 from hiljudge import frame_gap_check, judge, judge_frames, judge_late, show_ex, windows_in
-from hilrig import NEUTRAL, Flooder, QueueWatch, RigError, iface_stats, set_link, sh, udp_drops
+from hilload import Flooder, QueueWatch, udp_drops
+from hilrig import RigError, iface_stats, set_link, sh
 from hilrun import FLOOD_RATE, RECOVERY_S, TIMEOUT_MS, Result, Row, Run, ms
+from hilstalls import judge_drops, overlap
+from hilstats import sent_between
 
 # The invalid-UDP flood (its target rate is hilrun.FLOOD_RATE): the least rate that counts as
 # a flood, how long it lasts, and the exactly counted burst before it.

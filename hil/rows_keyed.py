@@ -11,9 +11,18 @@ import time
 
 from estop.protocol import auth, udp
 from estop.protocol.can import BRAKE_ID
-from hiljudge import judge, judge_spoiled, last_packet, show_ex, windows_in
-from hilrig import NEUTRAL, AuthClient, AuthRemote, UdpRemote, udp_drops, wrong_key
-from hilrun import EARLY_TOL_MS, KEEPALIVE_GAP_S, TIMEOUT_MS, Result, Row, Run
+from hilclients import NEUTRAL, AuthClient, AuthRemote, UdpRemote, wrong_key
+from hiljudge import (
+    judge,
+    judge_spoiled,
+    last_packet,
+    link_died_first,
+    no_armed_frame,
+    show_ex,
+    windows_in,
+)
+from hilload import udp_drops
+from hilrun import EARLY_TOL_MS, TIMEOUT_MS, Result, Row, Run
 
 # The attacker's send period.
 ATTACK_PERIOD_S = 0.005
@@ -21,7 +30,7 @@ ATTACK_PERIOD_S = 0.005
 
 # ------------------------------------------------------------------ keyed rows (spec section 5)
 # These run last, on a daemon started with --key-file (a key made for the run, mode 0600, in
-# the output directory). The key holder's remote (hilrig.AuthRemote) learns the session with a
+# the output directory). The key holder's remote (hilclients.AuthRemote) learns the session with a
 # STATUS request frame and verifies every reply's tag under the key.
 
 def attack_packets(ar: AuthRemote, key: bytes, replay: list[bytes]) -> list[tuple[str, bytes]]:
@@ -116,9 +125,7 @@ def sc_auth_release(run: Run, res: Result) -> None:
     res.check(not exp.reply.ack and exp.reply.nak_code == 4,
               "plain RELEASE on a unit with a key: not NAK 4")
     time.sleep(0.05)
-    run.mon.sync()
-    armed = [f for f in run.mon.since(start) if f.can_id == BRAKE_ID and f.data[2] == 1]
-    res.check(not armed, "an ARMED frame after a forged or plain RELEASE")
+    no_armed_frame(run, res, start, "an ARMED frame after a forged or plain RELEASE")
     start2 = run.mon.index()
     ex = ar.release()
     res.figures["genuine_release"] = show_ex(ex)
@@ -207,8 +214,7 @@ def sc_auth_stop_datagram(run: Run, res: Result) -> None:
         t_send = run.udp.send(dg)
         got = run.brake_after(start, lambda b: b.state == 0, 1.0)
         ar.stop()
-        if got is not None and got[1].reason == 3 and ar.max_gap(t_arm, t_send) >= \
-                KEEPALIVE_GAP_S:
+        if got is not None and link_died_first(ar, t_arm, t_send, got[1].reason):
             spoiled += 1  # the harness let the link die before its datagram: not a sample
             continue
         if got is None:

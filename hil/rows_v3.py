@@ -14,12 +14,22 @@ from functools import partial
 from estop.protocol import tcp
 from estop.protocol.can import BRAKE_ID
 from estop.stopchannel import LiftDatagram, send_lift
-from hilcheck import Frame, excused, frame_commands, replay, share_at, summary
-from hiljudge import judge, judge_rolls, judge_spoiled, last_packet, show_ex, wait_state_lines
-from hilrig import NEUTRAL, UdpRemote
+from hilclients import NEUTRAL, UdpRemote
+from hilemu import Frame, frame_commands, replay, share_at
+from hiljudge import (
+    judge,
+    judge_rolls,
+    judge_spoiled,
+    last_packet,
+    link_died_first,
+    show_ex,
+    wait_state_lines,
+)
 from hilroll import MODEL_TEXT, roll, single_stage_distance, speed, speed_after, two_stage_distance
 from hilrun import EARLY_TOL_MS, KEEPALIVE_GAP_S, TIMEOUT_MS, Result, Row, Run, ms
+from hilstalls import excused
 from hilstates import StateChange, frame_problem, log_problem, sequence_problem, state_changes
+from hilstats import summary
 
 # The two-stage daemon: S = 150 ms, T = 600 ms, L = 30 %. S is the harness's keepalive limit
 # (KEEPALIVE_GAP_S): only a pause of its own keepalive that already makes a row inconclusive
@@ -141,7 +151,7 @@ def sc_lift_tcp(run: Run, res: Result) -> None:
         ex = client.request_frame(tcp.LIFT, counter=i + 1) if framed else client.lift()
         got = run.brake_after(start, lambda b: b.state == STOPPED, 1.0)
         run.udp.stop()
-        if run.udp.max_gap(t_arm, ex.t_send) >= KEEPALIVE_GAP_S and ex.reply.reason == 3:
+        if link_died_first(run.udp, t_arm, ex.t_send, ex.reply.reason):
             spoiled += 1  # the harness let the link die before its LIFT: not a sample
             continue
         form = "48-byte" if framed else "16-byte"

@@ -5,8 +5,10 @@ Writes ``results.json`` (and candump.log, estopd-*.log) into ``--out``; ``hilrep
 that into the test protocol table and the latency plot.
 
 The rows live in modules of their own, imported one way (scenarios -> rows_* and wholerun ->
-hiljudge -> hilrun -> hilrig, hilcheck): ``rows_basic`` (boot, RELEASE, dead-man, TCP STOP),
-``rows_fault`` (flood, link down, full queue, kill, restart, SIGTERM), ``rows_v3`` (the lift,
+hiljudge -> hilrun -> the live parts: hilrig, hilbus, hildaemon, hilclients, hilload -> the
+pure logic: hilemu, hilstalls, hilstats, hilcandump): ``rows_basic`` (boot, RELEASE,
+dead-man, TCP STOP), ``rows_fault`` (flood, link down, full queue, kill, restart, SIGTERM),
+``rows_storm`` (``estop stop`` under a connect storm), ``rows_v3`` (the lift,
 the two-stage stop), ``rows_keyed`` (spec section 5), ``wholerun`` (the checks of the whole
 run). This module runs them in order.
 
@@ -39,22 +41,24 @@ import can  # noqa: E402
 import rows_basic  # noqa: E402
 import rows_fault  # noqa: E402
 import rows_keyed  # noqa: E402
+import rows_storm  # noqa: E402
 import rows_v3  # noqa: E402
-from hilrig import LAG_MAX_S  # noqa: E402
+from hilbus import LAG_MAX_S  # noqa: E402
 from hilroll import MODEL_TEXT  # noqa: E402
-from hilrun import TIMEOUT_MS, Limits, Result, Row, Run, log, ms  # noqa: E402
+from hilrun import RT_PRIO, TIMEOUT_MS, Limits, Result, Row, Run, log, ms  # noqa: E402
 from rows_keyed import KEYED  # noqa: E402
 from wholerun import GLOBAL  # noqa: E402
 
 __all__ = ["GLOBAL", "KEYED", "RETRYABLE", "SCENARIOS", "main"]
 
 # The rows in the order they run; the keyed ones last (the daemon restarts with a key once).
-SCENARIOS: list[Row] = [*rows_basic.ROWS, *rows_fault.ROWS, *rows_v3.ROWS, *rows_keyed.ROWS]
+SCENARIOS: list[Row] = [*rows_basic.ROWS, *rows_fault.ROWS, *rows_storm.ROWS, *rows_v3.ROWS,
+                        *rows_keyed.ROWS]
 
 # Scenarios that start from any state and may run again when the environment spoiled them.
 RETRYABLE = {"boot", "release", "deadman", "tcp_stop", "invalid_flood", "iface_down",
-             "txqueue_full", "sigkill", "lift", "lift_tcp", "two_stage_burst", "two_stage_loss",
-             *KEYED}
+             "txqueue_full", "sigkill", "storm_stop", "lift", "lift_tcp", "two_stage_burst",
+             "two_stage_loss", *KEYED}
 
 
 def run_one(run: Run, sid: str, res: Result, fn: Callable[[Run, Result], None]) -> None:
@@ -129,6 +133,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only", help="comma-separated scenario ids (boot always runs)")
     p.add_argument("--repeat", type=int, default=8, help="samples for latency scenarios")
     p.add_argument("--budget", type=float, default=240.0, help="seconds for all scenarios")
+    p.add_argument("--rt-prio", type=int, default=RT_PRIO,
+                   help="run the daemon as deployed: SCHED_FIFO at this priority under chrt -f "
+                        "-R, with --rt-prio and --mlock (0: an ordinary process)")
     args = p.parse_args(argv)
     sys.setswitchinterval(0.0005)  # short GIL slices: threads react within ~1 ms
     mode = os.environ.get("HIL_MODE", "native")
@@ -155,6 +162,7 @@ def main(argv: list[str] | None = None) -> int:
                      f"{rows_v3.SLOW_LEVEL} % (the two-stage rows)",
         "car": MODEL_TEXT,
         "repeat": args.repeat,
+        "dut_rt_prio": args.rt_prio,
     }
     try:
         meta["guest_uptime_at_start_s"] = float(Path("/proc/uptime").read_text().split()[0])
@@ -188,6 +196,8 @@ def main(argv: list[str] | None = None) -> int:
                     log(f"     {n}")
                 run.results.append(res)
     meta["runtime_s"] = round(time.monotonic() - t0, 2)
+    # How the kernel scheduled each daemon the run started (its threads, read once it ran).
+    meta["dut_scheduling"] = sorted(set(run.scheds))
     passed = fatal is None and bool(run.results) and all(r.passed for r in run.results)
     doc = {"meta": meta, "fatal": fatal, "passed": passed,
            "results": [asdict(r) for r in run.results]}

@@ -2,8 +2,9 @@
 
     python stallmon.py CPU OUTFILE
 
-Pinned to one CPU at real-time priority (SCHED_FIFO 50, when allowed), it wakes every 2 ms and
-writes each interval in which it could not run for more than 4 ms beyond that, as
+Pinned to one CPU at real-time priority (SCHED_FIFO 60 when allowed: above the daemon's 50,
+so a daemon busy at its own priority is never taken for a CPU that did not run), it wakes every
+2 ms and writes each interval in which it could not run for more than 4 ms beyond that, as
 ``start end`` wall-clock seconds. An RT thread that cannot run means the CPU itself did not run
 (a VM's vCPU descheduled by a busy host, or held up by the emulator), so nothing else on that
 CPU could run either: a frame gap that coincides with such a stall is the environment's.
@@ -18,6 +19,7 @@ import time
 
 PERIOD_S = 0.002
 REPORT_S = 0.004  # beyond the period
+PRIORITY = 60  # above the daemon's SCHED_FIFO 50 (hilrun.RT_PRIO, as deployed)
 
 
 def main() -> int:
@@ -25,7 +27,7 @@ def main() -> int:
     out = open(sys.argv[2], "w", buffering=1)  # noqa: SIM115 - lives as long as the process
     os.sched_setaffinity(0, {cpu})
     try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(50))
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(PRIORITY))
         rt = True
     except (OSError, AttributeError):
         rt = False

@@ -12,20 +12,13 @@ from collections import Counter
 
 from estop.brakecheck import grade_text
 from estop.protocol.can import BRAKE_ID, STATUS_ID, brake_request_name
-from hilcheck import (
-    BRAKE_SILENCE_S,
-    Frame,
-    crosscheck,
-    excused,
-    frame_commands,
-    in_windows,
-    read_candump,
-    replay,
-    summary,
-)
-from hilrig import MARKER_ID
+from hilbus import MARKER_ID
+from hilcandump import crosscheck, read_candump
+from hilemu import BRAKE_SILENCE_S, Frame, frame_commands, replay
 from hilrun import Result, Row, Run, ms
+from hilstalls import excused
 from hilstates import bus_transitions, cause_problem, log_changes
+from hilstats import in_windows, summary
 
 # =========================================================================== global checks
 

@@ -86,7 +86,7 @@ class Daemon:
 
     def signal(self, sig: int) -> float:
         t = time.time()
-        self.signal_mono = time.monotonic()  # CLOCK_MONOTONIC, as estopd's t_mono
+        self.signal_mono = time.clock_gettime(time.CLOCK_BOOTTIME)  # estopd's t_mono clock
         self.proc.send_signal(sig)
         self.signal_time = t
         return t

@@ -144,7 +144,7 @@ class Daemon:
         self.next_s = t
 
     def log(self, event: str, **kv: object) -> None:
-        rec = {"t_mono": time.monotonic(), "event": event, **kv}
+        rec = {"t_mono": time.clock_gettime(time.CLOCK_BOOTTIME), "event": event, **kv}
         sys.stderr.write(json.dumps(rec) + "\n")
         sys.stderr.flush()
 

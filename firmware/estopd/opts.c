@@ -64,14 +64,10 @@ static void usage(void)
         "flag (default: half the slow time, in whole ms). 0 < warn <= slow <= timeout.\n"
         "--key-file: only packets and RELEASEs made with this key (64 hex digits, mode 0600)\n"
         "keep the unit alive or release it; anyone may stop. --no-auth: a unit without a key.\n"
-        "Without --channel (a SocketCAN interface), frames go to the can-log (stdout).
-"
-        "Port 0 picks a free port; the start event on stderr shows the ports.
-"
-        "--rt-prio: SCHED_FIFO for the watchdog loop; --mlock: mlockall, no paging stalls,
-"
-        "and the core's MAC state (as good as the key) is never written to swap.
-");
+        "Without --channel (a SocketCAN interface), frames go to the can-log (stdout).\n"
+        "Port 0 picks a free port; the start event on stderr shows the ports.\n"
+        "--rt-prio: SCHED_FIFO for the watchdog loop; --mlock: mlockall, no paging stalls,\n"
+        "and the core's MAC state (as good as the key) is never written to swap.\n");
 }
 
 /* Strict unsigned number: digits only (no sign, no spaces), optional 0x prefix when

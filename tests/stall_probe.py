@@ -1,0 +1,129 @@
+"""How long this machine keeps a process from running, measured in the same run as a timing
+check.
+
+A timing test on a shared machine sees two delays: the one it guards against (a defect) and
+the machine's own (other processes hold the CPUs). A bound that ignores the second fails on a
+loaded machine and proves nothing there. :class:`StallProbe` runs a separate process during
+the measured interval that
+
+- sleeps in 1 ms steps and records its worst oversleep (``worst_s``): the machine's stall as
+  a process that mostly sleeps sees it;
+- with ``pid``, samples that process's run-queue wait at every step (/proc/PID/schedstat,
+  the time it was ready to run but had no CPU), so that ``waited_s(a, b)`` is the stall the
+  watched process itself had between two CLOCK_REALTIME instants. A busy process (a daemon
+  reading a flood) waits far longer than a sleeper: at load 6 here, 80-130 ms in 190 ms
+  while the sleeper's worst oversleep was 0.4-13 ms.
+
+A test allows its bound plus both stalls (``stall_s``) and says so in its assertion message.
+A defect still fails it: the time the process spends working (the defect) is not run-queue
+wait, and it comes on top of the machine's stall, not instead of it.
+
+    with StallProbe(pid) as probe:
+        ... the timed part ...
+    assert b - a < 0.045 + probe.stall_s(a, b), probe.explain(a, b)
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from bisect import bisect_left, bisect_right
+from types import TracebackType
+
+STEP_S = 0.001
+
+# Sleeps STEP_S at a time until a byte (or EOF) arrives on stdin, then prints its worst
+# oversleep and the samples (realtime s, run-queue wait ns of PID) as JSON. "ready" first,
+# so that the probe runs before the timed part begins.
+_CHILD = f"""
+import json, select, sys, time
+step = {STEP_S!r}
+pid = int(sys.argv[1])
+worst = 0.0
+samples = []
+
+def sample():
+    try:
+        with open(f"/proc/{{pid}}/schedstat") as f:
+            samples.append((time.time(), int(f.read().split()[1])))
+    except (OSError, IndexError, ValueError):
+        pass  # no schedstat (kernel without it) or the process is gone
+
+sample()
+sys.stdout.write("ready\\n")
+sys.stdout.flush()
+while True:
+    t = time.monotonic()
+    if select.select([sys.stdin], [], [], step)[0]:
+        break
+    worst = max(worst, time.monotonic() - t - step)
+    if pid > 0:
+        sample()
+sample()
+sys.stdout.write(json.dumps({{"worst": worst, "samples": samples}}) + "\\n")
+"""
+
+
+class StallProbe:
+    """A context manager; after it exits, ``worst_s`` and ``waited_s`` hold its measures."""
+
+    def __init__(self, pid: int = 0) -> None:
+        self.pid = pid
+        self.worst_s = 0.0
+        self._t: list[float] = []
+        self._wait_ns: list[int] = []
+        self._proc: subprocess.Popen[str] | None = None
+
+    def __enter__(self) -> StallProbe:
+        self._proc = subprocess.Popen([sys.executable, "-c", _CHILD, str(self.pid)],
+                                      stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+        assert self._proc.stdout is not None
+        line = self._proc.stdout.readline()
+        assert line == "ready\n", f"stall probe did not start: {line!r}"
+        return self
+
+    def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
+                 tb: TracebackType | None) -> None:
+        self.stop()
+
+    def stop(self) -> None:
+        """Ends the probe (once) and keeps its measures."""
+        proc, self._proc = self._proc, None
+        if proc is None:
+            return
+        try:
+            out, _ = proc.communicate("x", timeout=10)
+            res = json.loads(out)
+            self.worst_s = float(res["worst"])
+            self._t = [float(t) for t, _ in res["samples"]]
+            self._wait_ns = [int(w) for _, w in res["samples"]]
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait(timeout=10)
+
+    def waited_s(self, a: float, b: float) -> float:
+        """Run-queue wait of the watched process from the last sample at or before a to the
+        first at or after b (a wait is counted when it ends, so a sample after b holds every
+        wait that delayed something done at b). Without samples: the sleeper's worst stall."""
+        if len(self._t) < 2:
+            return self.worst_s
+        i = max(bisect_right(self._t, a) - 1, 0)
+        j = min(bisect_left(self._t, b), len(self._t) - 1)
+        return max(self._wait_ns[j] - self._wait_ns[i], 0) / 1e9
+
+    def stall_s(self, a: float, b: float) -> float:
+        """The machine's stall to allow between a and b: the watched process's run-queue wait
+        plus the sleeper's worst oversleep (what a process that was on a CPU still lost:
+        interrupts, a host that took the CPU; a gap of 22 ms with no run-queue wait in it was
+        seen here under load)."""
+        return self.waited_s(a, b) + self.worst_s
+
+    def explain(self, a: float, b: float) -> str:
+        return (f"{(b - a) * 1e3:.1f} ms from {a:.6f} to {b:.6f}; the watched process "
+                f"(pid {self.pid}) waited {self.waited_s(a, b) * 1e3:.1f} ms for a CPU in that "
+                f"time ({len(self._t)} samples); {self}")
+
+    def __str__(self) -> str:
+        return f"worst stall of a 1 ms sleeper in the same interval: {self.worst_s * 1e3:.1f} ms"

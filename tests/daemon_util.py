@@ -285,11 +285,18 @@ class Daemon:
         for _ in range(n):
             self.send_udp(udp_packet(gas=gas))
 
-    def arm(self) -> Reply:
-        """Link live, neutral, RELEASE: the unit goes ARMED."""
-        self.make_live()
-        time.sleep(0.01)  # let the packets arrive before the TCP request overtakes them
-        reply = self.request(MSG_RELEASE, 1)
+    def arm(self, timeout: float = 5.0) -> Reply:
+        """Link live, neutral, RELEASE: the unit goes ARMED. A RELEASE refused for want of a
+        live link (NAK 2) is tried again with fresh packets until ``timeout``: on a loaded
+        machine this process can stall past the unit's timeout between its packets and its
+        RELEASE (seen here at load 10), and the link is then rightly silent."""
+        deadline = time.monotonic() + timeout
+        while True:
+            self.make_live()
+            time.sleep(0.01)  # let the packets arrive before the TCP request overtakes them
+            reply = self.request(MSG_RELEASE, 1)
+            if reply.nak != 2 or time.monotonic() > deadline:
+                break
         assert reply.msg == ACK and reply.state == ARMED, reply
         return reply
 

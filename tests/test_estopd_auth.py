@@ -76,11 +76,17 @@ class Remote:
         self.session = reply.session  # learnt from any reply, as the tablet does
         return reply
 
-    def arm(self) -> None:
+    def arm(self, timeout: float = 5.0) -> None:
+        """As Daemon.arm: a RELEASE refused for want of a live link (NAK 2: this process
+        stalled past the unit's timeout on a loaded machine) is tried again until timeout."""
         self.request(MSG_STATUS)
-        self.heartbeat(6)
-        time.sleep(0.02)
-        reply = self.request(MSG_RELEASE)
+        deadline = time.monotonic() + timeout
+        while True:
+            self.heartbeat(6)
+            time.sleep(0.02)
+            reply = self.request(MSG_RELEASE)
+            if reply.nak_code != 2 or time.monotonic() > deadline:
+                break
         assert (reply.ack, reply.state) == (True, ARMED), reply
 
 

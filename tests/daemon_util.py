@@ -260,6 +260,14 @@ class Daemon:
                 raise AssertionError(f"no matching frame in {timeout}s")
             time.sleep(0.005)
 
+    def count_once_armed(self, timeout: float = 5.0) -> int:
+        """How many frames the can-log holds once the first ARMED brake frame is in it. The
+        daemon writes its can-log from a thread, so a RELEASE's ACK can come before the last
+        frames of the boot stop are in the file; a search for a STOPPED frame after a count
+        taken too early finds one of those (seen at load 10)."""
+        self.wait_frame(lambda f: f.is_brake() and f.state == ARMED, timeout=timeout)
+        return len(self.frames())
+
     # -- inputs
     def send_udp(self, payload: bytes) -> None:
         if self._udp is None:

@@ -83,7 +83,7 @@ def test_release_then_timeout_stop_at_the_deadline(tmp_path: Path) -> None:
 def test_tcp_stop_while_armed(tmp_path: Path) -> None:
     with Daemon(tmp_path) as d, KeepAlive(d):
         d.arm()
-        n = len(d.frames())
+        n = d.count_once_armed()
         sent = time.time()
         reply = d.request(STOP_ID, 42)
         assert (reply.msg, reply.seq, reply.state, reply.reason) == (ACK, 42, STOPPED, R_TCP_STOP)

@@ -230,7 +230,12 @@ def test_reply_split_across_reads(capsys) -> None:
 @pytest.mark.parametrize("kind", ["status", "stop"])
 def test_broken_replies_exit_3(mode: str, message: str, kind: str, capsys) -> None:
     u = FakeUnit(mode=mode)
-    argv = [kind, "--host", LOCAL, "--port", str(u.tcp_port), "--timeout", "0.3"]
+    # Only the silent unit is waited out; the others answer (or close) at once, so a status
+    # gives them 2 s, not 0.3: the fake unit is a thread of this process, and at load 10 it
+    # was once later than 0.3 s ("no reply" instead of "closed the connection"). A tool that
+    # missed the answer would wait the 2 s out and say "no reply", which fails the message.
+    timeout = "0.3" if mode == "silent" or kind == "stop" else "2"
+    argv = [kind, "--host", LOCAL, "--port", str(u.tcp_port), "--timeout", timeout]
     if kind == "stop":
         argv += ["--udp-port", str(u.udp_port), "--stop-deadline", "0.5"]
     try:

@@ -34,8 +34,8 @@ from types import TracebackType
 STEP_S = 0.001
 
 # Sleeps STEP_S at a time until a byte (or EOF) arrives on stdin, then prints its worst
-# oversleep and the samples (realtime s, run-queue wait ns of PID) as JSON. "ready" first,
-# so that the probe runs before the timed part begins.
+# oversleep and the samples (realtime s, on-CPU ns and run-queue wait ns of PID) as JSON.
+# "ready" first, so that the probe runs before the timed part begins.
 _CHILD = f"""
 import json, select, sys, time
 step = {STEP_S!r}
@@ -46,8 +46,9 @@ samples = []
 def sample():
     try:
         with open(f"/proc/{{pid}}/schedstat") as f:
-            samples.append((time.time(), int(f.read().split()[1])))
-    except (OSError, IndexError, ValueError):
+            ran, waited = f.read().split()[:2]
+        samples.append((time.time(), int(ran), int(waited)))
+    except (OSError, ValueError):
         pass  # no schedstat (kernel without it) or the process is gone
 
 sample()
@@ -73,6 +74,7 @@ class StallProbe:
         self.worst_s = 0.0
         self._t: list[float] = []
         self._wait_ns: list[int] = []
+        self._ran_ns: list[int] = []
         self._proc: subprocess.Popen[str] | None = None
 
     def __enter__(self) -> StallProbe:
@@ -96,8 +98,9 @@ class StallProbe:
             out, _ = proc.communicate("x", timeout=10)
             res = json.loads(out)
             self.worst_s = float(res["worst"])
-            self._t = [float(t) for t, _ in res["samples"]]
-            self._wait_ns = [int(w) for _, w in res["samples"]]
+            self._t = [float(t) for t, _, _ in res["samples"]]
+            self._ran_ns = [int(r) for _, r, _ in res["samples"]]
+            self._wait_ns = [int(w) for _, _, w in res["samples"]]
         finally:
             if proc.poll() is None:
                 proc.kill()
@@ -109,9 +112,16 @@ class StallProbe:
         wait that delayed something done at b). Without samples: the sleeper's worst stall."""
         if len(self._t) < 2:
             return self.worst_s
+        return self._delta(self._wait_ns, a, b)
+
+    def ran_s(self, a: float, b: float) -> float:
+        """On-CPU time of the watched process between a and b (bracketed as waited_s)."""
+        return self._delta(self._ran_ns, a, b) if len(self._t) >= 2 else 0.0
+
+    def _delta(self, series: list[int], a: float, b: float) -> float:
         i = max(bisect_right(self._t, a) - 1, 0)
         j = min(bisect_left(self._t, b), len(self._t) - 1)
-        return max(self._wait_ns[j] - self._wait_ns[i], 0) / 1e9
+        return max(series[j] - series[i], 0) / 1e9
 
     def stall_s(self, a: float, b: float) -> float:
         """The machine's stall to allow between a and b: the watched process's run-queue wait
@@ -122,8 +132,9 @@ class StallProbe:
 
     def explain(self, a: float, b: float) -> str:
         return (f"{(b - a) * 1e3:.1f} ms from {a:.6f} to {b:.6f}; the watched process "
-                f"(pid {self.pid}) waited {self.waited_s(a, b) * 1e3:.1f} ms for a CPU in that "
-                f"time ({len(self._t)} samples); {self}")
+                f"(pid {self.pid}) waited {self.waited_s(a, b) * 1e3:.1f} ms for a CPU and ran "
+                f"{self.ran_s(a, b) * 1e3:.1f} ms in that time, the rest it slept or was "
+                f"blocked ({len(self._t)} samples); {self}")
 
     def __str__(self) -> str:
         return f"worst stall of a 1 ms sleeper in the same interval: {self.worst_s * 1e3:.1f} ms"

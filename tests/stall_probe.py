@@ -6,8 +6,9 @@ the machine's own (other processes hold the CPUs). A bound that ignores the seco
 loaded machine and proves nothing there. :class:`StallProbe` runs a separate process during
 the measured interval that
 
-- sleeps in 1 ms steps and records its worst oversleep (``worst_s``): the machine's stall as
-  a process that mostly sleeps sees it;
+- sleeps in 1 ms steps, also on a thread pinned to each CPU, and records the worst oversleep
+  (``worst_s``): the machine's stall as a process that mostly sleeps sees it, including a
+  CPU that the host (this machine is a virtual one) takes away for a while;
 - with ``pid``, samples that process's run-queue wait at every step (/proc/PID/schedstat,
   the time it was ready to run but had no CPU), so that ``waited_s(a, b)`` is the stall the
   watched process itself had between two CLOCK_REALTIME instants. A busy process (a daemon
@@ -33,15 +34,19 @@ from types import TracebackType
 
 STEP_S = 0.001
 
-# Sleeps STEP_S at a time until a byte (or EOF) arrives on stdin, then prints its worst
-# oversleep and the samples (realtime s, on-CPU ns and run-queue wait ns of PID) as JSON.
-# "ready" first, so that the probe runs before the timed part begins.
+# The main thread sleeps STEP_S at a time until a byte (or EOF) arrives on stdin, sampling
+# PID's schedstat at each step; one thread per CPU, pinned to it, sleeps STEP_S steps too (a
+# CPU the host takes away for a while stalls a sleeping daemon's timer on it, and only a
+# sleeper on that CPU sees it). Then it prints the worst oversleep of all and the samples
+# (realtime s, on-CPU ns and run-queue wait ns of PID) as JSON. "ready" first, so that the
+# probe runs before the timed part begins.
 _CHILD = f"""
-import json, select, sys, time
+import json, os, select, sys, threading, time
 step = {STEP_S!r}
 pid = int(sys.argv[1])
-worst = 0.0
+worst = [0.0]
 samples = []
+done = threading.Event()
 
 def sample():
     try:
@@ -51,6 +56,20 @@ def sample():
     except (OSError, ValueError):
         pass  # no schedstat (kernel without it) or the process is gone
 
+def pinned(cpu):
+    try:
+        os.sched_setaffinity(0, {{cpu}})  # this thread only
+    except OSError:
+        return
+    while not done.is_set():
+        t = time.monotonic()
+        time.sleep(step)
+        worst[0] = max(worst[0], time.monotonic() - t - step)
+
+threads = [threading.Thread(target=pinned, args=(c,), daemon=True)
+           for c in sorted(os.sched_getaffinity(0))]
+for th in threads:
+    th.start()
 sample()
 sys.stdout.write("ready\\n")
 sys.stdout.flush()
@@ -58,11 +77,14 @@ while True:
     t = time.monotonic()
     if select.select([sys.stdin], [], [], step)[0]:
         break
-    worst = max(worst, time.monotonic() - t - step)
+    worst[0] = max(worst[0], time.monotonic() - t - step)
     if pid > 0:
         sample()
+done.set()
+for th in threads:
+    th.join()
 sample()
-sys.stdout.write(json.dumps({{"worst": worst, "samples": samples}}) + "\\n")
+sys.stdout.write(json.dumps({{"worst": worst[0], "samples": samples}}) + "\\n")
 """
 
 
@@ -137,4 +159,5 @@ class StallProbe:
                 f"blocked ({len(self._t)} samples); {self}")
 
     def __str__(self) -> str:
-        return f"worst stall of a 1 ms sleeper in the same interval: {self.worst_s * 1e3:.1f} ms"
+        return (f"worst stall of a 1 ms sleeper (one per CPU) in the same interval: "
+                f"{self.worst_s * 1e3:.1f} ms")

@@ -149,7 +149,9 @@ def test_only_the_key_holder_keeps_the_unit_alive(tmp_path: Path) -> None:
     with Daemon(tmp_path, "--key-file", str(key_file(tmp_path))) as d:
         remote = Remote(d)
         remote.arm()
-        remote.heartbeat(5)
+        remote.heartbeat(4)
+        sent_from = time.time()  # the last heartbeat is sent between these two readings
+        remote.heartbeat(1)
         t_lift = time.time()
         recording = list(remote.sent)
         forger = Remote(d, key=bytes(32))
@@ -161,7 +163,9 @@ def test_only_the_key_holder_keeps_the_unit_alive(tmp_path: Path) -> None:
             d.send_udp(recording[i % len(recording)])
             time.sleep(0.01)
         f = d.wait_frame(lambda f: f.is_brake() and f.reason == R_UDP_TIMEOUT)
-        assert 0.2 - 0.002 <= f.t - t_lift < 0.2 + 0.15
+        # never early (from before the last heartbeat's send), never late (from after it)
+        assert 0.2 - 0.002 <= f.t - sent_from and f.t - t_lift < 0.2 + 0.15, \
+            (f.t - sent_from, t_lift - sent_from)
         assert remote.request(MSG_STATUS).state == STOPPED
         assert d.signal() == 0  # SIGTERM: the counters are written at exit
     lines = d.log()

@@ -55,18 +55,21 @@ def test_slowing_at_the_slow_time_armed_after_3_packets_stopped_at_the_timeout(
         tmp_path: Path) -> None:
     with Daemon(tmp_path, *TWO_STAGE) as d:
         d.arm()
-        d.send_udp(udp_packet())
+        sent_from = time.time()  # the packet is sent between these two readings: the lower
+        d.send_udp(udp_packet())  # bounds count from before it, the upper ones from after
         t_last = time.time()
         slow = d.wait_frame(lambda f: f.is_brake() and f.state == SLOWING)
         # brake_request 2 at the slow level, state SLOWING, reason none, link degraded (W 50 ms)
         assert slow.data[:6].hex() == "021e02000100", slow
-        assert 0.1 - 0.002 <= slow.t - t_last <= 0.1 + 0.08, slow.t - t_last
+        assert 0.1 - 0.002 <= slow.t - sent_from and slow.t - t_last <= 0.1 + 0.08, \
+            (slow.t - sent_from, t_last - sent_from)
         d.send_udp(udp_packet())
         d.send_udp(udp_packet())
         time.sleep(0.02)
         reply = d.request(MSG_STATUS, 1)
         assert (reply.state, reply.reason) == (SLOWING, R_NONE)  # two packets are not enough
         n = len(d.frames())
+        back_from = time.time()
         d.send_udp(udp_packet())
         t_back = time.time()
         armed = d.wait_frame(lambda f: f.is_brake() and f.state == ARMED, after=n)
@@ -74,7 +77,8 @@ def test_slowing_at_the_slow_time_armed_after_3_packets_stopped_at_the_timeout(
         # silent again: SLOWING at S, then STOPPED (udp timeout) at T after the last packet
         stop = d.wait_frame(lambda f: f.is_brake() and f.state == STOPPED, after=n, timeout=5)
         assert stop.data[:4].hex() == "01640003", stop
-        assert 1.0 - 0.002 <= stop.t - t_back <= 1.0 + 0.1, stop.t - t_back
+        assert 1.0 - 0.002 <= stop.t - back_from and stop.t - t_back <= 1.0 + 0.1, \
+            (stop.t - back_from, t_back - back_from)
         d.wait_log(lambda s: "SLOWING->STOPPED" in s)
         frames = d.frames()
     check_frames(frames)

@@ -45,8 +45,16 @@ import json, os, select, sys, threading, time
 step = {STEP_S!r}
 pid = int(sys.argv[1])
 worst = [0.0]
+stalls = []  # (realtime s when the sleep ended, oversleep s), oversleeps over 1 ms only
 samples = []
 done = threading.Event()
+
+def slept(t0, t1):
+    late = t1 - t0 - step
+    if late > worst[0]:
+        worst[0] = late
+    if late > 0.001:
+        stalls.append((time.time(), late))
 
 def sample():
     try:
@@ -64,7 +72,7 @@ def pinned(cpu):
     while not done.is_set():
         t = time.monotonic()
         time.sleep(step)
-        worst[0] = max(worst[0], time.monotonic() - t - step)
+        slept(t, time.monotonic())
 
 threads = [threading.Thread(target=pinned, args=(c,), daemon=True)
            for c in sorted(os.sched_getaffinity(0))]
@@ -77,14 +85,15 @@ while True:
     t = time.monotonic()
     if select.select([sys.stdin], [], [], step)[0]:
         break
-    worst[0] = max(worst[0], time.monotonic() - t - step)
+    slept(t, time.monotonic())
     if pid > 0:
         sample()
 done.set()
 for th in threads:
     th.join()
 sample()
-sys.stdout.write(json.dumps({{"worst": worst[0], "samples": samples}}) + "\\n")
+sys.stdout.write(json.dumps({{"worst": worst[0], "stalls": stalls, "samples": samples}})
+                 + "\\n")
 """
 
 
@@ -97,6 +106,7 @@ class StallProbe:
         self._t: list[float] = []
         self._wait_ns: list[int] = []
         self._ran_ns: list[int] = []
+        self._stalls: list[tuple[float, float]] = []
         self._proc: subprocess.Popen[str] | None = None
 
     def __enter__(self) -> StallProbe:
@@ -120,6 +130,7 @@ class StallProbe:
             out, _ = proc.communicate("x", timeout=10)
             res = json.loads(out)
             self.worst_s = float(res["worst"])
+            self._stalls = [(float(t), float(late)) for t, late in res["stalls"]]
             self._t = [float(t) for t, _, _ in res["samples"]]
             self._ran_ns = [int(r) for _, r, _ in res["samples"]]
             self._wait_ns = [int(w) for _, _, w in res["samples"]]
@@ -145,18 +156,25 @@ class StallProbe:
         j = min(bisect_left(self._t, b), len(self._t) - 1)
         return max(series[j] - series[i], 0) / 1e9
 
+    def slept_over_s(self, a: float, b: float) -> float:
+        """The sleepers' worst oversleep that overlapped a..b (1 ms where none passed 1 ms)."""
+        over = [late for t, late in self._stalls if t >= a and t - late - STEP_S <= b]
+        return max(over, default=min(self.worst_s, 0.001))
+
     def stall_s(self, a: float, b: float) -> float:
         """The machine's stall to allow between a and b: the watched process's run-queue wait
-        plus the sleeper's worst oversleep (what a process that was on a CPU still lost:
-        interrupts, a host that took the CPU; a gap of 22 ms with no run-queue wait in it was
-        seen here under load)."""
-        return self.waited_s(a, b) + self.worst_s
+        plus the sleepers' worst oversleep in that interval (what a process still loses when
+        it does not wait on a run queue: interrupts, a host that took its CPU; a gap of 22 ms
+        with no run-queue wait in it was seen here under load)."""
+        return self.waited_s(a, b) + self.slept_over_s(a, b)
 
     def explain(self, a: float, b: float) -> str:
         return (f"{(b - a) * 1e3:.1f} ms from {a:.6f} to {b:.6f}; the watched process "
                 f"(pid {self.pid}) waited {self.waited_s(a, b) * 1e3:.1f} ms for a CPU and ran "
                 f"{self.ran_s(a, b) * 1e3:.1f} ms in that time, the rest it slept or was "
-                f"blocked ({len(self._t)} samples); {self}")
+                f"blocked ({len(self._t)} samples); the worst oversleep of a 1 ms sleeper (one "
+                f"per CPU) in it: {self.slept_over_s(a, b) * 1e3:.1f} ms, in the whole run: "
+                f"{self.worst_s * 1e3:.1f} ms")
 
     def __str__(self) -> str:
         return (f"worst stall of a 1 ms sleeper (one per CPU) in the same interval: "

@@ -95,6 +95,8 @@ def test_with_the_slow_time_equal_to_the_timeout_there_is_no_slowing(tmp_path: P
     with Daemon(tmp_path, "--timeout-ms", "150") as d:
         d.arm()
         d.wait_frame(lambda f: f.is_brake() and f.reason == R_UDP_TIMEOUT)
+        # the event log has its own writer thread: its line can follow the frame (load 8)
+        d.wait_log(lambda s: "ARMED->STOPPED" in s)
         frames = d.frames()
     check_frames(frames)
     assert not any(f.is_brake() and f.state == SLOWING for f in frames)

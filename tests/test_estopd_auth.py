@@ -264,20 +264,41 @@ print(sent, flush=True)
 """
 
 
+class Mistimed(Exception):
+    """The test's own heartbeat thread missed its window: this attempt says nothing about the
+    daemon."""
+
+
 def test_a_flood_of_forged_packets_neither_stops_the_unit_nor_delays_a_stop(
         tmp_path: Path) -> None:
     """80,000 forged authenticated packets a second (each costs a MAC): the key holder's 50 Hz
-    heartbeat still keeps the unit alive, and a STOP over TCP is answered at once."""
+    heartbeat still keeps the unit alive, and a STOP over TCP is answered at once. An attempt
+    in which the heartbeat thread itself fell silent for most of the timeout (this machine
+    held it off the CPU: at load 8 the unit once stopped for udp_timeout) is tried again, at
+    most 3 times; a unit that stops while the heartbeat kept time still fails at once."""
+    for attempt in range(3):
+        try:
+            forged_flood_run(tmp_path / f"attempt-{attempt}")
+            return
+        except Mistimed:
+            continue
+    pytest.fail("the test's own heartbeat missed its window 3 times (machine too busy)")
+
+
+def forged_flood_run(tmp_path: Path) -> None:
+    tmp_path.mkdir()
     with Daemon(tmp_path, "--key-file", str(key_file(tmp_path))) as d:
         remote = Remote(d)
         remote.arm()
         forged = auth.AuthControlPacket(RID, remote.session, 1 << 40,
                                         ControlPacket()).encode(bytes(32))
         stop = threading.Event()
+        beats = [time.time()]
 
         def finger() -> None:
             while not stop.wait(0.02):
                 remote.heartbeat()
+                beats.append(time.time())
 
         th = threading.Thread(target=finger, daemon=True)
         th.start()
@@ -287,6 +308,7 @@ def test_a_flood_of_forged_packets_neither_stops_the_unit_nor_delays_a_stop(
             assert flood.stdout is not None and flood.stdout.readline().strip() == "ready"
             time.sleep(1.0)
             t0 = time.perf_counter()
+            asked = time.time()
             reply = remote.request(STOP_ID)
             latency = time.perf_counter() - t0
             sent = int(flood.stdout.readline())
@@ -295,7 +317,13 @@ def test_a_flood_of_forged_packets_neither_stops_the_unit_nor_delays_a_stop(
             th.join(timeout=5)
             flood.kill()
             flood.wait(timeout=10)
-        assert (reply.ack, reply.state, reply.reason) == (True, STOPPED, R_TCP_STOP), reply
+        # the heartbeat's own longest silence before the STOP (the timeout is 200 ms)
+        before = [*[t for t in beats if t < asked], asked]
+        silence = max(b - a for a, b in zip(before, before[1:], strict=False))
+        if reply.reason == R_UDP_TIMEOUT and silence >= 0.15:
+            raise Mistimed
+        assert (reply.ack, reply.state, reply.reason) == (True, STOPPED, R_TCP_STOP), \
+            (reply, f"longest heartbeat silence {silence * 1e3:.0f} ms")
         assert latency < 0.05, latency
         assert d.signal() == 0  # the counters are written at exit
     assert not any("ARMED->STOPPED reason=udp_timeout" in line for line in d.log())

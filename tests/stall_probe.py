@@ -6,8 +6,9 @@ the machine's own (other processes hold the CPUs). A bound that ignores the seco
 loaded machine and proves nothing there. :class:`StallProbe` runs a separate process during
 the measured interval that
 
-- sleeps in 1 ms steps, also on a thread pinned to each CPU, and records the worst oversleep
-  (``worst_s``): the machine's stall as a process that mostly sleeps sees it, including a
+- sleeps in 1 ms steps, also on a thread pinned to each CPU, and records each oversleep
+  with its time (``slept_over_s(a, b)``: the worst that overlapped a..b; ``worst_s``: the
+  run's worst): the machine's stall as a process that mostly sleeps sees it, including a
   CPU that the host (this machine is a virtual one) takes away for a while;
 - with ``pid``, samples that process's run-queue wait at every step (/proc/PID/schedstat,
   the time it was ready to run but had no CPU), so that ``waited_s(a, b)`` is the stall the
@@ -15,9 +16,11 @@ the measured interval that
   reading a flood) waits far longer than a sleeper: at load 6 here, 80-130 ms in 190 ms
   while the sleeper's worst oversleep was 0.4-13 ms.
 
-A test allows its bound plus both stalls (``stall_s``) and says so in its assertion message.
-A defect still fails it: the time the process spends working (the defect) is not run-queue
-wait, and it comes on top of the machine's stall, not instead of it.
+A test allows its bound plus both stalls over the judged interval (``stall_s``) and says so
+in its assertion message. A defect still fails it: the time the process spends working or
+asleep (the defect) is not run-queue wait, and it comes on top of the machine's stall, not
+instead of it. Only the interval's own stall is allowed, so a stall elsewhere in the run
+does not hide a late frame.
 
     with StallProbe(pid) as probe:
         ... the timed part ...

@@ -262,6 +262,14 @@ class Daemon:
                 raise AssertionError(f"no matching frame in {timeout}s")
             time.sleep(0.005)
 
+    def count_once_armed(self, timeout: float = 5.0) -> int:
+        """How many frames the can-log holds once the first ARMED brake frame is in it. The
+        daemon writes its can-log from a thread, so a RELEASE's ACK can come before the last
+        frames of the boot stop are in the file; a search for a STOPPED frame after a count
+        taken too early finds one of those (seen at load 10)."""
+        self.wait_frame(lambda f: f.is_brake() and f.state == ARMED, timeout=timeout)
+        return len(self.frames())
+
     # -- inputs
     def send_udp(self, payload: bytes) -> None:
         if self._udp is None:
@@ -287,11 +295,18 @@ class Daemon:
         for _ in range(n):
             self.send_udp(udp_packet(gas=gas))
 
-    def arm(self) -> Reply:
-        """Link live, neutral, RELEASE: the unit goes ARMED."""
-        self.make_live()
-        time.sleep(0.01)  # let the packets arrive before the TCP request overtakes them
-        reply = self.request(MSG_RELEASE, 1)
+    def arm(self, timeout: float = 5.0) -> Reply:
+        """Link live, neutral, RELEASE: the unit goes ARMED. A RELEASE refused for want of a
+        live link (NAK 2) is tried again with fresh packets until ``timeout``: on a loaded
+        machine this process can stall past the unit's timeout between its packets and its
+        RELEASE (seen here at load 10), and the link is then rightly silent."""
+        deadline = time.monotonic() + timeout
+        while True:
+            self.make_live()
+            time.sleep(0.01)  # let the packets arrive before the TCP request overtakes them
+            reply = self.request(MSG_RELEASE, 1)
+            if reply.nak != 2 or time.monotonic() > deadline:
+                break
         assert reply.msg == ACK and reply.state == ARMED, reply
         return reply
 

@@ -30,6 +30,7 @@ from estop.protocol.tcp import FrameAssembler, Reply, Request
 from estop.protocol.udp import ControlPacket, Gear
 from estop.remote import Remote, ScriptError, parse_script
 from net_util import LOCAL, FakeUnitPorts, chunks, connections, datagrams, wait_until
+from stall_probe import StallProbe
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -229,7 +230,12 @@ def test_reply_split_across_reads(capsys) -> None:
 @pytest.mark.parametrize("kind", ["status", "stop"])
 def test_broken_replies_exit_3(mode: str, message: str, kind: str, capsys) -> None:
     u = FakeUnit(mode=mode)
-    argv = [kind, "--host", LOCAL, "--port", str(u.tcp_port), "--timeout", "0.3"]
+    # Only the silent unit is waited out; the others answer (or close) at once, so a status
+    # gives them 2 s, not 0.3: the fake unit is a thread of this process, and at load 10 it
+    # was once later than 0.3 s ("no reply" instead of "closed the connection"). A tool that
+    # missed the answer would wait the 2 s out and say "no reply", which fails the message.
+    timeout = "0.3" if mode == "silent" or kind == "stop" else "2"
+    argv = [kind, "--host", LOCAL, "--port", str(u.tcp_port), "--timeout", timeout]
     if kind == "stop":
         argv += ["--udp-port", str(u.udp_port), "--stop-deadline", "0.5"]
     try:
@@ -429,6 +435,7 @@ def test_monitor_bad_inputs(tmp_path: Path, capsys) -> None:
 def test_monitor_virtual_bus(capsys) -> None:
     can = pytest.importorskip("can")
     channel = f"estop_test_{os.getpid()}_{time.monotonic_ns()}"
+    sent_at: list[float] = []  # the frames' own stamps, as the monitor reads them
 
     def monitor_listening() -> bool:
         # python-can's virtual bus keeps one queue per open end, by channel
@@ -436,27 +443,43 @@ def test_monitor_virtual_bus(capsys) -> None:
         return len(getattr(virtual, "channels", {}).get(channel, ())) >= 2
 
     def send() -> None:
-        with can.Bus(interface="virtual", channel=channel) as bus:
+        with can.Bus(interface="virtual", channel=channel, preserve_timestamps=True) as bus:
             deadline = time.monotonic() + 5
             while not monitor_listening() and time.monotonic() < deadline:
                 time.sleep(0.01)
             for i in range(5):
+                sent_at.append(time.time())
                 bus.send(can.Message(arbitration_id=0x050, is_extended_id=False,
+                                     timestamp=sent_at[-1],
                                      data=BrakeFrame.for_state(1, 0, 0, i).encode()))
                 time.sleep(0.01)
             # then silence: the monitor reports a timeout while it lasts
 
     sender = threading.Thread(target=send)
-    sender.start()
-    try:
-        code, out, _ = run_cli(capsys, "monitor", "--interface", "virtual", "--channel", channel,
-                               "--duration", "0.8")
-    finally:
-        sender.join(timeout=5)
+    with StallProbe() as probe:
+        sender.start()
+        try:
+            code, out, _ = run_cli(capsys, "monitor", "--interface", "virtual", "--channel",
+                                   channel, "--duration", "0.8")
+        finally:
+            sender.join(timeout=5)
     assert code == 1
     assert out.count("ESTOP_BRAKE ARMED") == 5
     assert "! timeout: no good ESTOP_BRAKE for" in out
-    assert out.splitlines()[-1] == "summary: 5 frames, 5 accepted; problems: timeout 1"
+    summary = out.splitlines()[-1]
+    # The sender sleeps 10 ms between frames; a gap of 50 ms between their own stamps is a
+    # gap the monitor must count, whoever caused it (on a loaded machine, the sender stalls).
+    gaps = sum(b - a >= 0.05 for a, b in zip(sent_at, sent_at[1:], strict=False))
+    if gaps == 0 and probe.worst_s < 0.03:
+        assert summary == "summary: 5 frames, 5 accepted; problems: timeout 1"
+    else:
+        # A stalled machine: the gaps exactly, and the timeouts that silences of the sender
+        # (before its first frame, in a gap) or a late monitor add to the final one.
+        assert summary.startswith("summary: 5 frames, 5 accepted; problems: "), summary
+        found = dict(p.split(" ") for p in summary.split("problems: ")[1].split(", "))
+        assert set(found) <= {"gap", "timeout"}, (summary, str(probe))
+        assert int(found.get("gap", 0)) == gaps, (summary, sent_at, str(probe))
+        assert int(found["timeout"]) >= 1, (summary, str(probe))
 
 
 # -------------------------------------------------------------------------------- remote

@@ -30,6 +30,7 @@ from daemon_util import (
 )
 from estop.protocol import auth
 from estop.protocol.udp import ControlPacket
+from stall_probe import StallProbe
 
 KEY = bytes(range(32))
 RID = 9
@@ -76,11 +77,17 @@ class Remote:
         self.session = reply.session  # learnt from any reply, as the tablet does
         return reply
 
-    def arm(self) -> None:
+    def arm(self, timeout: float = 5.0) -> None:
+        """As Daemon.arm: a RELEASE refused for want of a live link (NAK 2: this process
+        stalled past the unit's timeout on a loaded machine) is tried again until timeout."""
         self.request(MSG_STATUS)
-        self.heartbeat(6)
-        time.sleep(0.02)
-        reply = self.request(MSG_RELEASE)
+        deadline = time.monotonic() + timeout
+        while True:
+            self.heartbeat(6)
+            time.sleep(0.02)
+            reply = self.request(MSG_RELEASE)
+            if reply.nak_code != 2 or time.monotonic() > deadline:
+                break
         assert (reply.ack, reply.state) == (True, ARMED), reply
 
 
@@ -143,7 +150,9 @@ def test_only_the_key_holder_keeps_the_unit_alive(tmp_path: Path) -> None:
     with Daemon(tmp_path, "--key-file", str(key_file(tmp_path))) as d:
         remote = Remote(d)
         remote.arm()
-        remote.heartbeat(5)
+        remote.heartbeat(4)
+        sent_from = time.time()  # the last heartbeat is sent between these two readings
+        remote.heartbeat(1)
         t_lift = time.time()
         recording = list(remote.sent)
         forger = Remote(d, key=bytes(32))
@@ -155,7 +164,9 @@ def test_only_the_key_holder_keeps_the_unit_alive(tmp_path: Path) -> None:
             d.send_udp(recording[i % len(recording)])
             time.sleep(0.01)
         f = d.wait_frame(lambda f: f.is_brake() and f.reason == R_UDP_TIMEOUT)
-        assert 0.2 - 0.002 <= f.t - t_lift < 0.2 + 0.15
+        # never early (from before the last heartbeat's send), never late (from after it)
+        assert 0.2 - 0.002 <= f.t - sent_from and f.t - t_lift < 0.2 + 0.15, \
+            (f.t - sent_from, t_lift - sent_from)
         assert remote.request(MSG_STATUS).state == STOPPED
         assert d.signal() == 0  # SIGTERM: the counters are written at exit
     lines = d.log()
@@ -255,39 +266,72 @@ print(sent, flush=True)
 """
 
 
+class Mistimed(Exception):
+    """The test's own heartbeat thread missed its window: this attempt says nothing about the
+    daemon."""
+
+
 def test_a_flood_of_forged_packets_neither_stops_the_unit_nor_delays_a_stop(
         tmp_path: Path) -> None:
     """80,000 forged authenticated packets a second (each costs a MAC): the key holder's 50 Hz
-    heartbeat still keeps the unit alive, and a STOP over TCP is answered at once."""
+    heartbeat still keeps the unit alive, and a STOP over TCP is answered at once. An attempt
+    in which the heartbeat thread itself fell silent for most of the timeout (this machine
+    held it off the CPU: at load 8 the unit once stopped for udp_timeout) is tried again, at
+    most 3 times; a unit that stops while the heartbeat kept time still fails at once."""
+    for attempt in range(3):
+        try:
+            forged_flood_run(tmp_path / f"attempt-{attempt}")
+            return
+        except Mistimed:
+            continue
+    pytest.fail("the test's own heartbeat missed its window 3 times (machine too busy)")
+
+
+def forged_flood_run(tmp_path: Path) -> None:
+    tmp_path.mkdir()
     with Daemon(tmp_path, "--key-file", str(key_file(tmp_path))) as d:
         remote = Remote(d)
         remote.arm()
         forged = auth.AuthControlPacket(RID, remote.session, 1 << 40,
                                         ControlPacket()).encode(bytes(32))
         stop = threading.Event()
+        beats = [time.time()]
 
         def finger() -> None:
             while not stop.wait(0.02):
                 remote.heartbeat()
+                beats.append(time.time())
 
         th = threading.Thread(target=finger, daemon=True)
+        assert d.proc is not None
+        probe = StallProbe(d.proc.pid)  # started in the try: stop() ends it in any case
         th.start()
         flood = subprocess.Popen([sys.executable, "-c", FLOOD_PY, str(d.udp_port), "1.5",
                                   forged.hex()], stdout=subprocess.PIPE, text=True)
         try:
+            probe.__enter__()
             assert flood.stdout is not None and flood.stdout.readline().strip() == "ready"
             time.sleep(1.0)
-            t0 = time.perf_counter()
+            asked = time.time()
             reply = remote.request(STOP_ID)
-            latency = time.perf_counter() - t0
+            answered = time.time()
             sent = int(flood.stdout.readline())
         finally:
             stop.set()
             th.join(timeout=5)
             flood.kill()
             flood.wait(timeout=10)
-        assert (reply.ack, reply.state, reply.reason) == (True, STOPPED, R_TCP_STOP), reply
-        assert latency < 0.05, latency
+            probe.stop()
+        # the heartbeat's own longest silence before the STOP (the timeout is 200 ms)
+        before = [*[t for t in beats if t < asked], asked]
+        silence = max(b - a for a, b in zip(before, before[1:], strict=False))
+        if reply.reason == R_UDP_TIMEOUT and silence >= 0.15:
+            raise Mistimed
+        assert (reply.ack, reply.state, reply.reason) == (True, STOPPED, R_TCP_STOP), \
+            (reply, f"longest heartbeat silence {silence * 1e3:.0f} ms")
+        # 50 ms, plus the daemon's stall in the same interval (tests/stall_probe.py)
+        assert answered - asked < 0.05 + probe.stall_s(asked, answered), \
+            f"the STOP was answered late: {probe.explain(asked, answered)}"
         assert d.signal() == 0  # the counters are written at exit
     assert not any("ARMED->STOPPED reason=udp_timeout" in line for line in d.log())
     fails = [line for line in d.log() if " auth_failures " in line]

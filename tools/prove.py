@@ -1,0 +1,329 @@
+"""`make prove`: the firmware core under Frama-C (docs/PROOF.md).
+
+1. Eva: prove/eva_driver.c calls every entry point in any order with unknown inputs, once for
+   a unit with a key and once for one without. Every alarm fails the run; so does a function of
+   firmware/core that the driver does not reach. Prints the alarms, the functions and the
+   statements reached.
+2. WP: the ACSL contracts of firmware/core (per function, in parallel runs), proved by Qed (WP's
+   own simplifier) and the SMT solvers through Why3. Every goal must be proved.
+3. Self-test: the same analyses on copies of the core with a planted fault each (an
+   out-of-bounds write, a wrong release path); each must fail, or the set-up is broken (a
+   missing prover, a driver that no longer reaches the code, a contract that says nothing) and
+   so is the run.
+Exit status 0 when all three hold.
+"""
+
+from __future__ import annotations
+
+import argparse
+import concurrent.futures
+import dataclasses
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+CORE = ROOT / "firmware" / "core"
+PROVE = ROOT / "prove"
+BUILD = ROOT / "build" / "prove"
+TOOLS = ("frama-c", "why3", "z3", "cvc4")
+PROVERS = "z3,cvc4"
+EVA_TIMEOUT_S = 600
+WP_TIMEOUT_S = 600
+# Eva's precision: meta-option level 2, and loops up to 1024 iterations unrolled (the
+# zeroing of estop_core_t in estop_init is ~1000 byte stores; merged iterations would make
+# every field "maybe uninitialised").
+EVA_OPTS = ["-eva-precision", "2", "-eva-auto-loop-unroll", "1024", "-eva-split-return", "auto",
+            "-eva-print-callstacks"]
+WP_OPTS = ["-wp-prover", PROVERS, "-wp-timeout", "10", "-wp-par", "1", "-wp-model", "Typed"]
+
+
+@dataclasses.dataclass
+class EvaResult:
+    name: str
+    alarms: list[str]
+    functions: dict[str, tuple[int, int]]  # reached statements, all statements
+    unreached: list[str]
+    log: Path
+    error: str = ""
+
+
+@dataclasses.dataclass
+class WpResult:
+    name: str
+    proved: int
+    total: int
+    by_prover: dict[str, int]
+    failed: list[str]
+    log: Path
+    error: str = ""
+
+
+def core_sources(core_dir: Path) -> list[Path]:
+    return sorted(core_dir.glob("*.c"))
+
+
+def core_functions(core_dir: Path) -> set[str]:
+    """Every function defined in the core's .c files (a definition starts a line)."""
+    names = set()
+    pat = re.compile(r"^(?:static\s+)?(?:inline\s+)?(?:const\s+)?[A-Za-z_][\w ]*?[\s*]"
+                     r"([A-Za-z_]\w*)\([^;]*$")
+    for src in core_sources(core_dir):
+        for line in src.read_text().splitlines():
+            m = pat.match(line)
+            if m and not line.startswith(("#", " ", "\t", "/*", "*")):
+                names.add(m.group(1))
+    return names
+
+
+def frama_c(args: list[str], log: Path, timeout: int, env: dict[str, str]) -> tuple[int, str]:
+    log.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        proc = subprocess.run(["frama-c", *args], capture_output=True, text=True,
+                              timeout=timeout, env=env, cwd=BUILD)
+    except subprocess.TimeoutExpired:
+        log.write_text(f"timed out after {timeout} s\n")
+        return -1, f"timed out after {timeout} s"
+    out = proc.stdout + proc.stderr
+    log.write_text(out)
+    return proc.returncode, out
+
+
+def cpp_args(core_dir: Path, *defines: str) -> list[str]:
+    extra = [f"-I{core_dir}", f"-include {PROVE / 'builtins.h'}", *defines]
+    return ["-machdep", "x86_64", "-cpp-extra-args=" + " ".join(extra)]
+
+
+def run_eva(name: str, core_dir: Path, keyed: int, env: dict[str, str]) -> EvaResult:
+    log = BUILD / f"eva-{name}.log"
+    args = [*cpp_args(core_dir, f"-DDRIVER_KEYED={keyed}"), str(PROVE / "eva_driver.c"),
+            *map(str, core_sources(core_dir)), "-eva", *EVA_OPTS,
+            "-then", "-metrics", "-metrics-eva-cover"]
+    rc, out = frama_c(args, log, EVA_TIMEOUT_S, env)
+    res = EvaResult(name, [], {}, [], log)
+    if rc != 0 or "ANALYSIS SUMMARY" not in out:
+        res.error = f"frama-c failed (exit {rc}); see {log.relative_to(ROOT)}"
+        return res
+    lines = out.splitlines()
+    for i, line in enumerate(lines):
+        if line.startswith("[eva:alarm]"):
+            where = line.split("]", 1)[1].split(": Warning", 1)[0].strip()
+            where = where.replace(str(ROOT) + "/", "")
+            what = lines[i + 1].strip() if i + 1 < len(lines) else ""
+            res.alarms.append(f"{where}: {what}")
+    m = re.search(r"(\d+) alarms? generated", out)
+    if m and int(m.group(1)) != len(res.alarms):
+        res.error = f"summary says {m.group(1)} alarms, the log lists {len(res.alarms)}"
+    for m in re.finditer(r"^  (\w+): (\d+) stmts out of (\d+)", out, re.M):
+        res.functions[m.group(1)] = (int(m.group(2)), int(m.group(3)))
+    wanted = core_functions(core_dir)
+    if not res.functions or not wanted:
+        res.error = res.error or "no coverage figures in the log"
+    res.unreached = sorted(f for f in wanted if res.functions.get(f, (0, 1))[0] == 0)
+    return res
+
+
+# WP runs, each on a group of functions of the core, all in one go where a group is quick.
+# The kernel inlines the small loop-free helpers (prove/wp_inline.txt) into their callers, so
+# the state machine's properties are proved on the code as it runs, not on hand-written
+# summaries of each helper.
+def wp_groups() -> list[tuple[str, list[str]]]:
+    groups = []
+    for raw in (PROVE / "wp_groups.txt").read_text().splitlines():
+        line = raw.split("#", 1)[0].strip()
+        if line:
+            name, fcts = line.split(":", 1)
+            groups.append((name.strip(), fcts.split()))
+    return groups
+
+
+def inline_list() -> str:
+    names = []
+    for raw in (PROVE / "wp_inline.txt").read_text().splitlines():
+        names += raw.split("#", 1)[0].split()
+    return ",".join(names)
+
+
+def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str]) -> WpResult:
+    log = BUILD / f"wp-{name}.log"
+    args = [*cpp_args(core_dir), *map(str, core_sources(core_dir)),
+            "-inline-calls", inline_list(), "-wp", "-wp-fct", ",".join(fcts), *WP_OPTS,
+            "-wp-session", str(BUILD / f"wp-session-{name}"), "-wp-status-invalid"]
+    rc, out = frama_c(args, log, WP_TIMEOUT_S, env)
+    res = WpResult(name, 0, 0, {}, [], log)
+    m = re.search(r"Proved goals:\s+(\d+)\s*/\s*(\d+)", out)
+    if rc != 0 or m is None:
+        res.error = f"frama-c failed (exit {rc}); see {log.relative_to(ROOT)}"
+        tail = [x for x in out.splitlines() if "Error" in x or "error" in x][:5]
+        if tail:
+            res.error += ": " + " | ".join(tail)
+        return res
+    res.proved, res.total = int(m.group(1)), int(m.group(2))
+    for pm in re.finditer(r"^\s+(Qed|Z3[^:]*|CVC4[^:]*|Alt-Ergo[^:]*|Terminating|Unreachable)"
+                          r":\s+(\d+)", out[m.end():], re.M):
+        prover = pm.group(1).split()[0]
+        res.by_prover[prover] = res.by_prover.get(prover, 0) + int(pm.group(2))
+    for fm in re.finditer(r"^\[wp\] \[(?:Timeout|Unknown|Failed|Stepout)[^\]]*\] (\S+)",
+                          out, re.M):
+        res.failed.append(fm.group(1))
+    for fm in re.finditer(r"^\[wp\] Goal (\S+) : (?!Valid)", out, re.M):
+        res.failed.append(fm.group(1))
+    return res
+
+
+def why3_env() -> dict[str, str]:
+    """A Why3 configuration of our own (the solvers this machine has), not the user's."""
+    conf = BUILD / "why3.conf"
+    if not conf.exists():
+        BUILD.mkdir(parents=True, exist_ok=True)
+        subprocess.run(["why3", "config", "detect", "-C", str(conf)], check=True,
+                       capture_output=True, text=True, timeout=120)
+    env = dict(os.environ)
+    env["WHY3CONFIG"] = str(conf)
+    return env
+
+
+# ---- self-test: the same analyses must fail on a planted fault --------------------------------
+
+@dataclasses.dataclass
+class Plant:
+    name: str
+    file: str        # in firmware/core
+    old: str         # text replaced (must occur exactly once)
+    new: str
+    check: str       # "eva" or "wp:<group>"
+
+
+def plants() -> list[Plant]:
+    out = []
+    text = (PROVE / "planted.txt").read_text()
+    for block in text.split("\n---\n"):
+        fields: dict[str, str] = {}
+        key = None
+        for raw in block.splitlines():
+            if raw.startswith("#"):
+                continue
+            m = re.match(r"^(name|file|check|old|new):\s?(.*)$", raw)
+            if m:
+                key = m.group(1)
+                fields[key] = m.group(2)
+            elif key in ("old", "new"):
+                fields[key] += "\n" + raw
+        if fields:
+            out.append(Plant(fields["name"], fields["file"], fields["old"], fields["new"],
+                             fields["check"]))
+    return out
+
+
+def planted_copy(p: Plant) -> Path:
+    dst = BUILD / f"planted-{p.name}"
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(CORE, dst)
+    target = dst / p.file
+    src = target.read_text()
+    if src.count(p.old) != 1:
+        raise SystemExit(f"prove: error: self-test {p.name}: its planted site occurs "
+                         f"{src.count(p.old)} times in {p.file} (want 1); update "
+                         "prove/planted.txt")
+    target.write_text(src.replace(p.old, p.new))
+    return dst
+
+
+def run_plant(p: Plant, env: dict[str, str]) -> tuple[Plant, bool, str]:
+    """True when the planted fault was caught (the analysis failed)."""
+    core_dir = planted_copy(p)
+    if p.check == "eva":
+        r = run_eva(f"planted-{p.name}", core_dir, 0, env)
+        return p, bool(r.alarms) and not r.error, f"{len(r.alarms)} alarms"
+    group = p.check.split(":", 1)[1]
+    fcts = dict(wp_groups())[group]
+    w = run_wp(f"planted-{p.name}", core_dir, fcts, env)
+    caught = not w.error and w.proved < w.total
+    return p, caught, f"{w.total - w.proved} of {w.total} goals not proved" + (
+        f" ({w.error})" if w.error else "")
+
+
+# ---- main ----------------------------------------------------------------------------------
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--jobs", type=int, default=2, help="analyses run at once (default 2)")
+    ap.add_argument("--only", choices=["eva", "wp", "self-test"], action="append",
+                    help="run only these parts (repeatable)")
+    args = ap.parse_args()
+    parts = set(args.only or ["eva", "wp", "self-test"])
+    missing = [t for t in TOOLS if shutil.which(t) is None]
+    if missing:
+        print(f"prove: error: missing {', '.join(missing)} (scripts/ensure-debs prove)",
+              file=sys.stderr)
+        return 2
+    BUILD.mkdir(parents=True, exist_ok=True)
+    env = why3_env()
+    t0 = time.monotonic()
+    ok = True
+    with concurrent.futures.ThreadPoolExecutor(max_workers=args.jobs) as pool:
+        evas = [pool.submit(run_eva, n, CORE, k, env) for n, k in (("keyed", 1), ("plain", 0))
+                ] if "eva" in parts else []
+        wps = [pool.submit(run_wp, n, CORE, f, env) for n, f in wp_groups()
+               ] if "wp" in parts else []
+        selftests = [pool.submit(run_plant, p, env) for p in plants()
+                     ] if "self-test" in parts else []
+        for fut in evas:
+            r = fut.result()
+            reached = sum(1 for f in r.functions.values() if f[0] > 0)
+            stmts = sum(f[0] for f in r.functions.values())
+            all_stmts = sum(f[1] for f in r.functions.values())
+            core_fns = core_functions(CORE)
+            core_reached = sum(1 for f in core_fns if r.functions.get(f, (0, 1))[0] > 0)
+            core_st = sum(r.functions.get(f, (0, 0))[0] for f in core_fns)
+            core_all = sum(r.functions.get(f, (0, 0))[1] for f in core_fns)
+            print(f"prove: eva {r.name}: {len(r.alarms)} alarms; core functions reached "
+                  f"{core_reached}/{len(core_fns)}, core statements reached {core_st}/"
+                  f"{core_all} ({100.0 * core_st / max(core_all, 1):.1f} %); with the driver "
+                  f"{reached} functions, {stmts}/{all_stmts} statements")
+            for a in r.alarms:
+                print(f"prove:   alarm: {a}")
+            if r.unreached:
+                print(f"prove:   not reached in this run: {' '.join(r.unreached)}")
+            if r.error:
+                print(f"prove:   error: {r.error}")
+            ok = ok and not r.alarms and not r.error
+        if evas:
+            never = set(core_functions(CORE))
+            for fut in evas:
+                never &= set(fut.result().unreached)
+            if never:
+                print(f"prove: eva: core functions no run reached: {' '.join(sorted(never))}")
+            ok = ok and not never
+        totals: dict[str, int] = {}
+        for fut in wps:
+            w = fut.result()
+            for k, v in w.by_prover.items():
+                totals[k] = totals.get(k, 0) + v
+            provers = ", ".join(f"{k} {v}" for k, v in sorted(w.by_prover.items()))
+            print(f"prove: wp {w.name}: {w.proved}/{w.total} goals proved ({provers})")
+            for g in w.failed:
+                print(f"prove:   not proved: {g}")
+            if w.error:
+                print(f"prove:   error: {w.error}")
+            ok = ok and not w.error and w.proved == w.total and w.total > 0
+        if wps:
+            print("prove: wp total by prover: "
+                  + ", ".join(f"{k} {v}" for k, v in sorted(totals.items())))
+        for fut in selftests:
+            p, caught, what = fut.result()
+            print(f"prove: self-test {p.name} ({p.check}): "
+                  f"{'caught' if caught else 'NOT CAUGHT'}: {what}")
+            ok = ok and caught
+    print(f"prove: {'ok' if ok else 'FAILED'} in {time.monotonic() - t0:.0f} s "
+          f"(logs in {BUILD.relative_to(ROOT)}/)")
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -86,7 +86,7 @@ FUZZ_SMOKE_TIME ?= 15
 FUZZ_TARGETS    := core parsers
 FUZZ_CFLAGS     := -std=c99 -D_GNU_SOURCE -g -O2 -fsanitize=fuzzer,address,undefined \
                    -fno-sanitize-recover=all -Wall -Wextra -Werror -Ifirmware/core -Ifirmware/estopd
-FUZZ_CORE_SRC   := firmware/core/estop_core.c firmware/core/estop_crc.c firmware/core/estop_blake2s.c
+FUZZ_CORE_SRC   := $(wildcard firmware/core/*.c)
 FUZZ_PARSER_SRC := firmware/estopd/keyfile.c firmware/estopd/opts.c
 
 $(FUZZDIR)/fuzz_core: fuzz/fuzz_core.c $(wildcard firmware/core/*)

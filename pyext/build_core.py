@@ -22,7 +22,6 @@ from cffi import FFI
 ROOT = Path(__file__).resolve().parent.parent
 CORE_DIR = ROOT / "firmware" / "core"
 HEADERS = ["estop_blake2s.h", "estop_core.h"]  # in the order the core header needs them
-SOURCES = ["estop_core.c", "estop_crc.c", "estop_blake2s.c"]
 
 _DEFINE = re.compile(r"^#define\s+(ESTOP_[A-Z0-9_]+)\s+\S+")
 
@@ -47,6 +46,11 @@ def cdef_from_header(text: str) -> str:
     return "\n".join(defines) + "\n" + body
 
 
+def sources(core_dir: Path = CORE_DIR) -> list[str]:
+    """Every source file of the core (its files by job, the CRCs, BLAKE2s)."""
+    return sorted(p.name for p in core_dir.glob("estop_*.c"))
+
+
 def make_builder(module: str, extra_compile_args: list[str] | None = None,
                  extra_link_args: list[str] | None = None, relative: bool = True,
                  core_dir: Path = CORE_DIR) -> FFI:
@@ -61,7 +65,7 @@ def make_builder(module: str, extra_compile_args: list[str] | None = None,
     ffi.set_source(
         module,
         "".join(f'#include "{header}"\n' for header in HEADERS),
-        sources=[str(base / name) for name in SOURCES],
+        sources=[str(base / name) for name in sources(core_dir)],
         include_dirs=[str(base)],
         extra_compile_args=list(extra_compile_args or []),
         extra_link_args=list(extra_link_args or []),

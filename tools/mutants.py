@@ -1,6 +1,7 @@
 """Systematic mutation testing of the firmware core (issue 9).
 
-Every operator site of firmware/core/*.c is mutated by class:
+Every operator site of firmware/core/*.c and of the core's private header (estop_internal.h:
+the wire helpers every file inlines) is mutated by class:
   relational   < <= > >= negated, == and != swapped
   boundary     < to <=, <= to <, > to >=, >= to >
   logical      && and || swapped, a ! removed
@@ -11,9 +12,11 @@ Every operator site of firmware/core/*.c is mutated by class:
   statement    an assignment or call statement removed
   return       a return value replaced by 0 and 1 (NULL for pointers)
 
-Each mutant is compiled (gcc -O2) first. One that does not compile is dropped; one whose object
-code is byte for byte the original's is equivalent by construction ("TCE": the compiler proves
-it); one whose object code equals an earlier mutant's shares that mutant's result. The rest are
+Each mutant is compiled (gcc -O2) first: a mutant of a .c file into that file's object, a mutant
+of the private header into the object of every file that includes it. One that does not compile
+is dropped; one whose object code is byte for byte the original's is equivalent by construction
+("TCE": the compiler proves it); one whose object code equals an earlier mutant's shares that
+mutant's result. The rest are
 linked into a cffi module and face the core tests in a process forked from a server that has
 already imported pytest and hypothesis: fastest killers first (the deterministic unit tests, the
 test that killed most mutants so far first), the property tests with fewer examples, the
@@ -52,6 +55,8 @@ ROOT = Path(__file__).resolve().parent.parent
 CORE = ROOT / "firmware" / "core"
 sys.path.insert(0, str(ROOT / "pyext"))
 
+# Headers whose code is mutated too: the private header's static inline helpers.
+MUTATED_HEADERS = ["estop_internal.h"]
 EQUIVALENTS = ROOT / "tools" / "mutants_equivalent.txt"
 CACHE = ROOT / "build" / "mutants-cache"
 MODULE = "_estop_mutant"
@@ -348,8 +353,20 @@ def generate(path: Path) -> list[Mutant]:
     return muts
 
 
+def mutated_files() -> list[Path]:
+    return sorted(CORE.glob("*.c")) + [CORE / h for h in MUTATED_HEADERS if (CORE / h).exists()]
+
+
+def dependents(name: str) -> list[str]:
+    """The .c files whose object a mutant of this file changes: itself, or for a header every
+    core source that includes it."""
+    if name.endswith(".c"):
+        return [name]
+    return [f.name for f in sorted(CORE.glob("*.c")) if f'#include "{name}"' in f.read_text()]
+
+
 def all_mutants() -> list[Mutant]:
-    return [m for p in sorted(CORE.glob("*.c")) for m in generate(p)]
+    return [m for p in mutated_files() for m in generate(p)]
 
 
 def load_equivalents() -> dict[str, str]:
@@ -367,7 +384,8 @@ def load_equivalents() -> dict[str, str]:
 
 
 def changed_lines(rev: str) -> dict[str, set[int]] | None:
-    """Lines of firmware/core/*.c added or changed since rev; None when rev is unknown."""
+    """Lines of firmware/core/*.c (and the mutated headers) added or changed since rev; None
+    when rev is unknown."""
     ok = subprocess.run(["git", "rev-parse", "--verify", "--quiet", f"{rev}^{{commit}}"],
                         cwd=ROOT, capture_output=True)
     if ok.returncode != 0:
@@ -380,7 +398,7 @@ def changed_lines(rev: str) -> dict[str, set[int]] | None:
         if line.startswith("+++ "):
             current = Path(line[4:]).name if line[4:] != "/dev/null" else ""
         m = re.match(r"@@ -\S+ \+(\d+)(?:,(\d+))? @@", line)
-        if m and current.endswith(".c"):
+        if m and (current.endswith(".c") or current in MUTATED_HEADERS):
             first, count = int(m.group(1)), int(m.group(2) or "1")
             out[current].update(range(first, first + count))
     return out
@@ -414,6 +432,10 @@ class Builder:
             self.hashes[f.name] = digest(obj)
         self.link(self.objs, work / "orig", ORIGINAL)
 
+    def original_hash(self, name: str) -> str:
+        """The object code a mutant of this file is compared with (all its dependents)."""
+        return combined({f: self.hashes[f] for f in dependents(name)})
+
     def cc(self, src: Path, obj: Path, extra: list[str]) -> bool:
         r = subprocess.run(["gcc", *CFLAGS, *extra, "-c", src.name, "-o", str(obj)],
                            cwd=src.parent, capture_output=True)
@@ -429,60 +451,86 @@ def digest(obj: Path) -> str:
     return hashlib.sha256(obj.read_bytes()).hexdigest()
 
 
-def source_key(m: Mutant, text: str) -> str:
-    """Names a mutant's object in the cache: its source, the headers and the flags."""
-    h = hashlib.sha256(" ".join(CFLAGS).encode() + m.file.encode() + text.encode())
-    for header in sorted(CORE.glob("*.h")):
-        h.update(header.read_bytes())
+def combined(hashes: dict[str, str]) -> str:
+    """One hash for the objects of several files (a header mutant changes them all)."""
+    return hashlib.sha256(" ".join(f"{k}={v}" for k, v in sorted(hashes.items())).encode()
+                          ).hexdigest()
+
+
+def mutant_obj(work: Path, index: int, cfile: str) -> Path:
+    return work / "obj" / f"{index}.{Path(cfile).stem}.o"
+
+
+def source_key(cfile: str, sources: dict[str, str]) -> str:
+    """Names an object in the cache: the file compiled, every source and header it may see
+    (a mutant's text in place of its file), and the flags."""
+    h = hashlib.sha256(" ".join(CFLAGS).encode() + cfile.encode())
+    for name in sorted(sources):
+        h.update(name.encode() + b"\0" + sources[name].encode() + b"\0")
     return h.hexdigest()
 
 
 def compile_all(builder: Builder, muts: list[Mutant], jobs: int) -> dict[int, str]:
-    """Object hashes of the mutants that compile (two gcc at a time). Objects are kept in
-    build/mutants-cache/ by source, so a run after a test-only change compiles nothing."""
-    hashes: dict[int, str] = {}
-    running: dict[int, tuple[subprocess.Popen[bytes], Path, Path, str]] = {}
+    """Object hashes of the mutants that compile (two gcc at a time). A mutant of a .c file
+    compiles that file; a mutant of a header compiles every file that includes it (its hash
+    covers them all). Objects are kept in build/mutants-cache/ by source, so a run after a
+    test-only change compiles nothing."""
     CACHE.mkdir(parents=True, exist_ok=True)
-    todo = []
-    sources = {f: (CORE / f).read_text() for f in {m.file for m in muts}}
+    (builder.work / "obj").mkdir(exist_ok=True)
+    originals = {f.name: f.read_text() for f in CORE.iterdir()
+                 if f.suffix in (".c", ".h")}
+    headers = {n: s for n, s in originals.items() if n.endswith(".h")}
+    # (mutant index, file to compile, the sources it sees, cache key)
+    todo: list[tuple[int, str, dict[str, str], str]] = []
+    parts: dict[int, dict[str, str]] = {}   # index -> compiled file -> object hash
+    failed: set[int] = set()
     for index, m in enumerate(muts):
-        text = m.apply(sources[m.file])
-        key = source_key(m, text)
-        cached = CACHE / f"{key}.o"
-        obj = builder.work / "obj" / f"{index}.o"
-        obj.parent.mkdir(exist_ok=True)
-        if cached.exists():
-            shutil.copy(cached, obj)
-            hashes[index] = digest(obj)
-        elif (CACHE / f"{key}.invalid").exists():
-            pass
-        else:
-            todo.append((index, m, text, key))
+        text = m.apply(originals[m.file])
+        parts[index] = {}
+        for cfile in dependents(m.file):
+            seen = dict(headers)
+            seen[cfile] = originals[cfile]
+            seen[m.file] = text
+            key = source_key(cfile, seen)
+            cached = CACHE / f"{key}.o"
+            obj = mutant_obj(builder.work, index, cfile)
+            if cached.exists():
+                shutil.copy(cached, obj)
+                parts[index][cfile] = digest(obj)
+            elif (CACHE / f"{key}.invalid").exists():
+                failed.add(index)
+            else:
+                todo.append((index, cfile, seen, key))
+    running: dict[subprocess.Popen[bytes], tuple[int, str, Path, Path, str]] = {}
+    serial = 0
     while todo or running:
         while todo and len(running) < jobs:
-            index, m, text, key = todo.pop(0)
-            d = builder.work / "src" / str(index)
+            index, cfile, seen, key = todo.pop(0)
+            serial += 1
+            d = builder.work / "src" / str(serial)
             d.mkdir(parents=True)
-            (d / m.file).write_text(text)
-            for h in CORE.glob("*.h"):
-                (d / h.name).symlink_to(builder.base / h.name)
-            obj = builder.work / "obj" / f"{index}.o"
-            obj.parent.mkdir(exist_ok=True)
-            p = subprocess.Popen(["gcc", *CFLAGS, "-c", m.file, "-o", str(obj)], cwd=d,
+            for name in seen:
+                if name == cfile or seen[name] != originals.get(name):
+                    (d / name).write_text(seen[name])
+                else:
+                    (d / name).symlink_to(builder.base / name)
+            obj = mutant_obj(builder.work, index, cfile)
+            p = subprocess.Popen(["gcc", *CFLAGS, "-c", cfile, "-o", str(obj)], cwd=d,
                                  stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-            running[index] = (p, d, obj, key)
-        for index in list(running):
-            p, d, obj, key = running[index]
+            running[p] = (index, cfile, d, obj, key)
+        for p in list(running):
             if p.poll() is not None:
+                index, cfile, d, obj, key = running.pop(p)
                 if p.returncode == 0:
-                    hashes[index] = digest(obj)
+                    parts[index][cfile] = digest(obj)
                     shutil.copy(obj, CACHE / f"{key}.o")
                 else:
+                    failed.add(index)
                     (CACHE / f"{key}.invalid").touch()
                 shutil.rmtree(d)
-                del running[index]
         time.sleep(0.005)
-    return hashes
+    return {index: combined(hashes) for index, hashes in parts.items()
+            if index not in failed and len(hashes) == len(dependents(muts[index].file))}
 
 
 # ---- running the tests in forked children ------------------------------------------------------
@@ -647,7 +695,7 @@ def campaign(args: argparse.Namespace, muts: list[Mutant], equivalents: dict[str
         h = hashes.get(i)
         if h is None:
             m.outcome = "invalid"
-        elif h == builder.hashes[m.file]:
+        elif h == builder.original_hash(m.file):
             m.outcome = "tce"
         elif (m.file, h) in first_of:
             m.outcome = "duplicate"
@@ -682,7 +730,8 @@ def campaign(args: argparse.Namespace, muts: list[Mutant], equivalents: dict[str
             i = queue.pop(0)
             m = muts[i]
             objs = dict(builder.objs)
-            objs[m.file] = work / "obj" / f"{i}.o"
+            for cfile in dependents(m.file):
+                objs[cfile] = mutant_obj(work, i, cfile)
             outdir = work / "run" / str(i)
             pid = runner.start(objs, outdir, m.file, cpu_limit)
             running[pid] = (i, time.monotonic(), outdir)

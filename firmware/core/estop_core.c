@@ -3,102 +3,28 @@
  * PROTOCOL.md sections 1-4 for the rules implemented here.
  *
  * Every entry point runs the same three steps:
- *   1. begin(): advance the clock (timeout stop, link ageing), send what is due;
+ *   1. estop__begin(): advance the clock (timeout stop, link ageing), send what is due;
  *   2. the input itself (a datagram, a TCP frame, a fault...);
- *   3. finish(): state read-out and the next call time.
+ *   3. estop__finish(): state read-out and the next call time.
  * So a late input can never undo a stop that its own timestamp already implies.
+ *
+ * This file: configuration, the states and their transitions, the clock, CAN frames, UDP
+ * datagrams, faults and the status read-out. Authentication is in estop_auth.c, TCP framing
+ * and replies in estop_tcp.c, the link statistics in estop_link.c (estop_internal.h).
  */
 #include "estop_core.h"
 
 #include "estop_crc.h"
+#include "estop_internal.h"
 
-#define CORE_MAGIC 0x45535450u    /* "ESTP" */
 #define FLOAT_ONE_BITS 0x3F800000u  /* IEEE-754 single 1.0f */
 #define FLOAT_ABS_MASK 0x7FFFFFFFu
 #define FLOAT_SIGN_BIT 0x80000000u
 #define COUNTER_MODULO 15u        /* alive counter runs 0..14; 15 is never sent */
-#define SAT8_MAX 255u
-#define SAT4_MAX 15u               /* the two nibbles of ESTOP_STATUS byte 3 */
 #define LINK_AGE_NONE_MS 0xFFFFu
-#define PLAIN_FRAME_LEN ESTOP_TCP_FRAME_LEN
-#define MAGIC_LEN 4u               /* the first bytes of a frame decide its form */
 #define CONTROL_BODY_AT 24u        /* 5.1: the control body inside an authenticated packet */
+#define CONTROL_IDS_AT 4u          /* 5.1: remote id, session, counter from byte 4 */
 #define CONTROL_TAG_AT 44u         /* 5.1: the tag covers bytes 0..43 */
-#define REQUEST_TAG_AT 32u         /* 5.2: the tag covers bytes 0..31 */
-#define CHANNEL_UDP 0u
-#define CHANNEL_TCP 1u
-#define GAP_FIRST_EXP 10u          /* bin 1 starts at 2^10 us */
-#define GAP_LONG_US 0x40000000u    /* past this age a gap is only "very long" (bin 31): the
-                                      wrapping tick could not measure it much further */
-
-/* ---- small helpers ------------------------------------------------------------------------ */
-
-static uint32_t rd_u32le(const uint8_t *p)
-{
-    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) |
-           ((uint32_t)p[3] << 24);
-}
-
-static void wr_u32le(uint8_t *p, uint32_t v)
-{
-    p[0] = (uint8_t)(v & 0xFFu);
-    p[1] = (uint8_t)((v >> 8) & 0xFFu);
-    p[2] = (uint8_t)((v >> 16) & 0xFFu);
-    p[3] = (uint8_t)(v >> 24);
-}
-
-static uint64_t rd_u64le(const uint8_t *p)
-{
-    return (uint64_t)rd_u32le(p) | ((uint64_t)rd_u32le(&p[4]) << 32);
-}
-
-static void wr_u64le(uint8_t *p, uint64_t v)
-{
-    wr_u32le(p, (uint32_t)(v & 0xFFFFFFFFu));
-    wr_u32le(&p[4], (uint32_t)(v >> 32));
-}
-
-static uint8_t sat8_inc(uint8_t v)
-{
-    return (v < SAT8_MAX) ? (uint8_t)(v + 1u) : v;
-}
-
-static uint32_t sat32_inc(uint32_t v)
-{
-    return (v < 0xFFFFFFFFu) ? (uint32_t)(v + 1u) : v;
-}
-
-/* floor(log2(v)) for v > 0: O(1). GCC and Clang count leading zeros (one instruction where
- * the target has it, a runtime helper where not); elsewhere a five-step binary search. */
-static uint32_t log2_floor(uint32_t v)
-{
-#if defined(__GNUC__)
-    return 31u - (uint32_t)__builtin_clz(v);
-#else
-    uint32_t e = 0u;
-    uint32_t x = v;
-    if (x >= 0x10000u) {
-        e += 16u;
-        x >>= 16;
-    }
-    if (x >= 0x100u) {
-        e += 8u;
-        x >>= 8;
-    }
-    if (x >= 0x10u) {
-        e += 4u;
-        x >>= 4;
-    }
-    if (x >= 0x4u) {
-        e += 2u;
-        x >>= 2;
-    }
-    if (x >= 0x2u) {
-        e += 1u;
-    }
-    return e;
-#endif
-}
 
 /* A float32 (as raw bits) is finite and within -1.0 .. 1.0. NaN and infinities have a
  * magnitude above 1.0's bit pattern, so one comparison covers all three; no FPU needed. */
@@ -112,26 +38,6 @@ static int non_positive_bits(uint32_t bits)
 {
     return ((bits & FLOAT_SIGN_BIT) != 0u) || (bits == 0u);
 }
-
-/* Byte loops instead of struct assignment: gcc compiles a large struct copy or zeroing into a
- * call to memcpy/memset, which a freestanding build without libc cannot link (docs/MCU.md). */
-static void zero_bytes(uint8_t *dst, size_t n)
-{
-    size_t i;
-    for (i = 0u; i < n; i++) {
-        dst[i] = 0u;
-    }
-}
-
-static void copy_bytes(uint8_t *dst, const uint8_t *src, size_t n)
-{
-    size_t i;
-    for (i = 0u; i < n; i++) {
-        dst[i] = src[i];
-    }
-}
-
-/* ---- configuration ------------------------------------------------------------------------ */
 
 void estop_config_default(estop_config_t *cfg)
 {
@@ -229,8 +135,6 @@ estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t n
     return err;
 }
 
-/* ---- read-outs ---------------------------------------------------------------------------- */
-
 static uint32_t link_age(const estop_core_t *core)
 {
     return (uint32_t)(core->now_us - core->last_valid_us);
@@ -242,7 +146,7 @@ static int moving(const estop_core_t *core)
     return core->state != ESTOP_STATE_STOPPED;
 }
 
-static uint8_t current_flags(const estop_core_t *core)
+uint8_t estop__current_flags(const estop_core_t *core)
 {
     uint8_t flags = 0u;
     if ((moving(core) != 0) && (link_age(core) >= core->cfg.warn_us)) {
@@ -257,8 +161,6 @@ static int link_live(const estop_core_t *core)
 {
     return (core->link_fresh != 0u) && (core->valid_run >= core->cfg.release_packets);
 }
-
-/* ---- CAN frames --------------------------------------------------------------------------- */
 
 static void push_frame(estop_out_t *out, uint32_t id, uint16_t data_id, const uint8_t *payload,
                        uint8_t *counter)
@@ -294,7 +196,7 @@ static void send_brake(estop_core_t *core, estop_out_t *out)
     }
     p[2] = core->state;
     p[3] = core->reason;
-    p[4] = current_flags(core);
+    p[4] = estop__current_flags(core);
     p[5] = 0u;
     push_frame(out, core->cfg.brake_can_id, core->cfg.brake_data_id, p, &core->brake_counter);
 }
@@ -320,19 +222,12 @@ static void send_status(estop_core_t *core, estop_out_t *out)
     core->status_slowdowns = 0u;
 }
 
-/* ---- transitions -------------------------------------------------------------------------- */
-
 /* A state change sends ESTOP_BRAKE at once and restarts its period from there. */
 static void state_changed(estop_core_t *core, estop_out_t *out)
 {
     out->state_changed = 1u;
     send_brake(core, out);
     core->brake_due_us = core->now_us + core->cfg.brake_period_us;
-}
-
-static uint8_t sat4_inc(uint8_t v)
-{
-    return (v < SAT4_MAX) ? (uint8_t)(v + 1u) : v;
 }
 
 /* Every stop request restarts the release count; only the first one sets the reason. */
@@ -371,8 +266,6 @@ static void arm(estop_core_t *core, estop_out_t *out)
     state_changed(core, out);
 }
 
-/* ---- the common prologue and epilogue ----------------------------------------------------- */
-
 static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
 {
     uint32_t step = (uint32_t)(now_us - core->now_us);
@@ -383,19 +276,13 @@ static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
         core->counters.faults++;
         stop(core, (uint8_t)ESTOP_REASON_FAULT, out);
     }
-    if (step > ESTOP_MAX_STEP_US) {
-        core->gap_known = 0u; /* the next gap cannot be measured: it is not recorded */
-    } else if ((core->link_fresh == 0u) && (core->gap_known != 0u) &&
-               (link_age(core) >= GAP_LONG_US)) { /* a fresh link is younger than 60 s */
-        core->gaps[ESTOP_GAP_BINS - 1u] = sat32_inc(core->gaps[ESTOP_GAP_BINS - 1u]);
-        core->silences = sat32_inc(core->silences);
-        core->gap_known = 0u; /* recorded as "very long" now, before the tick can wrap */
-    } else {
-        /* a gap still measurable: record_gap() records it when the next packet arrives */
-    }
-    if ((core->link_fresh != 0u) && (link_age(core) >= core->cfg.timeout_us)) {
+    if (core->link_fresh == 0u) {
+        estop__age_gap(core, step); /* a fresh link is younger than 60 s: nothing to age */
+    } else if (link_age(core) >= core->cfg.timeout_us) {
         core->link_fresh = 0u; /* latched: a wrapped tick can never make this link young again */
         core->valid_run = 0u;  /* a RELEASE needs its packets from after the silence */
+    } else {
+        /* a fresh link: its age is measured from last_valid_us */
     }
     if ((moving(core) != 0) && (core->link_fresh == 0u)) {
         stop(core, (uint8_t)ESTOP_REASON_UDP_TIMEOUT, out);
@@ -405,9 +292,7 @@ static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
     } else {
         /* nothing is due: the state stays */
     }
-    if (out->state_changed != 0u) {
-        out->changed_by_clock = 1u;
-    }
+    out->changed_by_clock = out->state_changed; /* every change so far came from the clock */
 }
 
 /* A frame is due unless its due time lies in (now, now + period]. So a due time that has been
@@ -444,7 +329,7 @@ static void send_due_frames(estop_core_t *core, estop_out_t *out)
 
 /* Only what says how much of the output is meaningful is cleared: frames beyond n_can and
  * reply bytes without has_reply are left as they were (clearing all 112 bytes cost the plain
- * packet path a sixth of its instructions). */
+ * packet path a sixth of its instructions). changed_by_clock is the caller's to set. */
 static void clear_out(estop_out_t *out)
 {
     out->n_can = 0u;
@@ -452,10 +337,9 @@ static void clear_out(estop_out_t *out)
     out->reply_len = 0u;
     out->close_slot = 0u;
     out->state_changed = 0u;
-    out->changed_by_clock = 0u;
 }
 
-static estop_err_t begin(estop_core_t *core, uint32_t now_us, estop_out_t *out)
+estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out)
 {
     estop_err_t err = ESTOP_OK;
     if ((core == NULL) || (out == NULL)) {
@@ -463,9 +347,10 @@ static estop_err_t begin(estop_core_t *core, uint32_t now_us, estop_out_t *out)
     } else {
         clear_out(out);
         if (core->magic != CORE_MAGIC) {
+            out->changed_by_clock = 0u;
             err = ESTOP_ERR_NOT_INIT;
         } else {
-            advance_clock(core, now_us, out);
+            advance_clock(core, now_us, out); /* sets changed_by_clock */
             send_due_frames(core, out);
         }
     }
@@ -477,7 +362,7 @@ static uint32_t earliest(uint32_t now, uint32_t a, uint32_t b)
     return ((uint32_t)(a - now) <= (uint32_t)(b - now)) ? a : b;
 }
 
-static void finish(const estop_core_t *core, estop_out_t *out)
+void estop__finish(const estop_core_t *core, estop_out_t *out)
 {
     uint32_t next = earliest(core->now_us, core->brake_due_us, core->status_due_us);
     if (core->state == ESTOP_STATE_ARMED) {
@@ -490,16 +375,14 @@ static void finish(const estop_core_t *core, estop_out_t *out)
     out->next_call_us = next;
     out->state = core->state;
     out->reason = core->reason;
-    out->flags = current_flags(core);
+    out->flags = estop__current_flags(core);
 }
-
-/* ---- entry points ------------------------------------------------------------------------- */
 
 estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out)
 {
-    estop_err_t err = begin(core, now_us, out);
+    estop_err_t err = estop__begin(core, now_us, out);
     if (err == ESTOP_OK) {
-        finish(core, out);
+        estop__finish(core, out);
     }
     return err;
 }
@@ -515,68 +398,12 @@ static int body_valid(const uint8_t *b, int has_horn)
            (horn <= 1u);
 }
 
-static estop_remote_t *find_remote(estop_core_t *core, uint32_t id)
-{
-    estop_remote_t *found = NULL;
-    uint32_t i;
-    for (i = 0u; (i < ESTOP_MAX_REMOTES) && (found == NULL); i++) {
-        if ((core->remotes[i].used != 0u) && (core->remotes[i].id == id)) {
-            found = &core->remotes[i];
-        }
-    }
-    for (i = 0u; (i < ESTOP_MAX_REMOTES) && (found == NULL); i++) {
-        if (core->remotes[i].used == 0u) {
-            found = &core->remotes[i];
-            found->used = 1u;
-            found->id = id;
-            found->seen = 0u;
-        }
-    }
-    return found;
-}
-
-/* Section 5: msg[0 .. tag_at-1] is covered by the tag at msg[tag_at]; remote id, session and
- * counter are at the offsets of both message forms' layouts (given by the caller). True when
- * the message is authenticated; the new counter is then kept. A failure is counted by the
- * first check that failed. Only called on a unit with a key. */
-static int authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, uint32_t remote,
-                        uint64_t session, uint64_t counter, uint32_t channel)
-{
-    uint8_t tag[ESTOP_TAG_LEN];
-    const uint8_t bit = (uint8_t)(1u << channel);
-    int ok = 0;
-    (void)estop_b2s_mac(&core->mac, msg, tag_at, tag);
-    if (!estop_ct_equal(tag, &msg[tag_at], ESTOP_TAG_LEN)) {
-        core->counters.auth_bad_tag++;
-    } else if (session != core->cfg.session) {
-        core->counters.auth_bad_session++;
-    } else {
-        /* A new remote id gets a place only here, with a right tag and session. */
-        estop_remote_t *r = find_remote(core, remote);
-        if (r == NULL) {
-            core->counters.auth_table_full++;
-        } else if (((r->seen & bit) != 0u) && (counter <= r->counter[channel])) {
-            core->counters.auth_old_counter++;
-        } else {
-            r->counter[channel] = counter;
-            r->seen = (uint8_t)(r->seen | bit);
-            ok = 1;
-        }
-    }
-    if (!ok) {
-        core->status_auth_failed = sat8_inc(core->status_auth_failed);
-    }
-    return ok;
-}
-
 /* Section 1: the control body of a valid packet of the form the unit expects (plain without
- * a key, authenticated with one), or NULL. */
+ * a key, authenticated with one), or NULL. d is not NULL. */
 static const uint8_t *valid_body(estop_core_t *core, const uint8_t *d, size_t len)
 {
     const uint8_t *body = NULL;
-    if (d == NULL) {
-        body = NULL;
-    } else if (core->cfg.key_len == 0u) {
+    if (core->cfg.key_len == 0u) {
         if ((len == ESTOP_UDP_LEN) && body_valid(d, 1)) {
             body = d;
         } else if ((len == ESTOP_UDP_LEN_NO_HORN) && body_valid(d, 0)) {
@@ -586,40 +413,12 @@ static const uint8_t *valid_body(estop_core_t *core, const uint8_t *d, size_t le
         }
     } else if ((len == ESTOP_UDP_AUTH_LEN) && (rd_u32le(d) == ESTOP_MAGIC_CONTROL) &&
                body_valid(&d[CONTROL_BODY_AT], 1) &&
-               authenticate(core, d, CONTROL_TAG_AT, rd_u32le(&d[4]), rd_u64le(&d[8]),
-                            rd_u64le(&d[16]), CHANNEL_UDP)) {
+               estop__authenticate(core, d, CONTROL_TAG_AT, CONTROL_IDS_AT, CHANNEL_UDP)) {
         body = &d[CONTROL_BODY_AT];
     } else {
         /* no valid authenticated packet: body stays NULL */
     }
     return body;
-}
-
-uint32_t estop_gap_bin(uint32_t gap_us)
-{
-    uint32_t bin = 0u;
-    if (gap_us >= ((uint32_t)1u << GAP_FIRST_EXP)) {
-        uint32_t e = log2_floor(gap_us);
-        bin = 1u + (2u * (e - GAP_FIRST_EXP)) + ((gap_us >> (e - 1u)) & 1u);
-        if (bin > (ESTOP_GAP_BINS - 1u)) {
-            bin = ESTOP_GAP_BINS - 1u;
-        }
-    }
-    return bin;
-}
-
-/* The link's record (issue 12): the gap since the previous valid packet. */
-static void record_gap(estop_core_t *core, uint32_t now_us)
-{
-    if (core->gap_known != 0u) {
-        uint32_t gap = (uint32_t)(now_us - core->last_valid_us);
-        uint32_t bin = estop_gap_bin(gap);
-        core->gaps[bin] = sat32_inc(core->gaps[bin]);
-        if (gap >= core->cfg.warn_us) {
-            core->silences = sat32_inc(core->silences);
-        }
-    }
-    core->gap_known = 1u;
 }
 
 /* The reason a stop request of this msg_id stops the unit with: a STOP or a LIFT; 0 (none) for
@@ -638,11 +437,11 @@ static uint8_t stop_reason(const estop_core_t *core, uint32_t msg_id)
 }
 
 /* Section 1: a request frame with the stop ID or LIFT; returns its stop reason, or 0. Anyone may
- * stop, so its tag, session and counter are never looked at. */
+ * stop, so its tag, session and counter are never looked at. d is not NULL. */
 static uint8_t stop_datagram(const estop_core_t *core, const uint8_t *d, size_t len)
 {
     uint8_t reason = (uint8_t)ESTOP_REASON_NONE;
-    if ((d != NULL) && (len == ESTOP_REQ_FRAME_LEN) && (rd_u32le(d) == ESTOP_MAGIC_REQUEST)) {
+    if ((len == ESTOP_REQ_FRAME_LEN) && (rd_u32le(d) == ESTOP_MAGIC_REQUEST)) {
         reason = stop_reason(core, rd_u32le(&d[4]));
     }
     return reason;
@@ -662,123 +461,40 @@ static void count_rearm(estop_core_t *core, estop_out_t *out)
 estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
                          estop_out_t *out)
 {
-    estop_err_t err = begin(core, now_us, out);
+    estop_err_t err = estop__begin(core, now_us, out);
     if (err == ESTOP_OK) {
         const uint8_t *body = NULL;
-        const uint8_t reason = stop_datagram(core, data, len);
+        uint8_t reason = (uint8_t)ESTOP_REASON_NONE;
+        if (data != NULL) {
+            reason = stop_datagram(core, data, len);
+            if (reason == ESTOP_REASON_NONE) {
+                body = valid_body(core, data, len);
+            }
+        }
         if (reason != ESTOP_REASON_NONE) {
             core->counters.udp_stops++;
             stop(core, reason, out);
-        } else {
-            body = valid_body(core, data, len);
-            if (body != NULL) {
-                record_gap(core, now_us);
-                core->counters.udp_valid++;
-                core->status_valid = sat8_inc(core->status_valid);
-                core->valid_run = sat32_inc(core->valid_run);
-                core->last_valid_us = now_us;
-                core->link_fresh = 1u;
-                core->last_neutral = non_positive_bits(rd_u32le(body)) ? 1u : 0u;
-                if (core->state == ESTOP_STATE_SLOWING) {
-                    count_rearm(core, out);
-                }
-            } else {
-                core->counters.udp_invalid++;
-                core->status_invalid = sat8_inc(core->status_invalid);
+        } else if (body != NULL) {
+            estop__record_gap(core); /* core->now_us is now_us from here on */
+            core->counters.udp_valid++;
+            core->status_valid = sat8_inc(core->status_valid);
+            core->valid_run = sat32_inc(core->valid_run);
+            core->last_valid_us = core->now_us;
+            core->link_fresh = 1u;
+            core->last_neutral = non_positive_bits(rd_u32le(body)) ? 1u : 0u;
+            if (core->state == ESTOP_STATE_SLOWING) {
+                count_rearm(core, out);
             }
+        } else {
+            core->counters.udp_invalid++;
+            core->status_invalid = sat8_inc(core->status_invalid);
         }
-        finish(core, out);
+        estop__finish(core, out);
     }
     return err;
 }
 
-static estop_err_t check_slot(const estop_core_t *core, uint32_t slot)
-{
-    estop_err_t err = ESTOP_OK;
-    if (core == NULL) {
-        err = ESTOP_ERR_NULL_ARG;
-    } else if (slot >= ESTOP_MAX_SLOTS) {
-        err = ESTOP_ERR_SLOT;
-    } else {
-        /* a slot in range: err stays ESTOP_OK */
-    }
-    return err;
-}
-
-/* Opening and closing a slot both start it empty; only the open mark differs. */
-static estop_err_t set_slot(estop_core_t *core, uint32_t slot, uint8_t open, uint32_t now_us,
-                            estop_out_t *out)
-{
-    estop_err_t err = check_slot(core, slot);
-    if (err == ESTOP_OK) {
-        err = begin(core, now_us, out);
-    }
-    if (err == ESTOP_OK) {
-        core->slots[slot].open = open;
-        core->slots[slot].fill = 0u;
-        finish(core, out);
-    }
-    return err;
-}
-
-estop_err_t estop_tcp_open(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out)
-{
-    return set_slot(core, slot, 1u, now_us, out);
-}
-
-estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out)
-{
-    return set_slot(core, slot, 0u, now_us, out);
-}
-
-/* The reply fields shared by both forms: ACK/NAK, seq, state, reason, flags, nak code. */
-static void reply_head(const estop_core_t *core, uint8_t *r, uint32_t seq, uint8_t nak_code)
-{
-    wr_u32le(r, (nak_code == ESTOP_NAK_NONE) ? ESTOP_MSG_ACK : ESTOP_MSG_NAK);
-    wr_u32le(&r[4], seq);
-    r[8] = core->state;
-    r[9] = core->reason;
-    r[10] = current_flags(core);
-    r[11] = nak_code;
-}
-
-/* Section 2: the 16-byte reply to a plain frame. */
-static void reply_plain(const estop_core_t *core, uint32_t seq, uint8_t nak_code, estop_out_t *out)
-{
-    reply_head(core, out->reply, seq, nak_code);
-    wr_u32le(&out->reply[12], estop_crc32(out->reply, 12u));
-    out->reply_len = (uint8_t)ESTOP_TCP_FRAME_LEN;
-    out->has_reply = 1u;
-}
-
-/* Section 5.3: the 48-byte reply to a request frame, tagged over the request's tag and the
- * reply's first 32 bytes (zero tag without a key). */
-static void reply_request(const estop_core_t *core, const uint8_t *req, uint8_t nak_code,
-                          estop_out_t *out)
-{
-    uint8_t *r = out->reply;
-    uint32_t i;
-    wr_u32le(r, ESTOP_MAGIC_REPLY);
-    reply_head(core, &r[4], rd_u32le(&req[8]), nak_code);
-    wr_u64le(&r[16], core->cfg.session);
-    wr_u64le(&r[24], rd_u64le(&req[24]));
-    if (core->cfg.key_len != 0u) {
-        uint8_t m[ESTOP_TAG_LEN + REQUEST_TAG_AT];
-        for (i = 0u; i < ESTOP_TAG_LEN; i++) {
-            m[i] = req[REQUEST_TAG_AT + i];
-        }
-        for (i = 0u; i < REQUEST_TAG_AT; i++) {
-            m[ESTOP_TAG_LEN + i] = r[i];
-        }
-        (void)estop_b2s_mac(&core->mac, m, sizeof m, &r[REQUEST_TAG_AT]);
-    } else {
-        for (i = 0u; i < ESTOP_TAG_LEN; i++) {
-            r[REQUEST_TAG_AT + i] = 0u;
-        }
-    }
-    out->reply_len = (uint8_t)ESTOP_REPLY_MAX;
-    out->has_reply = 1u;
-}
+/* ---- what a TCP request asks for (its framing and reply: estop_tcp.c) --------------------- */
 
 /* Section 3: a RELEASE that is authenticated (or needs no authentication) still needs a live
  * link and a neutral latest packet. */
@@ -809,7 +525,7 @@ static uint8_t release(estop_core_t *core, int authenticated, estop_out_t *out)
 }
 
 /* What a good frame of either form asks for; returns the NAK code of its reply. */
-static uint8_t handle_msg(estop_core_t *core, uint32_t msg_id, int release_authenticated,
+uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authenticated,
                           estop_out_t *out)
 {
     uint8_t nak = (uint8_t)ESTOP_NAK_NONE;
@@ -828,106 +544,13 @@ static uint8_t handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
     return nak;
 }
 
-/* Section 2: one whole 16-byte plain frame. A plain RELEASE is authenticated only on a unit
- * without a key. */
-static void handle_plain(estop_core_t *core, estop_slot_t *slot, estop_out_t *out)
-{
-    const uint8_t *f = slot->buf;
-    if (estop_crc32(f, 12u) != rd_u32le(&f[12])) {
-        /* The stream has lost framing: nothing after this can be trusted. */
-        core->counters.tcp_bad_crc++;
-        slot->open = 0u;
-        out->close_slot = 1u;
-    } else {
-        uint8_t nak = handle_msg(core, rd_u32le(f), core->cfg.key_len == 0u, out);
-        reply_plain(core, rd_u32le(&f[4]), nak, out);
-    }
-}
-
-/* Section 5.2: one whole 48-byte request frame. Only a RELEASE needs authentication; a STOP or
- * LIFT is honoured and a STATUS answered whatever the tag says. */
-static void handle_request(estop_core_t *core, const estop_slot_t *slot, estop_out_t *out)
-{
-    const uint8_t *f = slot->buf;
-    uint32_t msg_id = rd_u32le(&f[4]);
-    int authenticated = 0;
-    uint8_t nak;
-    if ((msg_id == ESTOP_MSG_RELEASE) && (core->cfg.key_len != 0u)) {
-        authenticated = authenticate(core, f, REQUEST_TAG_AT, rd_u32le(&f[12]),
-                                     rd_u64le(&f[16]), rd_u64le(&f[24]), CHANNEL_TCP);
-    }
-    nak = handle_msg(core, msg_id, authenticated, out);
-    reply_request(core, f, nak, out);
-}
-
-/* A frame's length, known once its first 4 bytes are in. */
-static uint32_t frame_len(const estop_slot_t *s)
-{
-    return ((s->fill >= MAGIC_LEN) && (rd_u32le(s->buf) == ESTOP_MAGIC_REQUEST))
-               ? ESTOP_REQ_FRAME_LEN
-               : PLAIN_FRAME_LEN;
-}
-
-estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data, size_t len,
-                         size_t *consumed, uint32_t now_us, estop_out_t *out)
-{
-    estop_err_t err = check_slot(core, slot);
-    if ((err == ESTOP_OK) && ((consumed == NULL) || ((data == NULL) && (len > 0u)))) {
-        err = ESTOP_ERR_NULL_ARG;
-    }
-    if (err == ESTOP_OK) {
-        *consumed = 0u;
-        err = begin(core, now_us, out);
-    }
-    if ((err == ESTOP_OK) && (core->slots[slot].open == 0u)) {
-        err = ESTOP_ERR_SLOT_CLOSED;
-        finish(core, out);
-    }
-    if (err == ESTOP_OK) {
-        estop_slot_t *s = &core->slots[slot];
-        size_t take = 0u;
-        size_t want;
-        /* Up to one whole frame: first its 4 magic bytes, which decide its length, then the
-         * rest of it. */
-        while ((take < len) && (s->fill < MAGIC_LEN)) {
-            s->buf[s->fill] = data[take];
-            s->fill++;
-            take++;
-        }
-        want = (size_t)frame_len(s) - (size_t)s->fill;
-        if (want > (len - take)) {
-            want = len - take;
-        }
-        while (want > 0u) {
-            s->buf[s->fill] = data[take];
-            s->fill++;
-            take++;
-            want--;
-        }
-        *consumed = take;
-        if (s->fill == frame_len(s)) {
-            s->fill = 0u;
-            if (rd_u32le(s->buf) == ESTOP_MAGIC_REQUEST) {
-                handle_request(core, s, out);
-            } else {
-                handle_plain(core, s, out);
-            }
-            if (out->close_slot != 0u) {
-                *consumed = len; /* the rest of a broken stream is dropped */
-            }
-        }
-        finish(core, out);
-    }
-    return err;
-}
-
 estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out)
 {
-    estop_err_t err = begin(core, now_us, out);
+    estop_err_t err = estop__begin(core, now_us, out);
     if (err == ESTOP_OK) {
         core->counters.faults++;
         stop(core, (uint8_t)ESTOP_REASON_FAULT, out);
-        finish(core, out);
+        estop__finish(core, out);
     }
     return err;
 }
@@ -942,7 +565,7 @@ estop_err_t estop_get_status(const estop_core_t *core, estop_status_t *status)
     } else {
         status->state = core->state;
         status->reason = core->reason;
-        status->flags = current_flags(core);
+        status->flags = estop__current_flags(core);
         status->link_live = link_live(core) ? 1u : 0u;
         status->valid_run = core->valid_run;
         status->link_age_us = (core->link_fresh != 0u) ? link_age(core) : 0xFFFFFFFFu;
@@ -951,28 +574,6 @@ estop_err_t estop_get_status(const estop_core_t *core, estop_status_t *status)
     }
     return err;
 }
-
-estop_err_t estop_get_link_stats(const estop_core_t *core, estop_link_stats_t *stats)
-{
-    estop_err_t err = ESTOP_OK;
-    if ((core == NULL) || (stats == NULL)) {
-        err = ESTOP_ERR_NULL_ARG;
-    } else if (core->magic != CORE_MAGIC) {
-        err = ESTOP_ERR_NOT_INIT;
-    } else {
-        uint32_t i;
-        stats->valid = core->counters.udp_valid;
-        stats->silences = core->silences;
-        stats->slowdowns = core->counters.slowdowns;
-        stats->timeouts = core->counters.stops[ESTOP_REASON_UDP_TIMEOUT];
-        for (i = 0u; i < ESTOP_GAP_BINS; i++) {
-            stats->gaps[i] = core->gaps[i];
-        }
-    }
-    return err;
-}
-
-/* ---- names for host logs ------------------------------------------------------------------ */
 
 const char *estop_err_name(estop_err_t err)
 {

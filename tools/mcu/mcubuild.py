@@ -89,6 +89,15 @@ def core_headers(core: Path = CORE_DIR) -> list[Path]:
     return sorted(core.glob("*.h"))
 
 
+# The core's private header (wire helpers, the estop__* functions its files share): no entry
+# points there.
+PRIVATE_HEADERS = ("estop_internal.h",)
+
+
+def public_headers(core: Path = CORE_DIR) -> list[Path]:
+    return [h for h in core_headers(core) if h.name not in PRIVATE_HEADERS]
+
+
 # ---- toolchain and build -------------------------------------------------------------------
 
 def tool(name: str) -> str:
@@ -251,9 +260,9 @@ def parse_prototypes(text: str, header: str = "") -> list[Prototype]:
 
 
 def prototypes(core: Path = CORE_DIR) -> dict[str, Prototype]:
-    """Every function the core's headers declare: its public entry points."""
+    """Every function the core's public headers declare: its entry points."""
     found: dict[str, Prototype] = {}
-    for h in core_headers(core):
+    for h in public_headers(core):
         for p in parse_prototypes(h.read_text(), h.name):
             found[p.name] = p
     if not found:

@@ -1,0 +1,115 @@
+/*
+ * estop_internal: what the core's own files share, and nothing a host may use. Not part of
+ * the public interface (estop_core.h is): hosts, the Python binding and the MCU tools never
+ * include it.
+ *
+ * - Wire helpers: little-endian loads and stores, saturating increments, byte copies. They
+ *   are static inline so that each file gets them inlined as before the split (a call per
+ *   byte field would cost the packet paths their budget).
+ * - The functions one job of the core calls in another, named estop__*: the state machine
+ *   (estop_core.c), authentication (estop_auth.c), TCP framing and replies (estop_tcp.c) and
+ *   the link statistics (estop_link.c).
+ */
+#ifndef ESTOP_INTERNAL_H
+#define ESTOP_INTERNAL_H
+
+#include <stddef.h>
+#include <stdint.h>
+
+#include "estop_core.h"
+
+#define CORE_MAGIC 0x45535450u  /* "ESTP": set by a successful estop_init */
+#define CHANNEL_UDP 0u          /* the counter kept per remote and channel (5) */
+#define CHANNEL_TCP 1u
+#define SAT8_MAX 255u
+#define SAT4_MAX 15u            /* the two nibbles of ESTOP_STATUS byte 3 */
+
+/* ---- wire helpers ------------------------------------------------------------------------- */
+
+static inline uint32_t rd_u32le(const uint8_t *p)
+{
+    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) |
+           ((uint32_t)p[3] << 24);
+}
+
+static inline void wr_u32le(uint8_t *p, uint32_t v)
+{
+    p[0] = (uint8_t)(v & 0xFFu);
+    p[1] = (uint8_t)((v >> 8) & 0xFFu);
+    p[2] = (uint8_t)((v >> 16) & 0xFFu);
+    p[3] = (uint8_t)(v >> 24);
+}
+
+static inline uint64_t rd_u64le(const uint8_t *p)
+{
+    return (uint64_t)rd_u32le(p) | ((uint64_t)rd_u32le(&p[4]) << 32);
+}
+
+static inline void wr_u64le(uint8_t *p, uint64_t v)
+{
+    wr_u32le(p, (uint32_t)(v & 0xFFFFFFFFu));
+    wr_u32le(&p[4], (uint32_t)(v >> 32));
+}
+
+static inline uint8_t sat4_inc(uint8_t v)
+{
+    return (v < SAT4_MAX) ? (uint8_t)(v + 1u) : v;
+}
+
+static inline uint8_t sat8_inc(uint8_t v)
+{
+    return (v < SAT8_MAX) ? (uint8_t)(v + 1u) : v;
+}
+
+static inline uint32_t sat32_inc(uint32_t v)
+{
+    return (v < 0xFFFFFFFFu) ? (uint32_t)(v + 1u) : v;
+}
+
+/* Byte loops instead of struct assignment: gcc compiles a large struct copy or zeroing into a
+ * call to memcpy/memset, which a freestanding build without libc cannot link (docs/MCU.md). */
+static inline void zero_bytes(uint8_t *dst, size_t n)
+{
+    size_t i;
+    for (i = 0u; i < n; i++) {
+        dst[i] = 0u;
+    }
+}
+
+static inline void copy_bytes(uint8_t *dst, const uint8_t *src, size_t n)
+{
+    size_t i;
+    for (i = 0u; i < n; i++) {
+        dst[i] = src[i];
+    }
+}
+
+/* ---- the state machine (estop_core.c) ----------------------------------------------------- */
+
+/* Every entry point: estop__begin() advances the clock and sends what is due; estop__finish()
+ * fills the state read-out and the next call time. */
+estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out);
+void estop__finish(const estop_core_t *core, estop_out_t *out);
+/* The flags byte of frames and replies. */
+uint8_t estop__current_flags(const estop_core_t *core);
+/* What a good TCP frame of either form asks for (STOP, LIFT, RELEASE, STATUS, unknown);
+ * returns the NAK code of its reply. release_authenticated: a RELEASE may pass. */
+uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authenticated,
+                          estop_out_t *out);
+
+/* ---- authentication (estop_auth.c) -------------------------------------------------------- */
+
+/* msg[0 .. tag_at-1] is covered by the tag at msg[tag_at]; remote id, session and counter
+ * follow one another from msg[ids_at]. True when authentic, of this session, fresh and from a
+ * remote the table holds; the counter is then kept. Only called on a unit with a key. */
+int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, size_t ids_at,
+                        uint32_t channel);
+
+/* ---- link statistics (estop_link.c) ------------------------------------------------------- */
+
+/* The clock advanced by step: a gap too long to measure later is recorded now. */
+void estop__age_gap(estop_core_t *core, uint32_t step);
+/* A valid control packet at core->now_us: the gap since the previous one. */
+void estop__record_gap(estop_core_t *core);
+
+#endif /* ESTOP_INTERNAL_H */

@@ -26,7 +26,6 @@
 
 /* Large enough for every frame form (60 bytes) and the bytes after it. */
 #define DRIVER_BUF 96u
-#define TMP_ZERO(c) do { size_t z_; for (z_ = 0u; z_ < sizeof(*(c)); z_++) { ((uint8_t *)(c))[z_] = 0u; } } while (0)
 
 static uint32_t any_u32(void)
 {
@@ -44,7 +43,6 @@ static void any_bytes(uint8_t *p, size_t n)
 /* Any configuration estop_init accepts: every field anywhere in its range. */
 static void any_valid_config(estop_config_t *cfg)
 {
-    TMP_ZERO(cfg);
     estop_config_default(cfg);
     cfg->timeout_us = Frama_C_unsigned_int_interval(ESTOP_TIMEOUT_MIN_US, ESTOP_TIMEOUT_MAX_US);
     cfg->slow_us = Frama_C_unsigned_int_interval(1u, cfg->timeout_us);
@@ -68,7 +66,6 @@ static void any_valid_config(estop_config_t *cfg)
 /* Any configuration at all (most are refused). */
 static void any_config(estop_config_t *cfg)
 {
-    TMP_ZERO(cfg);
     cfg->timeout_us = any_u32();
     cfg->slow_us = any_u32();
     cfg->warn_us = any_u32();
@@ -187,8 +184,11 @@ int main(void)
             (void)estop_tcp_rx(&core, slot, buf, len, &consumed, now, &out);
             break;
         case 6:
-            (void)estop_tcp_rx(&core, slot, (len == 0u) ? NULL : buf, len,
-                               (Frama_C_nondet(0, 1) != 0) ? NULL : &consumed, now, &out);
+            if (Frama_C_nondet(0, 1) != 0) {
+                (void)estop_tcp_rx(&core, slot, NULL, 0u, &consumed, now, &out);
+            } else {
+                (void)estop_tcp_rx(&core, slot, buf, len, NULL, now, &out);
+            }
             break;
         default:
             (void)estop_fault(&core, now, &out);

@@ -10,15 +10,30 @@
 #define SESSION_AFTER_ID 4u        /* 5.1, 5.2: remote id (4 bytes), session (8), counter (8) */
 #define COUNTER_AFTER_ID 12u
 
+/*@ requires \valid(core);
+    assigns core->remotes[0 .. 7];
+    ensures in_table: \result == \null ||
+        (\exists integer k; 0 <= k < 8 && \result == &core->remotes[k]);
+ */
 static estop_remote_t *find_remote(estop_core_t *core, uint32_t id)
 {
     estop_remote_t *found = NULL;
     uint32_t i;
+    /*@ loop invariant 0 <= i <= 8;
+        loop invariant found == \null || (\exists integer k; 0 <= k < 8 && found == &core->remotes[k]);
+        loop assigns i, found;
+        loop variant 8 - i;
+     */
     for (i = 0u; (i < ESTOP_MAX_REMOTES) && (found == NULL); i++) {
         if ((core->remotes[i].used != 0u) && (core->remotes[i].id == id)) {
             found = &core->remotes[i];
         }
     }
+    /*@ loop invariant 0 <= i <= 8;
+        loop invariant found == \null || (\exists integer k; 0 <= k < 8 && found == &core->remotes[k]);
+        loop assigns i, found, core->remotes[0 .. 7];
+        loop variant 8 - i;
+     */
     for (i = 0u; (i < ESTOP_MAX_REMOTES) && (found == NULL); i++) {
         if (core->remotes[i].used == 0u) {
             found = &core->remotes[i];

@@ -133,11 +133,12 @@ def sc_auth_release(run: Run, res: Result) -> None:
               [(ex.t_send, got[0].ts)], use_median=False)
     time.sleep(0.25)  # the ESTOP_STATUS frame after the forged RELEASE
     run.keepalive_held(res, t0, time.time())
-    # Byte 2 counts the forged RELEASE (a plain one is not an authentication attempt).
+    # Byte 2 counts the forged RELEASE and the plain one (it needs authentication and has no
+    # tag: docs/PROTOCOL.md 5, issue 16).
     ws = windows_in(run, t0, time.time() - 0.1)
     res.figures["status_auth_failures"] = sum(w.auth_failures for w in ws)
-    res.check(sum(w.auth_failures for w in ws) == 1,
-              "ESTOP_STATUS byte 2 did not count the one forged RELEASE")
+    res.check(sum(w.auth_failures for w in ws) == 2,
+              "ESTOP_STATUS byte 2 did not count the forged and the plain RELEASE")
     ar.stop()
     time.sleep(0.3)
 
@@ -181,8 +182,10 @@ def sc_auth_spoof(run: Run, res: Result) -> None:
     drops1 = udp_drops(run.udp_port)
     if t_first is not None:
         drops = drops1[1] - drops0[1] if drops0 and drops1 else None
+        # Every kind fails authentication: the plain heartbeat too (no tag; issue 16).
         count_check(run, res, t_first, time.time() - 0.1, sum(sent.values()),
-                    sent.get("wrong_key", 0) + sent.get("replay", 0), drops)
+                    sent.get("plain", 0) + sent.get("wrong_key", 0) + sent.get("replay", 0),
+                    drops)
     judge_spoiled(res, spoiled, run.args.repeat, len(over), "not every run stopped",
                   keepalive=False)
 
@@ -285,12 +288,12 @@ def sc_auth_replay(run: Run, res: Result) -> None:
 ROWS: list[Row] = [
     ("auth_release", "Keyed: forged and genuine RELEASE",
      "with a live authenticated link: RELEASE under a wrong key NAK 4, plain RELEASE NAK 4, no "
-     "ARMED frame, byte 2 counts 1; genuine RELEASE ACK ARMED, ARMED frame <= {max} ms; reply "
+     "ARMED frame, byte 2 counts 2; genuine RELEASE ACK ARMED, ARMED frame <= {max} ms; reply "
      "tags verify", sc_auth_release),
     ("auth_spoof", "Keyed: dead-man under spoofed heartbeats",
      "plain, wrong-key and replayed heartbeats after the last genuine one: reason udp_timeout; "
      f"overshoot >= -{EARLY_TOL_MS}, " "p50 <= {p50}, max <= {max} ms; ESTOP_STATUS byte 1 "
-     "counts all, byte 2 the wrong-key and replayed ones", sc_auth_spoof),
+     "counts all, byte 2 all of them too", sc_auth_spoof),
     ("auth_stop_datagram", "Stop datagram with a garbage tag",
      "ARMED -> STOPPED reason 2: p50 <= {p50}, max <= {max} ms; no UDP reply",
      sc_auth_stop_datagram),

@@ -114,12 +114,16 @@ uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
 /*@ requires \valid(core) && \valid_read(msg + (0 .. tag_at + 15)) && \valid_read(msg + (ids_at .. ids_at + 19));
     requires 1 <= tag_at <= 64 && channel <= 1;
     requires \separated(core, msg + (0 .. tag_at + 15));
-    assigns core->counters.auth_bad_tag, core->counters.auth_bad_session,
-            core->counters.auth_table_full, core->counters.auth_old_counter,
-            core->status_auth_failed, core->remotes[0 .. 7];
+    assigns core->counters, core->status_auth_failed, core->remotes[0 .. 7],
+            core->tag_window_us, core->newcomer_checks;
  */
 int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, size_t ids_at,
                         uint32_t channel);
+
+/*@ requires \valid(core);
+    assigns core->counters, core->status_auth_failed;
+ */
+void estop__unauthenticated(estop_core_t *core);
 
 /*@ requires \valid(core);
     assigns core->gaps[0 .. 31], core->silences, core->gap_known;

@@ -38,6 +38,7 @@ CONTROL_MAGIC = b"ESU2"
 REPLY_MAGIC = b"ESR2"
 MAX_REMOTES = 8
 UDP, TCP = "udp", "tcp"  # the two channels a counter is kept for
+COUNTER_AHEAD = 65536  # a remote's next counters, for its own tag-check allowance
 
 
 def tag_of(key: bytes, message: bytes) -> bytes:
@@ -59,6 +60,8 @@ class ModelConfig:
     release_packets: int = 5
     brake_period_us: int = 10_000
     status_period_us: int = 100_000
+    tag_checks: int = 10  # tag checks of control packets per remote id (and for new ids) ...
+    tag_window_us: int = 100_000  # ... in each window (docs/PROTOCOL.md 5, bounded cost)
     session: int = 0x0123456789ABCDEF
     key: bytes | None = None  # None: a unit without a key
 
@@ -118,6 +121,11 @@ class Model:
         self.remotes: dict[int, dict[str, int]] = {}
         # Why messages that needed authentication failed it (for the test's statistics).
         self.auth_failures: dict[str, int] = {}
+        # The tag-check budget: the window's start, checks per remote id (None: ids without a
+        # place) in it, and the control packets dropped unchecked.
+        self.tag_window = now
+        self.tag_checks: dict[int | None, int] = {}
+        self.unchecked = 0
 
     # -- derived ------------------------------------------------------------------------
     @property
@@ -249,11 +257,15 @@ class Model:
         """(valid, gas_brake) of a control datagram in the form this unit expects."""
         if self.cfg.key is None:
             return parse_control(data)
-        if len(data) != 60 or data[:4] != CONTROL_MAGIC:
+        if len(data) != 60:
+            if parse_control(data)[0]:
+                self._fail("bad tag")  # a plain packet: the key holder's are tagged
             return False, 0.0
         ok, gas = parse_control(data[24:44])  # the body first: a bad one keeps no counter
         if not ok:
             return False, 0.0
+        if data[:4] != CONTROL_MAGIC:
+            return self._fail("bad tag"), 0.0  # no tag the unit can check
         remote_id, session, counter = struct.unpack_from("<IQQ", data, 4)
         return self._authenticate(data[:44], data[44:], remote_id, session, counter, UDP), gas
 
@@ -264,21 +276,42 @@ class Model:
 
     def _authenticate(self, signed: bytes, tag: bytes, remote_id: int, session: int,
                       counter: int, channel: str) -> bool:
-        """Section 5: right tag, this session, a place for the remote id, a counter above the
-        one kept for (remote id, channel). Keeps the counter when all hold."""
+        """Section 5: this session, a counter above the one kept for (remote id, channel), a
+        place for the remote id, then (control packets only) a tag check within the budget,
+        then the right tag. The cheap checks come first, so no MAC is spent on what they
+        refuse. Keeps the counter when all hold."""
         assert self.cfg.key is not None
-        if not hmac.compare_digest(tag_of(self.cfg.key, signed), tag):
-            return self._fail("bad tag")
+        kept = self.remotes.get(remote_id)
         if session != self.cfg.session:
             return self._fail("bad session")
-        kept = self.remotes.get(remote_id)
-        if kept is None:
-            if len(self.remotes) >= MAX_REMOTES:
-                return self._fail("table full")
-            kept = self.remotes[remote_id] = {}
-        if channel in kept and counter <= kept[channel]:
+        if kept is not None and channel in kept and counter <= kept[channel]:
             return self._fail("old counter")
+        if kept is None and len(self.remotes) >= MAX_REMOTES:
+            return self._fail("table full")
+        # A remote's own allowance serves its next counters (at most 65536 above the one
+        # kept on UDP); new ids and counters far ahead share one allowance.
+        near = kept is not None and UDP in kept and counter - kept[UDP] <= COUNTER_AHEAD
+        if channel == UDP and not self._take_check(remote_id if near else None):
+            self.unchecked += 1  # dropped unchecked: invalid, but no authentication failure
+            return False
+        if not hmac.compare_digest(tag_of(self.cfg.key, signed), tag):
+            return self._fail("bad tag")
+        if kept is None:
+            kept = self.remotes[remote_id] = {}
         kept[channel] = counter
+        return True
+
+    def _take_check(self, who: int | None) -> bool:
+        """One tag check from the allowance of a remote id (None: the shared one) in the
+        current window; a window begins at the first check after the previous one ended, on
+        the 32-bit tick."""
+        if (self.now - self.tag_window) & 0xFFFFFFFF >= self.cfg.tag_window_us:
+            self.tag_window = self.now
+            self.tag_checks.clear()
+        used = self.tag_checks.get(who, 0)
+        if used >= self.cfg.tag_checks:
+            return False
+        self.tag_checks[who] = used + 1
         return True
 
     def fault(self, now: int) -> ModelStep:
@@ -347,7 +380,10 @@ class Model:
         if crc32(frame[:12]) != crc:
             self.bad_crc += 1
             return False
-        # A plain RELEASE is the keyless unit's; a unit with a key wants it authenticated.
+        # A plain RELEASE is the keyless unit's; a unit with a key wants it authenticated, and
+        # counts a plain one as an authentication failure.
+        if msg_id == RELEASE_ID and self.cfg.key is not None:
+            self._fail("bad tag")
         nak = self._message(msg_id, self.cfg.key is None, step)
         body = struct.pack("<IIBBBB", NAK if nak else ACK, seq, self.state, self.reason,
                            self.flags(), nak)

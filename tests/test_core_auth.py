@@ -186,10 +186,10 @@ def test_counters_are_kept_per_remote_id_and_per_channel() -> None:
 
 def test_a_ninth_remote_id_is_not_authenticated() -> None:
     u = Keyed()
-    for rid in range(8):
-        u.wait(5 * MS)
+    for rid in range(8):  # 10 ms apart: within the tag checks for new ids (10 per 100 ms)
+        u.wait(10 * MS)
         u.udp(u.heartbeat(rid=rid, counter=1))
-    u.wait(5 * MS)
+    u.wait(10 * MS)
     u.udp(u.heartbeat(rid=8, counter=1))
     c = u.wd.status().counters
     assert (c.udp_valid, c.auth_table_full) == (8, 1)
@@ -200,12 +200,40 @@ def test_a_ninth_remote_id_is_not_authenticated() -> None:
 def test_forged_packets_from_new_remote_ids_do_not_take_the_places() -> None:
     u = Keyed()
     for rid in range(100, 120):  # wrong key or wrong session: no place given
+        u.wait(50 * MS)  # a new window of tag checks for the ids without a place
         u.udp(u.heartbeat(rid=rid, key=bytes(32), counter=1))
         u.udp(u.heartbeat(rid=rid, session=N ^ 1, counter=1))
     for rid in range(8):
+        u.wait(10 * MS)
         u.udp(u.heartbeat(rid=rid, counter=1))
     c = u.wd.status().counters
     assert (c.udp_valid, c.auth_table_full, c.auth_bad_tag, c.auth_bad_session) == (8, 0, 20, 20)
+
+
+def test_unsigned_control_packets_and_release_count_as_authentication_failures() -> None:
+    """Issue 16, defect 9: on a unit with a key a plain packet (20 or 16 bytes), a 60-byte
+    packet without the ESU2 magic and a plain RELEASE need authentication and lack it: each
+    counts as a failure (a bad tag) and in ESTOP_STATUS byte 2, as docs/PROTOCOL.md says.
+    The body is checked first (section 5's Choice): junk is only invalid."""
+    u = Keyed()
+    u.drive_auth(5)
+    good = u.heartbeat()
+    u.wait(100 * MS)  # a STATUS frame: the window starts empty
+    before = u.wd.status().counters
+    u.udp(packet())  # plain, 20 bytes
+    u.udp(packet(legacy=True))  # plain, 16 bytes
+    u.udp(b"ESU3" + good[4:])  # the magic is wrong
+    assert u.ask(RELEASE)[0::5] == (0x81, NAK_NOT_AUTH)  # a plain RELEASE
+    u.udp(b"junk")  # not a control packet: invalid only
+    u.udp(packet(gear=3))  # a plain packet whose body is bad: invalid only
+    u.udp(b"ESU3" + good[4:24] + packet(gear=3) + good[44:])  # bad magic and body: invalid
+    c = u.wd.status().counters
+    assert c.auth_bad_tag - before.auth_bad_tag == 4
+    assert c.udp_invalid - before.udp_invalid == 6
+    status = [d for (_t, can_id, d) in u.frames if can_id == 0x051]
+    u.wait(100 * MS)
+    status = [d for (_t, can_id, d) in u.frames if can_id == 0x051][len(status):]
+    assert status[0][2] == 4  # ESTOP_STATUS byte 2: authentication failures
 
 
 # -- only the key holder may release ----------------------------------------------------------

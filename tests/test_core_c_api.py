@@ -63,6 +63,10 @@ BAD_CONFIGS = [
     ({"slow_level": 0}, "bad_slow_level"),
     ({"slow_level": 100}, "bad_slow_level"),
     ({"slow_level": 255}, "bad_slow_level"),
+    ({"tag_checks": 0}, "bad_tag_budget"),
+    ({"tag_checks": 101}, "bad_tag_budget"),
+    ({"tag_window_us": 999}, "bad_tag_budget"),
+    ({"tag_window_us": 1_000_001}, "bad_tag_budget"),
     ({"stop_id": 0}, "bad_stop_id"),
     ({"stop_id": 1}, "bad_stop_id"),
     ({"stop_id": 2}, "bad_stop_id"),
@@ -118,6 +122,8 @@ def test_boundary_configurations_are_accepted() -> None:
                 Config(timeout_us=1000, slow_us=1, warn_us=1),  # the smallest times
                 Config(timeout_us=60_000_000, slow_us=60_000_000, warn_us=60_000_000),
                 Config(slow_level=1), Config(slow_level=99),
+                Config(tag_checks=1, tag_window_us=1000),
+                Config(tag_checks=100, tag_window_us=1_000_000),
                 Config(brake_period_us=1000, status_period_us=10_000),
                 Config(brake_period_us=25_000, status_period_us=1_000_000),
                 Config(release_packets=1, brake_can_id=0x7FF, status_can_id=0)):
@@ -176,6 +182,8 @@ def test_names() -> None:
         b"none", b"boot", b"tcp_stop", b"udp_timeout", b"fault", b"lift", b"?"]
     assert ffi.string(lib.estop_err_name(lib.ESTOP_ERR_SLOW)) == b"bad_slow_time"
     assert ffi.string(lib.estop_err_name(lib.ESTOP_ERR_SLOW_LEVEL)) == b"bad_slow_level"
+    assert ffi.string(lib.estop_err_name(lib.ESTOP_ERR_TAG_BUDGET)) == b"bad_tag_budget"
+    assert ffi.string(lib.estop_err_name(lib.ESTOP_ERR_TAG_BUDGET - 1)) == b"unknown_error"
 
 
 # -- the raw tick ---------------------------------------------------------------------------
@@ -275,7 +283,7 @@ def test_status_period_holds_when_the_tick_goes_back_while_armed() -> None:
 
 def test_err_name_of_any_int_is_safe() -> None:
     """-INT_MIN overflowed (UBSan reported it under the instrumented build)."""
-    for code in (-(2**31), 2**31 - 1, 1, -17, -10**6):
+    for code in (-(2**31), 2**31 - 1, 1, -18, -10**6):
         assert ffi.string(lib.estop_err_name(code)) == b"unknown_error"
     assert ffi.string(lib.estop_err_name(-12)) == b"slot_closed"
     assert ffi.string(lib.estop_err_name(-14)) == b"bad_session"

@@ -85,3 +85,27 @@ def test_link_stats_read_out_refuses_null_and_uninitialised() -> None:
     assert lib.estop_get_link_stats(ffi.NULL, ls) == lib.ESTOP_ERR_NULL_ARG
     assert lib.estop_get_link_stats(ffi.new("estop_core_t *"), ffi.NULL) == lib.ESTOP_ERR_NULL_ARG
     assert lib.estop_get_link_stats(ffi.new("estop_core_t *"), ls) == lib.ESTOP_ERR_NOT_INIT
+
+
+def test_a_long_stall_fed_in_steps_is_recorded_once_as_very_long() -> None:
+    """Issue 16, defect 9: the host feeds a stall of more than 2^32 us in steps of at most
+    ESTOP_MAX_STEP_US. The step that ages the link past the timeout is already past the top
+    bin's limit; the next one wraps the 32-bit age back to a short one. The outage must still
+    be one gap in the top bin and one silence, never a short gap."""
+    core = ffi.new("estop_core_t *")
+    out = ffi.new("estop_out_t *")
+    assert lib.estop_init(core, Config().to_c(), 0) == lib.ESTOP_OK
+    data = ffi.from_buffer("uint8_t[]", packet())
+    t = 20_000
+    assert lib.estop_udp_rx(core, data, 20, t, out) == lib.ESTOP_OK  # the first valid packet
+    t += 60_000
+    assert lib.estop_tick(core, t, out) == lib.ESTOP_OK  # still fresh (T = 200 ms)
+    for _ in range(2):  # two steps of 2^31 - 1 us: 2^32 - 2 in all
+        t += lib.ESTOP_MAX_STEP_US
+        assert lib.estop_tick(core, t & 0xFFFFFFFF, out) == lib.ESTOP_OK
+    t += 1000
+    assert lib.estop_udp_rx(core, data, 20, t & 0xFFFFFFFF, out) == lib.ESTOP_OK
+    ls = ffi.new("estop_link_stats_t *")
+    assert lib.estop_get_link_stats(core, ls) == lib.ESTOP_OK
+    gaps = {i: ls.gaps[i] for i in range(32) if ls.gaps[i]}
+    assert (gaps, ls.silences) == ({31: 1}, 1)

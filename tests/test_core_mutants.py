@@ -175,6 +175,7 @@ def test_config_default_sets_every_field_and_writes_nothing_else() -> None:
     assert (cfg.release_packets, cfg.brake_period_us, cfg.status_period_us) == (5, 10_000,
                                                                                 100_000)
     assert (cfg.session, cfg.key_len) == (0, 0)
+    assert (cfg.tag_checks, cfg.tag_window_us) == (10, 100_000)
     assert bytes(ffi.buffer(cfg.key, 32)) == bytes(32)
     end_of_key = ffi.offsetof("estop_config_t", "key") + 32
     assert bytes(ffi.buffer(cfg, size))[end_of_key:] == b"\xa5" * (size - end_of_key)
@@ -370,6 +371,10 @@ def test_the_counter_is_compared_as_the_whole_u64_at_its_offset() -> None:
     assert r.status().counters.auth_old_counter == 1  # type: ignore[attr-defined]
 
 
+def ninth_of() -> int:
+    return int(ffi.offsetof("estop_core_t", "remotes") + 8 * ffi.sizeof("estop_remote_t"))
+
+
 def guarded_core(extra: bytes) -> tuple[object, object]:
     """A core in a buffer with a guard zone after it: `extra` where a 9th remote entry would
     be, zeros elsewhere."""
@@ -388,21 +393,24 @@ def test_the_remote_table_never_reaches_past_its_8_entries() -> None:
     entry = ffi.new("estop_remote_t *")
     entry.used = 1
     entry.id = 99
+    entry.checks = 7  # a 9th entry's allowance, which a new window must not clear
     used = bytes(ffi.buffer(entry))
     for extra in (b"", used):
         buf, core = guarded_core(extra)
         out = ffi.new("estop_out_t *")
         assert lib.estop_init(core, Config(key=K).to_c(), 0) == lib.ESTOP_OK
-        for rid in range(8):
+        for rid in range(8):  # 20 ms apart: each in a window of tag checks of its own
             data = auth_packet(rid, 1)
-            assert lib.estop_udp_rx(core, ffi.from_buffer("uint8_t[]", data), 60, rid,
-                                    out) == lib.ESTOP_OK
+            assert lib.estop_udp_rx(core, ffi.from_buffer("uint8_t[]", data), 60,
+                                    20_000 * (rid + 1), out) == lib.ESTOP_OK
         data = auth_packet(99, 5)
-        assert lib.estop_udp_rx(core, ffi.from_buffer("uint8_t[]", data), 60, 9, out) == \
-            lib.ESTOP_OK
+        assert lib.estop_udp_rx(core, ffi.from_buffer("uint8_t[]", data), 60, 9 * 20_000,
+                                out) == lib.ESTOP_OK
         st = ffi.new("estop_status_t *")
         assert lib.estop_get_status(core, st) == lib.ESTOP_OK
         assert st.counters.udp_valid == 8 and st.counters.auth_table_full == 1
+        assert core.tag_window_us > 0  # windows began anew (and cleared 8 allowances only)
+        assert bytes(ffi.buffer(buf, len(buf)))[ninth_of():ninth_of() + len(extra)] == extra
         del buf
 
 

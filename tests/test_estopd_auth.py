@@ -162,7 +162,8 @@ def test_only_the_key_holder_keeps_the_unit_alive(tmp_path: Path) -> None:
     fails = [line for line in lines if " auth_failures " in line]
     assert fails, lines  # written at exit at the latest
     counts = dict(re.findall(r"(\w+)=(\d+)", fails[-1]))
-    assert int(counts["tag"]) >= 30 and int(counts["counter"]) >= 30
+    # Forgeries are refused at the tag, or unchecked once the tag-check budget is spent.
+    assert int(counts["tag"]) + int(counts["unchecked"]) >= 30 and int(counts["counter"]) >= 30
 
 
 def test_forged_release_gets_nak_4_and_a_stop_datagram_with_a_garbage_tag_stops(
@@ -290,4 +291,6 @@ def test_a_flood_of_forged_packets_neither_stops_the_unit_nor_delays_a_stop(
         assert d.signal() == 0  # the counters are written at exit
     assert not any("ARMED->STOPPED reason=udp_timeout" in line for line in d.log())
     fails = [line for line in d.log() if " auth_failures " in line]
-    assert sent > 80_000 and int(dict(re.findall(r"(\w+)=(\d+)", fails[-1]))["tag"]) > 80_000
+    refused = {k: int(v) for k, v in re.findall(r"(\w+)=(\d+)", fails[-1])}
+    # Each forgery refused once: a few at the tag, the rest unchecked over the budget.
+    assert sent > 80_000 and refused["tag"] + refused["unchecked"] > 80_000, refused

@@ -55,6 +55,8 @@ void estop_config_default(estop_config_t *cfg)
         cfg->release_packets = ESTOP_DEFAULT_RELEASE_PACKETS;
         cfg->brake_period_us = ESTOP_DEFAULT_BRAKE_PERIOD_US;
         cfg->status_period_us = ESTOP_DEFAULT_STATUS_PERIOD_US;
+        cfg->tag_checks = (uint8_t)ESTOP_DEFAULT_TAG_CHECKS;
+        cfg->tag_window_us = ESTOP_DEFAULT_TAG_WINDOW_US;
         cfg->session = 0u; /* the host's to draw (estop_init refuses 0) */
         cfg->key_len = 0u;
         /*@ loop invariant 0 <= i <= 32;
@@ -99,6 +101,11 @@ estop_err_t estop_config_check(const estop_config_t *cfg)
                (cfg->status_period_us > ESTOP_STATUS_PERIOD_MAX_US) ||
                (cfg->status_period_us < cfg->brake_period_us)) {
         err = ESTOP_ERR_STATUS_PERIOD;
+    } else if ((cfg->tag_checks < ESTOP_TAG_CHECKS_MIN) ||
+               (cfg->tag_checks > ESTOP_TAG_CHECKS_MAX) ||
+               (cfg->tag_window_us < ESTOP_TAG_WINDOW_MIN_US) ||
+               (cfg->tag_window_us > ESTOP_TAG_WINDOW_MAX_US)) {
+        err = ESTOP_ERR_TAG_BUDGET;
     } else if ((cfg->key_len != 0u) && (cfg->key_len != ESTOP_KEY_LEN)) {
         err = ESTOP_ERR_KEY;
     } else if (cfg->session == 0u) {
@@ -148,6 +155,7 @@ estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t n
             core->counters.stops[ESTOP_REASON_BOOT] = 1u;
             core->brake_due_us = now_us; /* the boot frames are due at once */
             core->status_due_us = now_us;
+            core->tag_window_us = now_us; /* the first tag-check window starts at boot */
             core->magic = CORE_MAGIC;
         }
     }
@@ -292,7 +300,7 @@ static void stop(estop_core_t *core, uint8_t reason, estop_out_t *out)
     if (moving(core) != 0) {
         core->state = (uint8_t)ESTOP_STATE_STOPPED;
         core->reason = reason;
-        core->counters.stops[reason]++;
+        sat32_inc(&core->counters.stops[reason]);
         core->status_stops = sat4_inc(core->status_stops);
         state_changed(core, out);
     }
@@ -304,7 +312,7 @@ static void enter_slowing(estop_core_t *core)
 {
     core->state = (uint8_t)ESTOP_STATE_SLOWING;
     core->slow_run = 0u;
-    core->counters.slowdowns++;
+    sat32_inc(&core->counters.slowdowns);
     core->status_slowdowns = sat4_inc(core->status_slowdowns);
 }
 
@@ -336,7 +344,7 @@ static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
     if (step > ESTOP_MAX_STEP_US) {
         /* The tick went backwards: the unit can no longer trust any age it computes. */
         core->link_fresh = 0u;
-        core->counters.faults++;
+        sat32_inc(&core->counters.faults);
         stop(core, (uint8_t)ESTOP_REASON_FAULT, out);
     }
     if (core->link_fresh == 0u) {
@@ -344,6 +352,9 @@ static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
     } else if (link_age(core) >= core->cfg.timeout_us) {
         core->link_fresh = 0u; /* latched: a wrapped tick can never make this link young again */
         core->valid_run = 0u;  /* a RELEASE needs its packets from after the silence */
+        /* This step may already be too long to measure, and the next one could wrap the age
+         * back to a short one: the gap is aged now too. */
+        estop__age_gap(core, step);
     } else {
         /* a fresh link: its age is measured from last_valid_us */
     }
@@ -462,7 +473,9 @@ static int body_valid(const uint8_t *b, int has_horn)
 }
 
 /* Section 1: the control body of a valid packet of the form the unit expects (plain without
- * a key, authenticated with one), or NULL. d is not NULL. */
+ * a key, authenticated with one), or NULL. d is not NULL. With a key, a control packet whose
+ * body is valid but that is not authenticated counts as an authentication failure (the body
+ * is checked first: docs/PROTOCOL.md 5). */
 static const uint8_t *valid_body(estop_core_t *core, const uint8_t *d, size_t len)
 {
     const uint8_t *body = NULL;
@@ -474,12 +487,20 @@ static const uint8_t *valid_body(estop_core_t *core, const uint8_t *d, size_t le
         } else {
             /* no valid plain packet: body stays NULL */
         }
-    } else if ((len == ESTOP_UDP_AUTH_LEN) && (rd_u32le(d) == ESTOP_MAGIC_CONTROL) &&
-               body_valid(&d[CONTROL_BODY_AT], 1) &&
-               estop__authenticate(core, d, CONTROL_TAG_AT, CONTROL_IDS_AT, CHANNEL_UDP)) {
-        body = &d[CONTROL_BODY_AT];
+    } else if ((len == ESTOP_UDP_AUTH_LEN) && body_valid(&d[CONTROL_BODY_AT], 1)) {
+        if (rd_u32le(d) != ESTOP_MAGIC_CONTROL) {
+            estop__unauthenticated(core);
+        } else if (estop__authenticate(core, d, CONTROL_TAG_AT, CONTROL_IDS_AT, CHANNEL_UDP) !=
+                   0) {
+            body = &d[CONTROL_BODY_AT];
+        } else {
+            /* counted by estop__authenticate: body stays NULL */
+        }
+    } else if (((len == ESTOP_UDP_LEN) && body_valid(d, 1)) ||
+               ((len == ESTOP_UDP_LEN_NO_HORN) && body_valid(d, 0))) {
+        estop__unauthenticated(core); /* a plain packet: the key holder's are tagged */
     } else {
-        /* no valid authenticated packet: body stays NULL */
+        /* not a control packet at all: invalid, body stays NULL */
     }
     return body;
 }
@@ -515,7 +536,7 @@ static void count_rearm(estop_core_t *core, estop_out_t *out)
 {
     core->slow_run++;
     if (core->slow_run >= ESTOP_REARM_PACKETS) {
-        core->counters.rearms++;
+        sat32_inc(&core->counters.rearms);
         core->state = (uint8_t)ESTOP_STATE_ARMED;
         state_changed(core, out);
     }
@@ -535,13 +556,13 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
             }
         }
         if (reason != ESTOP_REASON_NONE) {
-            core->counters.udp_stops++;
+            sat32_inc(&core->counters.udp_stops);
             stop(core, reason, out);
         } else if (body != NULL) {
             estop__record_gap(core); /* core->now_us is now_us from here on */
-            core->counters.udp_valid++;
+            sat32_inc(&core->counters.udp_valid);
             core->status_valid = sat8_inc(core->status_valid);
-            core->valid_run = sat32_inc(core->valid_run);
+            sat32_inc(&core->valid_run);
             core->last_valid_us = core->now_us;
             core->link_fresh = 1u;
             core->last_neutral = non_positive_bits(rd_u32le(body)) ? 1u : 0u;
@@ -549,7 +570,7 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
                 count_rearm(core, out);
             }
         } else {
-            core->counters.udp_invalid++;
+            sat32_inc(&core->counters.udp_invalid);
             core->status_invalid = sat8_inc(core->status_invalid);
         }
         estop__finish(core, out);
@@ -578,9 +599,9 @@ static uint8_t release(estop_core_t *core, int authenticated, estop_out_t *out)
         nak = (uint8_t)ESTOP_NAK_NONE; /* ARMED or SLOWING: acknowledged, nothing changes */
     }
     if ((nak == ESTOP_NAK_NONE) && (out->state_changed != 0u)) {
-        core->counters.releases_accepted++;
+        sat32_inc(&core->counters.releases_accepted);
     } else if (nak != ESTOP_NAK_NONE) {
-        core->counters.releases_refused++;
+        sat32_inc(&core->counters.releases_refused);
     } else {
         /* acknowledged while ARMED or SLOWING: neither accepted nor refused */
     }
@@ -593,13 +614,13 @@ uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
 {
     uint8_t nak = (uint8_t)ESTOP_NAK_NONE;
     const uint8_t reason = stop_reason(core, msg_id);
-    core->counters.tcp_frames++;
+    sat32_inc(&core->counters.tcp_frames);
     if (reason != ESTOP_REASON_NONE) {
         stop(core, reason, out);
     } else if (msg_id == ESTOP_MSG_RELEASE) {
         nak = release(core, release_authenticated, out);
     } else if (msg_id != ESTOP_MSG_STATUS) {
-        core->counters.tcp_unknown_id++;
+        sat32_inc(&core->counters.tcp_unknown_id);
         nak = (uint8_t)ESTOP_NAK_UNKNOWN_ID;
     } else {
         /* STATUS: answered with ACK, changes nothing */
@@ -611,7 +632,7 @@ estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out)
 {
     estop_err_t err = estop__begin(core, now_us, out);
     if (err == ESTOP_OK) {
-        core->counters.faults++;
+        sat32_inc(&core->counters.faults);
         stop(core, (uint8_t)ESTOP_REASON_FAULT, out);
         estop__finish(core, out);
     }
@@ -645,7 +666,7 @@ const char *estop_err_name(estop_err_t err)
         "bad_stop_id",  "bad_can_id",       "bad_data_id",  "bad_release_count",
         "bad_brake_period", "bad_status_period", "not_initialised", "bad_slot",
         "slot_closed",  "bad_key",          "bad_session",  "bad_slow_time",
-        "bad_slow_level"};
+        "bad_slow_level", "bad_tag_budget"};
     const char *name = "unknown_error";
     const size_t n = sizeof(names) / sizeof(names[0]);
     const int count = (int)n;

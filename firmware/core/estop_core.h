@@ -115,6 +115,11 @@ extern "C" {
 #define ESTOP_DEFAULT_RELEASE_PACKETS 5u
 #define ESTOP_DEFAULT_BRAKE_PERIOD_US 10000u
 #define ESTOP_DEFAULT_STATUS_PERIOD_US 100000u
+/* Tag checks of authenticated control packets (PROTOCOL.md 5, "a bounded cost"): each remote
+ * id with a place (for its next counters), and everything else together, get this many per
+ * window. */
+#define ESTOP_DEFAULT_TAG_CHECKS 10u
+#define ESTOP_DEFAULT_TAG_WINDOW_US 100000u
 
 /* Accepted configuration ranges (checked by estop_init). */
 #define ESTOP_TIMEOUT_MIN_US 1000u
@@ -126,6 +131,10 @@ extern "C" {
 #define ESTOP_CAN_ID_MAX 0x7FFu
 #define ESTOP_SLOW_LEVEL_MIN 1u
 #define ESTOP_SLOW_LEVEL_MAX 99u
+#define ESTOP_TAG_CHECKS_MIN 1u
+#define ESTOP_TAG_CHECKS_MAX 100u
+#define ESTOP_TAG_WINDOW_MIN_US 1000u
+#define ESTOP_TAG_WINDOW_MAX_US 1000000u
 
 typedef enum {
     ESTOP_OK = 0,
@@ -144,7 +153,8 @@ typedef enum {
     ESTOP_ERR_KEY = -13,           /* key_len is neither 0 (no key) nor ESTOP_KEY_LEN */
     ESTOP_ERR_SESSION = -14,       /* session is 0 */
     ESTOP_ERR_SLOW = -15,          /* slow_us not in 1 .. timeout_us */
-    ESTOP_ERR_SLOW_LEVEL = -16     /* slow_level not in 1 .. 99 */
+    ESTOP_ERR_SLOW_LEVEL = -16,    /* slow_level not in 1 .. 99 */
+    ESTOP_ERR_TAG_BUDGET = -17     /* tag_checks or tag_window_us outside its range */
 } estop_err_t;
 
 typedef struct {
@@ -161,9 +171,14 @@ typedef struct {
     uint32_t release_packets;  /* valid packets needed since the stop before a RELEASE */
     uint32_t brake_period_us;
     uint32_t status_period_us;
+    uint32_t tag_window_us;    /* the window of the tag-check budget (see tag_checks) */
     uint64_t session;          /* N: drawn by the host from a cryptographic source at every
                                   boot; never 0 (a unit without a key has one too) */
     uint8_t slow_level;        /* L: brake_level while SLOWING, percent 1..99 */
+    uint8_t tag_checks;        /* tag checks of control packets per tag_window_us, for each
+                                  remote id with a place (its next counters) and for all
+                                  others together; the rest are dropped unchecked (a bounded
+                                  cost per window, PROTOCOL.md 5) */
     uint8_t key_len;           /* 0: no key; ESTOP_KEY_LEN: key holds the key */
     uint8_t key[ESTOP_KEY_LEN];
 } estop_config_t;
@@ -174,6 +189,7 @@ typedef struct {
     uint8_t data[ESTOP_CAN_DLC];
 } estop_can_frame_t;
 
+/* Every counter saturates at UINT32_MAX: it never wraps back to a small number. */
 typedef struct {
     uint32_t udp_valid;
     uint32_t udp_invalid;
@@ -189,10 +205,14 @@ typedef struct {
     uint32_t faults;          /* faults reported by the host, in any state */
     /* Messages that needed authentication (control packets and RELEASE on a unit with a key)
      * and failed it, by the first check that failed (PROTOCOL.md 5). */
-    uint32_t auth_bad_tag;
+    uint32_t auth_bad_tag;     /* wrong tag, or none: a plain control packet or RELEASE, a
+                                  60-byte packet without the ESU2 magic */
     uint32_t auth_bad_session;
     uint32_t auth_old_counter; /* replayed or stale: not above the highest kept */
     uint32_t auth_table_full;  /* a 9th remote id */
+    /* Control packets dropped unchecked: the tag-check budget of their remote id (or of the
+     * ids without a place) was spent in this window. Counted as invalid, not as failures. */
+    uint32_t auth_unchecked;
 } estop_counters_t;
 
 /* Filled by every entry point: the counts and flags always; can[0 .. n_can-1] and, with
@@ -227,6 +247,7 @@ typedef struct {
     uint32_t id;
     uint8_t used;
     uint8_t seen;              /* bit 0: a UDP counter is kept; bit 1: a TCP counter */
+    uint8_t checks;            /* tag checks of its control packets in the current window */
 } estop_remote_t;
 
 /* Caller-owned state. Treat as opaque: read it only through the functions below. */
@@ -257,6 +278,9 @@ typedef struct {
     estop_counters_t counters;
     estop_slot_t slots[ESTOP_MAX_SLOTS];
     estop_b2s_key_t mac;       /* the state after the key block (the key itself is not kept) */
+    uint32_t tag_window_us;    /* tick at which the current tag-check window began */
+    uint8_t newcomer_checks;   /* tag checks this window from the shared allowance (new ids,
+                                  counters far ahead) */
     estop_remote_t remotes[ESTOP_MAX_REMOTES];
 } estop_core_t;
 

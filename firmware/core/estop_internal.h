@@ -80,10 +80,17 @@ static inline uint8_t sat8_inc(uint8_t v)
     return (v < SAT8_MAX) ? (uint8_t)(v + 1u) : v;
 }
 
-/*@ assigns \nothing; */
-static inline uint32_t sat32_inc(uint32_t v)
+/* Adds 1 unless the count is at its top, UINT32_MAX: a counter never wraps to a small one
+ * (in place: a store skipped at the top is cheaper than a select on every count). */
+/*@ requires \valid(count);
+    assigns *count;
+ */
+static inline void sat32_inc(uint32_t *count)
 {
-    return (v < 0xFFFFFFFFu) ? (uint32_t)(v + 1u) : v;
+    const uint32_t next = *count + 1u;
+    if (next != 0u) {
+        *count = next;
+    }
 }
 
 /* Byte loops instead of struct assignment: gcc compiles a large struct copy or zeroing into a
@@ -141,6 +148,10 @@ uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
  * remote the table holds; the counter is then kept. Only called on a unit with a key. */
 int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, size_t ids_at,
                         uint32_t channel);
+
+/* A control packet or RELEASE that needs authentication but has no tag to check (plain form,
+ * wrong magic): counted as a bad tag. */
+void estop__unauthenticated(estop_core_t *core);
 
 /* ---- link statistics (estop_link.c) ------------------------------------------------------- */
 

@@ -64,9 +64,9 @@ void estop__record_gap(estop_core_t *core)
     if (core->gap_known != 0u) {
         uint32_t gap = (uint32_t)(core->now_us - core->last_valid_us);
         uint32_t bin = estop_gap_bin(gap);
-        core->gaps[bin] = sat32_inc(core->gaps[bin]);
+        sat32_inc(&core->gaps[bin]);
         if (gap >= core->cfg.warn_us) {
-            core->silences = sat32_inc(core->silences);
+            sat32_inc(&core->silences);
         }
     }
     core->gap_known = 1u;

@@ -73,7 +73,7 @@ static void reply_plain(const estop_core_t *core, uint32_t seq, uint8_t nak_code
 }
 
 /* Section 5.3: the 48-byte reply to a request frame, tagged over the request's tag and the
- * reply's first 32 bytes (zero tag without a key). */
+ * reply's first 32 bytes (zero tag without a key, or when the MAC cannot be made). */
 /*@ requires \valid_read(core) && \valid(out) && \valid_read(req + (0 .. 47));
     requires \separated(out, core, req + (0 .. 47));
     assigns out->reply[0 .. 47], out->reply_len, out->has_reply;
@@ -83,36 +83,19 @@ static void reply_request(const estop_core_t *core, const uint8_t *req, uint8_t 
                           estop_out_t *out)
 {
     uint8_t *r = out->reply;
-    uint32_t i;
     wr_u32le(r, ESTOP_MAGIC_REPLY);
     reply_head(core, &r[4], rd_u32le(&req[8]), nak_code);
     wr_u64le(&r[16], core->cfg.session);
     wr_u64le(&r[24], rd_u64le(&req[24]));
     if (core->cfg.key_len != 0u) {
         uint8_t m[ESTOP_TAG_LEN + REQUEST_TAG_AT];
-        /*@ loop invariant 0 <= i <= 16;
-            loop assigns i, m[0 .. 15];
-            loop variant 16 - i;
-         */
-        for (i = 0u; i < ESTOP_TAG_LEN; i++) {
-            m[i] = req[REQUEST_TAG_AT + i];
+        copy_bytes(m, &req[REQUEST_TAG_AT], ESTOP_TAG_LEN);
+        copy_bytes(&m[ESTOP_TAG_LEN], r, REQUEST_TAG_AT);
+        if (estop_b2s_mac(&core->mac, m, sizeof m, &r[REQUEST_TAG_AT]) != 0) {
+            zero_bytes(&r[REQUEST_TAG_AT], ESTOP_TAG_LEN); /* no tag rather than a stale one */
         }
-        /*@ loop invariant 0 <= i <= 32;
-            loop assigns i, m[16 .. 47];
-            loop variant 32 - i;
-         */
-        for (i = 0u; i < REQUEST_TAG_AT; i++) {
-            m[ESTOP_TAG_LEN + i] = r[i];
-        }
-        (void)estop_b2s_mac(&core->mac, m, sizeof m, &r[REQUEST_TAG_AT]);
     } else {
-        /*@ loop invariant 0 <= i <= 16;
-            loop assigns i, out->reply[32 .. 47];
-            loop variant 16 - i;
-         */
-        for (i = 0u; i < ESTOP_TAG_LEN; i++) {
-            r[REQUEST_TAG_AT + i] = 0u;
-        }
+        zero_bytes(&r[REQUEST_TAG_AT], ESTOP_TAG_LEN);
     }
     out->reply_len = (uint8_t)ESTOP_REPLY_MAX;
     out->has_reply = 1u;
@@ -125,11 +108,16 @@ static void handle_plain(estop_core_t *core, estop_slot_t *slot, estop_out_t *ou
     const uint8_t *f = slot->buf;
     if (estop_crc32(f, 12u) != rd_u32le(&f[12])) {
         /* The stream has lost framing: nothing after this can be trusted. */
-        core->counters.tcp_bad_crc++;
+        sat32_inc(&core->counters.tcp_bad_crc);
         slot->open = 0u;
         out->close_slot = 1u;
     } else {
-        uint8_t nak = estop__handle_msg(core, rd_u32le(f), core->cfg.key_len == 0u, out);
+        const uint32_t msg_id = rd_u32le(f);
+        uint8_t nak;
+        if ((msg_id == ESTOP_MSG_RELEASE) && (core->cfg.key_len != 0u)) {
+            estop__unauthenticated(core); /* the key holder's RELEASE is a request frame */
+        }
+        nak = estop__handle_msg(core, msg_id, core->cfg.key_len == 0u, out);
         reply_plain(core, rd_u32le(&f[4]), nak, out);
     }
 }

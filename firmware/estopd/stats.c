@@ -65,20 +65,22 @@ static void report_link(daemon_t *d, uint64_t now, const estop_counters_t *c)
 }
 
 /* auth_failures: control packets and RELEASEs that failed authentication, by the first check
- * that failed (PROTOCOL.md 5), cumulative since start. Written only when they changed. */
+ * that failed (PROTOCOL.md 5), and the control packets dropped unchecked over the tag-check
+ * budget (unchecked), cumulative since start. Written only when they changed. */
 static void report_auth(daemon_t *d, uint64_t now, const estop_counters_t *c)
 {
     uint64_t sum = (uint64_t)c->auth_bad_tag + c->auth_bad_session + c->auth_old_counter +
-                   c->auth_table_full;
+                   c->auth_table_full + c->auth_unchecked;
     if (sum != d->stats_auth_reported) {
         log_kv_t kv[] = {
             KV_NUM("tag", c->auth_bad_tag),
             KV_NUM("session", c->auth_bad_session),
             KV_NUM("counter", c->auth_old_counter),
             KV_NUM("table_full", c->auth_table_full),
+            KV_NUM("unchecked", c->auth_unchecked),
         };
         d->stats_auth_reported = sum;
-        log_event(now, "auth_failures", NULL, kv, 4u);
+        log_event(now, "auth_failures", NULL, kv, 5u);
     }
 }
 

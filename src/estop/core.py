@@ -65,6 +65,8 @@ class Config:
     release_packets: int = lib.ESTOP_DEFAULT_RELEASE_PACKETS
     brake_period_us: int = lib.ESTOP_DEFAULT_BRAKE_PERIOD_US
     status_period_us: int = lib.ESTOP_DEFAULT_STATUS_PERIOD_US
+    tag_checks: int = lib.ESTOP_DEFAULT_TAG_CHECKS
+    tag_window_us: int = lib.ESTOP_DEFAULT_TAG_WINDOW_US
     session: int = TEST_SESSION
     key: bytes | None = None
 
@@ -81,7 +83,7 @@ class Config:
         for name in (
             "timeout_us", "stop_id", "brake_can_id", "status_can_id", "brake_data_id",
             "status_data_id", "release_packets", "brake_period_us", "status_period_us",
-            "slow_level",
+            "slow_level", "tag_checks", "tag_window_us",
         ):
             setattr(cfg, name, getattr(self, name))
         cfg.slow_us = self.effective_slow_us
@@ -133,6 +135,7 @@ class Counters:
     auth_bad_session: int
     auth_old_counter: int
     auth_table_full: int
+    auth_unchecked: int
 
 
 @dataclass(frozen=True)
@@ -296,6 +299,7 @@ class Watchdog:
             slowdowns=c.slowdowns, rearms=c.rearms, faults=c.faults,
             auth_bad_tag=c.auth_bad_tag, auth_bad_session=c.auth_bad_session,
             auth_old_counter=c.auth_old_counter, auth_table_full=c.auth_table_full,
+            auth_unchecked=c.auth_unchecked,
         )
         return Status(
             state=st.state, reason=st.reason, flags=st.flags, link_live=bool(st.link_live),

@@ -28,7 +28,15 @@ from mcubuild import (
     load_segments,
     prototypes,
 )
-from unicorn import UC_ARCH_ARM, UC_HOOK_CODE, UC_MODE_MCLASS, UC_MODE_THUMB, Uc, UcError
+from unicorn import (
+    UC_ARCH_ARM,
+    UC_HOOK_BLOCK,
+    UC_HOOK_CODE,
+    UC_MODE_MCLASS,
+    UC_MODE_THUMB,
+    Uc,
+    UcError,
+)
 from unicorn.arm_const import (
     UC_ARM_REG_LR,
     UC_ARM_REG_PC,
@@ -62,8 +70,12 @@ ARM_SCALAR = {"uint8_t": 1, "int8_t": 1, "uint16_t": 2, "int16_t": 2, "uint32_t"
 class CortexM:
     """One Cortex-M CPU with the image in flash, and RAM for the caller's objects and stack."""
 
-    def __init__(self, elf: Path, target: str, count: bool = False) -> None:
-        """count: count executed instructions (a hook on every instruction, so slower). The
+    def __init__(self, elf: Path, target: str, count: bool | str = False) -> None:
+        """count: count executed instructions: True (or "insn") with a hook on every
+        instruction, so slower; "block" with a hook on every basic block, which adds the
+        block's instructions (decoded once per block: ten times faster, and the same count on
+        ARMv6-M, where a block is entered only to run whole, as nothing here faults or is
+        interrupted; on ARMv7-M the instructions an IT block skips would count too). The
         hook is set before any code runs: unicorn does not add it to code already translated."""
         segments, self.symbols = load_segments(elf)
         self.uc = Uc(UC_ARCH_ARM, UC_MODE_THUMB | UC_MODE_MCLASS)
@@ -77,8 +89,11 @@ class CortexM:
         self._next = RAM_BASE
         self.instructions = 0
         self.stack_used = 0
-        self.counting = count
-        if count:
+        self.counting = bool(count)
+        self._block_sizes: dict[tuple[int, int], int] = {}
+        if count == "block":
+            self.uc.hook_add(UC_HOOK_BLOCK, self._count_block)
+        elif count:
             self.uc.hook_add(UC_HOOK_CODE, self._count)
 
     def alloc(self, size: int, align: int = 8) -> int:
@@ -155,6 +170,20 @@ class CortexM:
 
     def _count(self, uc: Uc, address: int, size: int, user: object) -> None:
         self.instructions += 1
+
+    def _count_block(self, uc: Uc, address: int, size: int, user: object) -> None:
+        n = self._block_sizes.get((address, size))
+        if n is None:
+            # Thumb: a halfword whose top five bits are 0b11101, 0b11110 or 0b11111 starts
+            # a 32-bit instruction; any other is a 16-bit one.
+            code = self.read(address, size)
+            n = i = 0
+            while i < size:
+                hw = code[i] | (code[i + 1] << 8)
+                i += 4 if (hw & 0xF800) in (0xE800, 0xF000, 0xF800) else 2
+                n += 1
+            self._block_sizes[(address, size)] = n
+        self.instructions += n
 
 
 # ---- one interface over both builds --------------------------------------------------------
@@ -301,7 +330,7 @@ class HostCore(_Side):
 class ArmCore(_Side):
     """A Cortex-M build in the emulator, with one object per type in its RAM."""
 
-    def __init__(self, v: Variant, ffi: Any, count: bool = False) -> None:
+    def __init__(self, v: Variant, ffi: Any, count: bool | str = False) -> None:
         super().__init__(ffi, v.core)
         self.variant = v
         self.cpu = CortexM(v.elf, v.target, count)

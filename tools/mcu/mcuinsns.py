@@ -56,11 +56,13 @@ SESSION = 0x0123456789ABCDEF
 RID = 7
 
 
-def scenario(v: Variant, ffi: Any, lib: Any, keyed: bool = False) -> list[Count]:
+def scenario(v: Variant, ffi: Any, lib: Any, keyed: bool = False,
+             count: bool | str = True) -> list[Count]:
+    """count: how the emulator counts (mcuemu.CortexM): every instruction, or "block"."""
     from estop.protocol import auth
     from estop.protocol.udp import ControlPacket
 
-    arm = ArmCore(v, ffi, count=True)
+    arm = ArmCore(v, ffi, count=count)
     counts: list[Count] = []
     counter = {"udp": 0, "tcp": 0}
     kind = "authenticated " if keyed else ""

@@ -1,0 +1,36 @@
+"""The core checks what estop_b2s_mac returns (issue 16, defect 9): a MAC that fails means
+"not authentic", and a reply whose tag could not be made carries a zero tag. The C program
+tests/c/mac_failure.c breaks the core's MAC state and runs under valgrind's memcheck, so a tag
+that was never written cannot pass by chance: comparing it is an error of its own
+(MemorySanitizer would miss it: its shadow arithmetic loses the carry in estop_ct_equal's
+constant-time fold)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+CORE = ROOT / "firmware" / "core"
+
+pytestmark = pytest.mark.timeout(180)
+
+
+def test_a_failing_mac_is_not_authentic_and_tags_no_reply(tmp_path: Path) -> None:
+    cc = shutil.which("gcc")
+    valgrind = shutil.which("valgrind")
+    if cc is None or valgrind is None:
+        pytest.fail("gcc or valgrind is missing: scripts/ensure-debs build check "
+                    "(deps/debian-packages.txt)")
+    exe = tmp_path / "mac_failure"
+    subprocess.run([cc, "-std=c99", "-g", "-O2", "-Wall", "-Wextra", "-Werror", f"-I{CORE}",
+                    str(ROOT / "tests" / "c" / "mac_failure.c"),
+                    *map(str, sorted(CORE.glob("estop_*.c"))), "-o", str(exe)],
+                   check=True, timeout=120)
+    res = subprocess.run([valgrind, "-q", "--error-exitcode=99", str(exe)],
+                         capture_output=True, text=True, timeout=60, check=False)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert res.stdout.strip() == "all mac failure checks passed"

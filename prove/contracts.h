@@ -14,51 +14,7 @@
 
 #include "estop_crc.h"
 #include "estop_internal.h"
-
-/*@
-  // The configuration estop_config_check accepts (the parts the proofs use).
-  predicate cfg_ok(estop_core_t *c) =
-      1000 <= c->cfg.timeout_us <= 60000000 && 1 <= c->cfg.slow_us <= c->cfg.timeout_us &&
-      1 <= c->cfg.warn_us <= c->cfg.slow_us && 1 <= c->cfg.slow_level <= 99 &&
-      c->cfg.brake_can_id != c->cfg.status_can_id &&
-      1000 <= c->cfg.brake_period_us <= 25000 &&
-      10000 <= c->cfg.status_period_us <= 1000000;
-
-  // What holds between any two calls of an initialised core: a known state and reason, every
-  // TCP slot's fill inside its buffer, and ARMED or SLOWING only with a fresh link.
-  // Written out slot by slot: ground terms, which the solvers carry across memory updates far
-  // more easily than a quantifier.
-  predicate slots_ok(estop_core_t *c) =
-      c->slots[0].fill < 48 && c->slots[1].fill < 48 && c->slots[2].fill < 48 &&
-      c->slots[3].fill < 48 && c->slots[4].fill < 48 && c->slots[5].fill < 48 &&
-      c->slots[6].fill < 48 && c->slots[7].fill < 48;
-  predicate fills_kept{L1, L2}(estop_core_t *c) =
-      \at(c->slots[0].fill, L1) == \at(c->slots[0].fill, L2) &&
-      \at(c->slots[1].fill, L1) == \at(c->slots[1].fill, L2) &&
-      \at(c->slots[2].fill, L1) == \at(c->slots[2].fill, L2) &&
-      \at(c->slots[3].fill, L1) == \at(c->slots[3].fill, L2) &&
-      \at(c->slots[4].fill, L1) == \at(c->slots[4].fill, L2) &&
-      \at(c->slots[5].fill, L1) == \at(c->slots[5].fill, L2) &&
-      \at(c->slots[6].fill, L1) == \at(c->slots[6].fill, L2) &&
-      \at(c->slots[7].fill, L1) == \at(c->slots[7].fill, L2);
-
-  predicate inv_base(estop_core_t *c) =
-      cfg_ok(c) && c->state <= 2 && c->reason <= 5 &&
-      slots_ok(c) && c->mac.outlen <= 16;
-  predicate inv(estop_core_t *c) = inv_base(c) && (c->state != 0 ==> c->link_fresh != 0);
-
-  predicate core_ok(estop_core_t *c) = c->magic == 0x45535450 ==> inv(c);
-
-  // ESTOP_BRAKE byte 0 (brake_request) and byte 1 (brake_level) match byte 2 (the state):
-  // 0/0 ARMED, 2/L SLOWING, 1/100 STOPPED.
-  predicate brake_ok(estop_out_t *o, integer k, integer level) =
-      (o->can[k].data[2] == 1 && o->can[k].data[0] == 0 && o->can[k].data[1] == 0) ||
-      (o->can[k].data[2] == 2 && o->can[k].data[0] == 2 && o->can[k].data[1] == level) ||
-      (o->can[k].data[2] == 0 && o->can[k].data[0] == 1 && o->can[k].data[1] == 100);
-
-  predicate host(estop_core_t *c, estop_out_t *o) =
-      \valid(c) && \valid(o) && \separated(c, o) && core_ok(c);
-*/
+#include "predicates.h"
 
 /* ---- the state machine's steps (estop_core.c) --------------------------------------------- */
 
@@ -73,12 +29,12 @@
       ensures core != \null ==> core->state == \old(core->state);
     behavior run:
       assumes core != \null && out != \null;
-      ensures \result == ESTOP_OK <==> core->magic == 0x45535450;
-      ensures \result == ESTOP_OK ==> inv(core);
-      ensures \result == ESTOP_OK ==> core->now_us == now_us && out->n_can <= 3 &&
+      ensures ok_iff_init: \result == ESTOP_OK <==> core->magic == 0x45535450;
+      ensures begin_inv: \result == ESTOP_OK ==> inv(core);
+      ensures begin_out: \result == ESTOP_OK ==> core->now_us == now_us && out->n_can <= 3 &&
           out->has_reply == 0 && out->close_slot == 0;
-      ensures \result != ESTOP_OK ==> core->state == \old(core->state);
-      ensures never_leaves_stopped: \old(core->state) == 0 ==> core->state == 0;
+      ensures refused_keeps_state: \result != ESTOP_OK ==> core->state == \old(core->state);
+      ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
     complete behaviors; disjoint behaviors;
  */
 estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out);
@@ -98,13 +54,14 @@ uint8_t estop__current_flags(const estop_core_t *core);
 /*@ requires host(core, out) && core->magic == 0x45535450 && inv(core);
     requires out->n_can <= 3;
     assigns *core, out->can[0 .. 2], out->n_can, out->state_changed;
-    ensures inv(core);
-    ensures out->n_can <= 3;
-    ensures core->now_us == \old(core->now_us) && core->magic == \old(core->magic);
-    ensures fills_kept{Pre, Post}(core);
+    ensures msg_inv: inv(core);
+    ensures msg_frames: out->n_can <= 3;
+    ensures msg_keeps_clock: core->now_us == \old(core->now_us) &&
+        core->magic == \old(core->magic);
+    ensures msg_keeps_fills: fills_kept{Pre, Post}(core);
     ensures leaves_stopped_only_by_release: \old(core->state) == 0 && core->state != 0 ==>
         msg_id == ESTOP_MSG_RELEASE && release_authenticated != 0 && \result == 0;
-    ensures \result <= 4;
+    ensures nak_code: \result <= 4;
  */
 uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authenticated,
                           estop_out_t *out);
@@ -176,59 +133,57 @@ int estop_ct_equal(const uint8_t *a, const uint8_t *b, size_t n);
 
 /* ---- the entry points (estop_core.h) ------------------------------------------------------- */
 
-/*@ requires \valid(core) && \valid_read(cfg) && \separated(core, cfg);
+/*@ requires core == \null || \valid(core);
+    requires cfg == \null || (\valid_read(cfg) && \separated(core, cfg));
     assigns *core;
-    ensures \result == ESTOP_OK ==> core->magic == 0x45535450 && inv(core) &&
-        core->state == 0;
-    ensures \result != ESTOP_OK ==> core->magic != 0x45535450;
  */
 estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t now_us);
 
-/*@ requires host(core, out);
+/*@ requires core == \null || out == \null || host(core, out);
     assigns *core, *out;
-    ensures \result == ESTOP_OK ==> inv(core);
-    ensures never_leaves_stopped: \old(core->state) == 0 ==> core->state == 0;
+    ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
  */
 estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 
-/*@ requires host(core, out);
+/*@ requires core == \null || out == \null || host(core, out);
     requires data == \null || (\valid_read(data + (0 .. len - 1)) &&
         \separated(data + (0 .. len - 1), core, out));
     assigns *core, *out;
-    ensures \result == ESTOP_OK ==> inv(core);
-    ensures never_leaves_stopped: \old(core->state) == 0 ==> core->state == 0;
+    ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
  */
 estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
                          estop_out_t *out);
 
-/*@ requires host(core, out);
+/*@ requires core == \null || out == \null || host(core, out);
     assigns *core, *out;
-    ensures \result == ESTOP_OK ==> inv(core);
-    ensures never_leaves_stopped: \old(core->state) == 0 ==> core->state == 0;
+    ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
  */
 estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 
-/*@ requires core == \null || host(core, out);
+/*@ requires core == \null || out == \null || host(core, out);
     assigns *core, *out;
-    ensures \result == ESTOP_OK ==> inv(core);
+    ensures inv_kept: \result == ESTOP_OK ==> inv(core);
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
  */
 estop_err_t estop_tcp_open(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out);
 
-/*@ requires core == \null || host(core, out);
+/*@ requires core == \null || out == \null || host(core, out);
     assigns *core, *out;
-    ensures \result == ESTOP_OK ==> inv(core);
+    ensures inv_kept: \result == ESTOP_OK ==> inv(core);
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
  */
 estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out);
 
-/*@ requires core == \null || host(core, out);
+/*@ requires core == \null || out == \null || host(core, out);
     requires consumed == \null || (\valid(consumed) && \separated(consumed, core, out));
     requires data == \null || (\valid_read(data + (0 .. len - 1)) &&
         \separated(data + (0 .. len - 1), core, out, consumed));
     assigns *core, *out, *consumed;
-    ensures \result == ESTOP_OK ==> inv(core);
-    ensures \result == ESTOP_OK ==> *consumed <= len;
+    ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures consumed_bound: \result == ESTOP_OK ==> *consumed <= len;
     ensures leaves_stopped_only_by_release: core != \null && \old(core->state) == 0 &&
         core->state != 0 ==> \result == ESTOP_OK && out->has_reply == 1 &&
         slot < 8 && core->slots[slot].fill == 0 &&

@@ -133,7 +133,9 @@ static void copy_config(estop_config_t *dst, const estop_config_t *src)
     dst->brake_period_us = src->brake_period_us;
     dst->status_period_us = src->status_period_us;
     dst->session = src->session;
+    dst->tag_window_us = src->tag_window_us;
     dst->slow_level = src->slow_level;
+    dst->tag_checks = src->tag_checks;
     dst->key_len = src->key_len;
 }
 

@@ -34,3 +34,24 @@ def test_a_failing_mac_is_not_authentic_and_tags_no_reply(tmp_path: Path) -> Non
                          capture_output=True, text=True, timeout=60, check=False)
     assert res.returncode == 0, res.stdout + res.stderr
     assert res.stdout.strip() == "all mac failure checks passed"
+
+
+def test_the_same_through_the_binding() -> None:
+    """The same checks on the module the other tests use (and that make coverage measures):
+    with the MAC state broken, a rightly tagged packet is not valid, and a reply's tag is
+    zero (the previous reply's tag bytes are still in the output buffer)."""
+    from estop.core import Config, Watchdog
+    from estop.protocol import auth
+    from estop.protocol.udp import ControlPacket
+
+    key, session = bytes(range(32)), 0x0123456789ABCDEF
+    wd = Watchdog(Config(key=key, session=session))
+    wd.tcp_open(0, 1000)
+    first = wd.tcp_data(0, auth.AuthRequest(1, 1, 7, session, 1).encode(key), 2000)
+    assert first[-1].reply is not None and first[-1].reply[32:] != bytes(16)
+    wd._core.mac.outlen = 0  # every MAC fails from here on
+    wd.udp(auth.AuthControlPacket(7, session, 1, ControlPacket()).encode(key), 3000)
+    c = wd.status().counters
+    assert (c.udp_valid, c.auth_bad_tag) == (0, 1)
+    steps = wd.tcp_data(0, auth.AuthRequest(1, 2, 7, session, 2).encode(key), 4000)
+    assert steps[-1].reply is not None and steps[-1].reply[32:] == bytes(16)

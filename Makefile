@@ -7,7 +7,7 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 COVDIR := build/cov
 
-.PHONY: setup demo test check coverage hil gamepad-vm bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install
+.PHONY: setup demo test check coverage hil gamepad-vm bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install prove
 setup: $(STAMP) $(VENV)/bin/estopd
 
 $(STAMP): pyproject.toml setup.py pyext/build_core.py pyext/estop_build_backend.py deps/debian-packages.txt $(wildcard firmware/core/*)
@@ -29,6 +29,7 @@ demo: setup
 test: setup
 	$(MAKE) check
 	$(MAKE) fuzz-smoke
+	$(MAKE) prove
 	$(MAKE) mutants-changed
 	$(MAKE) coverage
 	$(MAKE) hil
@@ -61,6 +62,12 @@ hil: setup
 # this kernel has no uinput (tools/vm-pytest). Prints the lift latency it measured.
 gamepad-vm: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" tools/vm-pytest tests/test_gamepad_uinput.py
+
+# The core under Frama-C (docs/PROOF.md): Eva over the whole API (0 alarms, every function
+# reached), WP on the ACSL contracts (every goal proved), and a self-test on planted faults.
+prove:
+	scripts/ensure-debs prove
+	$(PYTHON) tools/prove.py
 
 # Benchmarks (not part of `make test`): stop latency vs the asyncio baseline, memory soak,
 # instructions per input (host and Cortex-M), the dashboard's cost. Reports land in bench/out/.

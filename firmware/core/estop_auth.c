@@ -26,10 +26,21 @@
                                       (22 minutes at 50 Hz) */
 
 /* The table entry of a remote id, or NULL when it has no place. */
+/*@ requires \valid(core);
+    assigns \nothing;
+    ensures in_table: \result == \null ||
+        (\exists integer k; 0 <= k < 8 && \result == &core->remotes[k]);
+ */
 static estop_remote_t *find_remote(estop_core_t *core, uint32_t id)
 {
     estop_remote_t *found = NULL;
     uint32_t i;
+    /*@ loop invariant 0 <= i <= 8;
+        loop invariant found == \null ||
+            (\exists integer k; 0 <= k < 8 && found == &core->remotes[k]);
+        loop assigns i, found;
+        loop variant 8 - i;
+     */
     for (i = 0u; (i < ESTOP_MAX_REMOTES) && (found == NULL); i++) {
         if ((core->remotes[i].used != 0u) && (core->remotes[i].id == id)) {
             found = &core->remotes[i];
@@ -40,10 +51,21 @@ static estop_remote_t *find_remote(estop_core_t *core, uint32_t id)
 
 /* A free place for a new remote id, or NULL when all 8 are taken (places are never freed
  * within a session). */
+/*@ requires \valid(core);
+    assigns \nothing;
+    ensures in_table: \result == \null ||
+        (\exists integer k; 0 <= k < 8 && \result == &core->remotes[k]);
+ */
 static estop_remote_t *free_place(estop_core_t *core)
 {
     estop_remote_t *found = NULL;
     uint32_t i;
+    /*@ loop invariant 0 <= i <= 8;
+        loop invariant found == \null ||
+            (\exists integer k; 0 <= k < 8 && found == &core->remotes[k]);
+        loop assigns i, found;
+        loop variant 8 - i;
+     */
     for (i = 0u; (i < ESTOP_MAX_REMOTES) && (found == NULL); i++) {
         if (core->remotes[i].used == 0u) {
             found = &core->remotes[i];
@@ -63,6 +85,10 @@ static int take_check(estop_core_t *core, estop_remote_t *r)
         uint32_t i;
         core->tag_window_us = core->now_us;
         core->newcomer_checks = 0u;
+        /*@ loop invariant 0 <= i <= 8;
+            loop assigns i, core->remotes[0 .. 7].checks;
+            loop variant 8 - i;
+         */
         for (i = 0u; i < ESTOP_MAX_REMOTES; i++) {
             core->remotes[i].checks = 0u;
         }

@@ -21,12 +21,16 @@ static const uint32_t b2s_iv[8] = {0x6A09E667u, 0xBB67AE85u, 0x3C6EF372u, 0xA54F
 #endif
 
 /* n is 7, 8, 12 or 16: never 0, so both shifts stay below 32. */
+/*@ assigns \nothing; */
 static inline uint32_t rotr32(uint32_t x, uint32_t n)
 {
     return (x >> n) | (x << (32u - n));
 }
 
 /* Little-endian 32-bit load, byte by byte (any alignment, any host byte order). */
+/*@ requires \valid_read(p + (0 .. 3));
+    assigns \nothing;
+ */
 static inline uint32_t load32(const uint8_t *p)
 {
     return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) |
@@ -34,6 +38,9 @@ static inline uint32_t load32(const uint8_t *p)
 }
 
 /* Little-endian 32-bit store, byte by byte. */
+/*@ requires \valid(p + (0 .. 3));
+    assigns p[0 .. 3];
+ */
 static inline void store32(uint8_t *p, uint32_t w)
 {
     p[0] = (uint8_t)w;
@@ -43,23 +50,39 @@ static inline void store32(uint8_t *p, uint32_t w)
 }
 
 /* Message words of one block from p[0 .. n-1] (n <= 64), zero-padded to 64 bytes. */
+/*@ requires n <= 64 && \valid(m + (0 .. 15)) && \valid_read(p + (0 .. n - 1));
+    assigns m[0 .. 15];
+ */
 static void load_block(uint32_t m[B2S_WORDS], const uint8_t *p, size_t n)
 {
     size_t full = n / 4u;
     size_t i;
+    /* Zero every word first, then load: the padding is zero and every word is written
+     * whatever n is, which an analyser can follow (zeroing from m[full] on it cannot). */
+    /*@ loop invariant 0 <= i <= 16;
+        loop assigns i, m[0 .. 15];
+        loop variant 16 - i; */
+    for (i = 0u; i < B2S_WORDS; i++) {
+        m[i] = 0u;
+    }
+    /*@ loop invariant 0 <= i <= full;
+        loop assigns i, m[0 .. full - 1];
+        loop variant full - i; */
     for (i = 0u; i < full; i++) {
         m[i] = load32(&p[4u * i]);
     }
-    for (i = full; i < B2S_WORDS; i++) {
-        m[i] = 0u;
-    }
     /* A partial last word (then full < 16). */
+    /*@ loop assigns i, m[full];
+        loop variant n - i; */
     for (i = 4u * full; i < n; i++) {
         m[full] |= (uint32_t)p[i] << (8u * (uint32_t)(i % 4u));
     }
 }
 
 /* The mixing function G (RFC 7693 section 3.1) on v[a], v[b], v[c], v[d]. */
+/*@ requires \valid(v + (0 .. 15)) && a < 16 && b < 16 && c < 16 && d < 16;
+    assigns v[a], v[b], v[c], v[d];
+ */
 static inline void b2s_g(uint32_t v[B2S_WORDS], uint32_t a, uint32_t b, uint32_t c, uint32_t d,
                          uint32_t x, uint32_t y)
 {
@@ -75,6 +98,9 @@ static inline void b2s_g(uint32_t v[B2S_WORDS], uint32_t a, uint32_t b, uint32_t
 
 /* Compression function F (RFC 7693 section 3.2): t0/t1 the byte counter (low, high word),
  * f the final-block mask (B2S_LAST or B2S_MORE). */
+/*@ requires n <= 64 && \valid(h + (0 .. 7)) && \valid_read(block + (0 .. n - 1));
+    assigns h[0 .. 7];
+ */
 static void b2s_compress(uint32_t h[8], const uint8_t *block, size_t n, uint32_t t0, uint32_t t1,
                          uint32_t f)
 {
@@ -95,6 +121,9 @@ static void b2s_compress(uint32_t h[8], const uint8_t *block, size_t n, uint32_t
     uint32_t i;
     uint32_t r;
     load_block(m, block, n);
+    /*@ loop invariant 0 <= i <= 8;
+        loop assigns i, v[0 .. 15];
+        loop variant 8 - i; */
     for (i = 0u; i < 8u; i++) {
         v[i] = h[i];
         v[i + 8u] = b2s_iv[i];
@@ -103,10 +132,16 @@ static void b2s_compress(uint32_t h[8], const uint8_t *block, size_t n, uint32_t
     v[13] ^= t1;
     v[14] ^= f;
     B2S_UNROLL
+    /*@ loop invariant 0 <= r <= 10;
+        loop assigns r, i, v[0 .. 15];
+        loop variant 10 - r; */
     for (r = 0u; r < B2S_ROUNDS; r++) {
         const uint8_t *s = b2s_sigma[r];
         B2S_UNROLL
         /* G on the four columns (i 0..3), then the four diagonals (i 4..7). */
+        /*@ loop invariant 0 <= i <= 8;
+            loop assigns i, v[0 .. 15];
+            loop variant 8 - i; */
         for (i = 0u; i < 8u; i++) {
             uint32_t j = i & 3u;
             uint32_t sh = i >> 2;
@@ -114,15 +149,24 @@ static void b2s_compress(uint32_t h[8], const uint8_t *block, size_t n, uint32_t
                   12u + ((j + (3u * sh)) & 3u), m[s[2u * i]], m[s[(2u * i) + 1u]]);
         }
     }
+    /*@ loop invariant 0 <= i <= 8;
+        loop assigns i, h[0 .. 7];
+        loop variant 8 - i; */
     for (i = 0u; i < 8u; i++) {
         h[i] ^= v[i] ^ v[i + 8u];
     }
 }
 
 /* h = IV xor the parameter block's first word (digest length, key length, fanout 1, depth 1). */
+/*@ requires \valid(h + (0 .. 7));
+    assigns h[0 .. 7];
+ */
 static void b2s_start(uint32_t h[8], size_t keylen, size_t outlen)
 {
     uint32_t i;
+    /*@ loop invariant 0 <= i <= 8;
+        loop assigns i, h[0 .. 7];
+        loop variant 8 - i; */
     for (i = 0u; i < 8u; i++) {
         h[i] = b2s_iv[i];
     }
@@ -131,12 +175,18 @@ static void b2s_start(uint32_t h[8], size_t keylen, size_t outlen)
 
 /* Absorbs msg[0 .. len-1] (len >= 1) after t0 bytes already compressed (0 or one key block);
  * the last block, 1..64 bytes, gets the final flag. */
+/*@ requires len >= 1 && \valid(h + (0 .. 7)) && \valid_read(msg + (0 .. len - 1));
+    assigns h[0 .. 7];
+ */
 static void b2s_absorb(uint32_t h[8], uint32_t t0, const uint8_t *msg, size_t len)
 {
     uint32_t lo = t0;
     uint32_t hi = 0u;
     size_t at = 0u;
     size_t left = len;
+    /*@ loop invariant at + left == len;
+        loop assigns lo, hi, at, left, h[0 .. 7];
+        loop variant left; */
     while (left > ESTOP_B2S_BLOCK) {
         lo += ESTOP_B2S_BLOCK;
         hi += (lo < ESTOP_B2S_BLOCK) ? 1u : 0u; /* carry into the high word */
@@ -150,13 +200,21 @@ static void b2s_absorb(uint32_t h[8], uint32_t t0, const uint8_t *msg, size_t le
 }
 
 /* The first outlen bytes of h, little-endian. */
+/*@ requires outlen <= 32 && \valid(out + (0 .. outlen - 1)) && \valid_read(h + (0 .. 7));
+    assigns out[0 .. outlen - 1];
+ */
 static void b2s_output(uint8_t *out, const uint32_t h[8], size_t outlen)
 {
     size_t full = outlen / 4u;
     size_t i;
+    /*@ loop invariant 0 <= i <= full;
+        loop assigns i, out[0 .. 4 * full - 1];
+        loop variant full - i; */
     for (i = 0u; i < full; i++) {
         store32(&out[4u * i], h[i]);
     }
+    /*@ loop assigns i, out[4 * full .. outlen - 1];
+        loop variant outlen - i; */
     for (i = 4u * full; i < outlen; i++) {
         out[i] = (uint8_t)(h[full] >> (8u * (uint32_t)(i % 4u)));
     }
@@ -182,6 +240,9 @@ int estop_b2s_mac(const estop_b2s_key_t *k, const uint8_t *msg, size_t len, uint
         (k->outlen <= ESTOP_B2S_OUT_MAX)) {
         uint32_t h[8];
         uint32_t i;
+        /*@ loop invariant 0 <= i <= 8;
+            loop assigns i, h[0 .. 7];
+            loop variant 8 - i; */
         for (i = 0u; i < 8u; i++) {
             h[i] = k->h[i];
         }
@@ -231,9 +292,14 @@ int estop_ct_equal(const uint8_t *a, const uint8_t *b, size_t n)
         size_t i;
         /* Four bytes at a time (the loads are byte-wise, so any alignment), then the rest:
          * every byte is looked at, whatever an earlier one was. */
+        /*@ loop invariant 0 <= i <= n && i % 4 == 0;
+            loop assigns i, diff;
+            loop variant n - i; */
         for (i = 0u; (i + 4u) <= n; i += 4u) {
             diff |= load32(&a[i]) ^ load32(&b[i]);
         }
+        /*@ loop assigns i, diff;
+            loop variant n - i; */
         for (; i < n; i++) {
             diff |= (uint32_t)a[i] ^ (uint32_t)b[i];
         }

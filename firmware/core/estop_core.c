@@ -59,6 +59,9 @@ void estop_config_default(estop_config_t *cfg)
         cfg->tag_window_us = ESTOP_DEFAULT_TAG_WINDOW_US;
         cfg->session = 0u; /* the host's to draw (estop_init refuses 0) */
         cfg->key_len = 0u;
+        /*@ loop invariant 0 <= i <= 32;
+            loop assigns i, cfg->key[0 .. 31];
+            loop variant 32 - i; */
         for (i = 0u; i < ESTOP_KEY_LEN; i++) {
             cfg->key[i] = 0u;
         }
@@ -113,6 +116,29 @@ estop_err_t estop_config_check(const estop_config_t *cfg)
     return err;
 }
 
+/* Field by field: the host's struct padding is never read (a byte copy of the whole struct
+ * read it, indeterminate in a host's stack variable), and the key is not kept: every tag
+ * starts from the state after the key block. */
+static void copy_config(estop_config_t *dst, const estop_config_t *src)
+{
+    dst->timeout_us = src->timeout_us;
+    dst->slow_us = src->slow_us;
+    dst->warn_us = src->warn_us;
+    dst->stop_id = src->stop_id;
+    dst->brake_can_id = src->brake_can_id;
+    dst->status_can_id = src->status_can_id;
+    dst->brake_data_id = src->brake_data_id;
+    dst->status_data_id = src->status_data_id;
+    dst->release_packets = src->release_packets;
+    dst->brake_period_us = src->brake_period_us;
+    dst->status_period_us = src->status_period_us;
+    dst->session = src->session;
+    dst->tag_window_us = src->tag_window_us;
+    dst->slow_level = src->slow_level;
+    dst->tag_checks = src->tag_checks;
+    dst->key_len = src->key_len;
+}
+
 estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t now_us)
 {
     estop_err_t err = ESTOP_ERR_NULL_ARG;
@@ -120,15 +146,10 @@ estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t n
         zero_bytes((uint8_t *)core, sizeof(*core)); /* magic 0: unusable until checked below */
         err = estop_config_check(cfg);
         if (err == ESTOP_OK) {
-            uint32_t i;
-            copy_bytes((uint8_t *)&core->cfg, (const uint8_t *)cfg, sizeof(*cfg));
+            copy_config(&core->cfg, cfg); /* core->cfg.key stays zero */
             if (cfg->key_len == ESTOP_KEY_LEN) {
-                /* Every tag starts from the state after the key block; the key itself is not
-                 * kept (a key of valid length cannot fail here). */
+                /* (a key of valid length cannot fail here) */
                 (void)estop_b2s_key_init(&core->mac, cfg->key, ESTOP_KEY_LEN, ESTOP_TAG_LEN);
-            }
-            for (i = 0u; i < ESTOP_KEY_LEN; i++) {
-                core->cfg.key[i] = 0u;
             }
             core->now_us = now_us;
             core->state = (uint8_t)ESTOP_STATE_STOPPED;
@@ -170,15 +191,35 @@ static int link_live(const estop_core_t *core)
     return (core->link_fresh != 0u) && (core->valid_run >= core->cfg.release_packets);
 }
 
+/*@ requires \valid(out) && \valid(counter) && \valid_read(payload + (0 .. 5));
+    requires \separated(out, counter, payload + (0 .. 5));
+    assigns out->can[0 .. 2], out->n_can, *counter;
+    behavior room:
+      assumes out->n_can < 3;
+      ensures out->n_can == \old(out->n_can) + 1;
+      ensures out->can[\old(out->n_can)].id == id;
+      ensures \forall integer i; 0 <= i < 6 ==>
+          out->can[\old(out->n_can)].data[i] == \old(payload[i]);
+    behavior full:
+      assumes out->n_can >= 3;
+      ensures out->n_can == \old(out->n_can);
+    complete behaviors; disjoint behaviors;
+ */
 static void push_frame(estop_out_t *out, uint32_t id, uint16_t data_id, const uint8_t *payload,
                        uint8_t *counter)
 {
     /* Callers never exceed ESTOP_OUT_MAX_CAN (see the header); the guard keeps that true. */
+    /*@ split out->n_can; */ /* Eva: one state per frame slot, so each write is exact */
     if (out->n_can < ESTOP_OUT_MAX_CAN) {
         estop_can_frame_t *f = &out->can[out->n_can];
         uint8_t i;
         f->id = id;
         f->dlc = (uint8_t)ESTOP_CAN_DLC;
+        /*@ loop invariant 0 <= i <= 6;
+            loop invariant \forall integer k; 0 <= k < i ==> f->data[k] == payload[k];
+            loop assigns i, f->data[0 .. 5];
+            loop variant 6 - i;
+         */
         for (i = 0u; i < 6u; i++) {
             f->data[i] = payload[i];
         }
@@ -189,6 +230,15 @@ static void push_frame(estop_out_t *out, uint32_t id, uint16_t data_id, const ui
     }
 }
 
+/*@ requires \valid(core) && \valid(out) && \separated(core, out) && core->state <= 2;
+    assigns out->can[0 .. 2], out->n_can, core->brake_counter;
+    ensures brake_frame_matches_state: \old(out->n_can) < 3 ==>
+        out->n_can == \old(out->n_can) + 1 &&
+        out->can[\old(out->n_can)].id == core->cfg.brake_can_id &&
+        out->can[\old(out->n_can)].data[2] == core->state &&
+        brake_ok(out, \old(out->n_can), core->cfg.slow_level);
+    ensures \old(out->n_can) >= 3 ==> out->n_can == \old(out->n_can);
+ */
 static void send_brake(estop_core_t *core, estop_out_t *out)
 {
     uint8_t p[6];
@@ -239,6 +289,13 @@ static void state_changed(estop_core_t *core, estop_out_t *out)
 }
 
 /* Every stop request restarts the release count; only the first one sets the reason. */
+/*@ requires \valid(core) && \valid(out) && \separated(core, out) && inv_base(core);
+    requires 1 <= reason <= 5 && out->n_can <= 3;
+    assigns core->valid_run, core->state, core->reason, core->counters.stops[0 .. 5],
+            core->status_stops, out->state_changed, out->can[0 .. 2], out->n_can,
+            core->brake_counter, core->brake_due_us;
+    ensures inv_base(core) && core->state == 0 && out->n_can <= 3;
+ */
 static void stop(estop_core_t *core, uint8_t reason, estop_out_t *out)
 {
     core->valid_run = 0u;
@@ -264,6 +321,14 @@ static void enter_slowing(estop_core_t *core)
 /* An accepted RELEASE. The link is younger than the timeout but may be older than the slow
  * time (S < T): then the slow-down is already due, and the unit goes straight to SLOWING, so
  * that no frame ever releases the brake for a link that has been silent for S. */
+/*@ requires \valid(core) && \valid(out) && \separated(core, out) && inv_base(core);
+    requires core->link_fresh != 0 && out->n_can <= 3;
+    assigns core->state, core->reason, core->slow_run, core->counters.slowdowns,
+            core->status_slowdowns, out->state_changed, out->can[0 .. 2], out->n_can,
+            core->brake_counter, core->brake_due_us;
+    ensures inv_base(core) && core->state != 0 && out->state_changed == 1 &&
+        out->n_can <= 3;
+ */
 static void arm(estop_core_t *core, estop_out_t *out)
 {
     core->state = (uint8_t)ESTOP_STATE_ARMED;

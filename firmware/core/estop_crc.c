@@ -9,6 +9,8 @@ uint32_t estop_crc32(const uint8_t *data, size_t len)
         0x9B64C2B0u, 0x86D3D2D4u, 0xA00AE278u, 0xBDBDF21Cu};
     uint32_t crc = 0xFFFFFFFFu;
     size_t i;
+    /*@ loop assigns i, crc;
+        loop variant len - i; */
     for (i = 0u; i < len; i++) {
         crc ^= data[i];
         crc = (crc >> 4) ^ crc32_nibble[crc & 0x0Fu];
@@ -17,6 +19,7 @@ uint32_t estop_crc32(const uint8_t *data, size_t len)
     return crc ^ 0xFFFFFFFFu;
 }
 
+/*@ assigns \nothing; */
 static uint8_t crc8_byte(uint8_t crc, uint8_t byte)
 {
     /* CRC-8 (poly 0x1D) of each high-nibble value. */
@@ -34,6 +37,8 @@ uint8_t estop_crc8_e2e(uint16_t data_id, const uint8_t *payload, size_t len)
     size_t i;
     crc = crc8_byte(crc, (uint8_t)(data_id & 0xFFu));
     crc = crc8_byte(crc, (uint8_t)(data_id >> 8));
+    /*@ loop assigns i, crc;
+        loop variant len - i; */
     for (i = 0u; i < len; i++) {
         crc = crc8_byte(crc, payload[i]);
     }

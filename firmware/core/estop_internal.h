@@ -26,12 +26,23 @@
 
 /* ---- wire helpers ------------------------------------------------------------------------- */
 
+/*@ logic uint32_t rd_u32le_l(uint8_t *p) =
+        (uint32_t)((uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) |
+                   ((uint32_t)p[3] << 24));
+ */
+/*@ requires \valid_read(p + (0 .. 3));
+    assigns \nothing;
+    ensures \result == rd_u32le_l(p);
+ */
 static inline uint32_t rd_u32le(const uint8_t *p)
 {
     return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) |
            ((uint32_t)p[3] << 24);
 }
 
+/*@ requires \valid(p + (0 .. 3));
+    assigns p[0 .. 3];
+ */
 static inline void wr_u32le(uint8_t *p, uint32_t v)
 {
     p[0] = (uint8_t)(v & 0xFFu);
@@ -40,22 +51,30 @@ static inline void wr_u32le(uint8_t *p, uint32_t v)
     p[3] = (uint8_t)(v >> 24);
 }
 
+/*@ requires \valid_read(p + (0 .. 7));
+    assigns \nothing;
+ */
 static inline uint64_t rd_u64le(const uint8_t *p)
 {
     return (uint64_t)rd_u32le(p) | ((uint64_t)rd_u32le(&p[4]) << 32);
 }
 
+/*@ requires \valid(p + (0 .. 7));
+    assigns p[0 .. 7];
+ */
 static inline void wr_u64le(uint8_t *p, uint64_t v)
 {
     wr_u32le(p, (uint32_t)(v & 0xFFFFFFFFu));
     wr_u32le(&p[4], (uint32_t)(v >> 32));
 }
 
+/*@ assigns \nothing; */
 static inline uint8_t sat4_inc(uint8_t v)
 {
     return (v < SAT4_MAX) ? (uint8_t)(v + 1u) : v;
 }
 
+/*@ assigns \nothing; */
 static inline uint8_t sat8_inc(uint8_t v)
 {
     return (v < SAT8_MAX) ? (uint8_t)(v + 1u) : v;
@@ -63,6 +82,9 @@ static inline uint8_t sat8_inc(uint8_t v)
 
 /* Adds 1 unless the count is at its top, UINT32_MAX: a counter never wraps to a small one
  * (in place: a store skipped at the top is cheaper than a select on every count). */
+/*@ requires \valid(count);
+    assigns *count;
+ */
 static inline void sat32_inc(uint32_t *count)
 {
     const uint32_t next = *count + 1u;
@@ -73,17 +95,34 @@ static inline void sat32_inc(uint32_t *count)
 
 /* Byte loops instead of struct assignment: gcc compiles a large struct copy or zeroing into a
  * call to memcpy/memset, which a freestanding build without libc cannot link (docs/MCU.md). */
+/*@ requires \valid(dst + (0 .. n - 1));
+    assigns dst[0 .. n - 1];
+    ensures \forall integer k; 0 <= k < n ==> dst[k] == 0;
+ */
 static inline void zero_bytes(uint8_t *dst, size_t n)
 {
     size_t i;
+    /*@ loop invariant 0 <= i <= n;
+        loop invariant \forall integer k; 0 <= k < i ==> dst[k] == 0;
+        loop assigns i, dst[0 .. n - 1];
+        loop variant n - i;
+     */
     for (i = 0u; i < n; i++) {
         dst[i] = 0u;
     }
 }
 
+/*@ requires \valid(dst + (0 .. n - 1)) && \valid_read(src + (0 .. n - 1));
+    requires \separated(dst + (0 .. n - 1), src + (0 .. n - 1));
+    assigns dst[0 .. n - 1];
+ */
 static inline void copy_bytes(uint8_t *dst, const uint8_t *src, size_t n)
 {
     size_t i;
+    /*@ loop invariant 0 <= i <= n;
+        loop assigns i, dst[0 .. n - 1];
+        loop variant n - i;
+     */
     for (i = 0u; i < n; i++) {
         dst[i] = src[i];
     }

@@ -74,6 +74,11 @@ static void reply_plain(const estop_core_t *core, uint32_t seq, uint8_t nak_code
 
 /* Section 5.3: the 48-byte reply to a request frame, tagged over the request's tag and the
  * reply's first 32 bytes (zero tag without a key, or when the MAC cannot be made). */
+/*@ requires \valid_read(core) && \valid(out) && \valid_read(req + (0 .. 47));
+    requires \separated(out, core, req + (0 .. 47));
+    assigns out->reply[0 .. 47], out->reply_len, out->has_reply;
+    ensures out->has_reply == 1 && out->reply[15] == nak_code;
+ */
 static void reply_request(const estop_core_t *core, const uint8_t *req, uint8_t nak_code,
                           estop_out_t *out)
 {
@@ -159,26 +164,31 @@ estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data,
     if (err == ESTOP_OK) {
         estop_slot_t *s = &core->slots[slot];
         size_t take = 0u;
-        size_t want;
+        uint32_t need;
         /* Up to one whole frame: first its 4 magic bytes, which decide its length, then the
-         * rest of it. */
+         * rest of it. Each loop bounds both indexes itself (fill below the frame's length,
+         * at most 48; take below len). */
+        /*@ loop invariant 0 <= take <= len && s->fill <= 47;
+            loop assigns take, s->fill, s->buf[0 .. 47];
+            loop variant len - take;
+         */
         while ((take < len) && (s->fill < MAGIC_LEN)) {
             s->buf[s->fill] = data[take];
             s->fill++;
             take++;
         }
-        want = (size_t)frame_len(s) - (size_t)s->fill;
-        if (want > (len - take)) {
-            want = len - take;
-        }
-        while (want > 0u) {
+        need = frame_len(s);
+        /*@ loop invariant 0 <= take <= len && s->fill <= need;
+            loop assigns take, s->fill, s->buf[0 .. 47];
+            loop variant len - take;
+         */
+        while ((take < len) && (s->fill < need)) {
             s->buf[s->fill] = data[take];
             s->fill++;
             take++;
-            want--;
         }
         *consumed = take;
-        if (s->fill == frame_len(s)) {
+        if (s->fill == need) {
             s->fill = 0u;
             if (rd_u32le(s->buf) == ESTOP_MAGIC_REQUEST) {
                 handle_request(core, s, out);

@@ -1,0 +1,199 @@
+/*
+ * The ACSL contracts of the core's entry points and of the functions its files call in one
+ * another (docs/PROOF.md). Frama-C only: tools/prove.py passes this file with -include, and
+ * Frama-C merges each contract with the function's declaration in estop_core.h or
+ * estop_internal.h. The loop annotations and the contracts of static functions with loops
+ * live beside their code in firmware/core.
+ *
+ * The host contract of estop_core.h, as preconditions: the core, out and every buffer are
+ * valid and distinct; data holds len bytes; estop_init() came first (core_ok: either magic
+ * is not set, or the state is one estop_init and the entry points make).
+ */
+#ifndef ESTOP_PROVE_CONTRACTS_H
+#define ESTOP_PROVE_CONTRACTS_H
+
+#include "estop_crc.h"
+#include "estop_internal.h"
+#include "predicates.h"
+
+/* ---- the state machine's steps (estop_core.c) --------------------------------------------- */
+
+/*@ requires c_ok: core == \null || \valid(core);
+    requires o_ok: out == \null || \valid(out);
+    requires \separated(core, out);
+    requires core != \null ==> core_ok(core);
+    assigns *core, *out;
+    behavior bad_args:
+      assumes core == \null || out == \null;
+      ensures \result == ESTOP_ERR_NULL_ARG;
+      ensures core != \null ==> core->state == \old(core->state);
+    behavior run:
+      assumes core != \null && out != \null;
+      ensures ok_iff_init: \result == ESTOP_OK <==> core->magic == 0x45535450;
+      ensures begin_inv: \result == ESTOP_OK ==> inv(core);
+      ensures begin_out: \result == ESTOP_OK ==> core->now_us == now_us && out->n_can <= 3 &&
+          out->has_reply == 0 && out->close_slot == 0;
+      ensures refused_keeps_state: \result != ESTOP_OK ==> core->state == \old(core->state);
+      ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
+    complete behaviors; disjoint behaviors;
+ */
+estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out);
+
+/*@ requires host(core, out) && inv(core);
+    assigns out->next_call_us, out->state, out->reason, out->flags;
+    ensures out->state == core->state && out->reason == core->reason;
+ */
+void estop__finish(const estop_core_t *core, estop_out_t *out);
+
+/*@ requires \valid_read(core);
+    assigns \nothing;
+    ensures \result == 0 || \result == 1;
+ */
+uint8_t estop__current_flags(const estop_core_t *core);
+
+/*@ requires host(core, out) && core->magic == 0x45535450 && inv(core);
+    requires out->n_can <= 3;
+    assigns *core, out->can[0 .. 2], out->n_can, out->state_changed;
+    ensures msg_inv: inv(core);
+    ensures msg_frames: out->n_can <= 3;
+    ensures msg_keeps_clock: core->now_us == \old(core->now_us) &&
+        core->magic == \old(core->magic);
+    ensures msg_keeps_fills: fills_kept{Pre, Post}(core);
+    ensures leaves_stopped_only_by_release: \old(core->state) == 0 && core->state != 0 ==>
+        msg_id == ESTOP_MSG_RELEASE && release_authenticated != 0 && \result == 0;
+    ensures nak_code: \result <= 4;
+ */
+uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authenticated,
+                          estop_out_t *out);
+
+/* ---- authentication and link statistics: what they may touch ------------------------------- */
+
+/*@ requires \valid(core) && \valid_read(msg + (0 .. tag_at + 15)) && \valid_read(msg + (ids_at .. ids_at + 19));
+    requires 1 <= tag_at <= 64 && channel <= 1;
+    requires \separated(core, msg + (0 .. tag_at + 15));
+    assigns core->counters, core->status_auth_failed, core->remotes[0 .. 7],
+            core->tag_window_us, core->newcomer_checks;
+ */
+int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, size_t ids_at,
+                        uint32_t channel);
+
+/*@ requires \valid(core);
+    assigns core->counters, core->status_auth_failed;
+ */
+void estop__unauthenticated(estop_core_t *core);
+
+/*@ requires \valid(core);
+    assigns core->gaps[0 .. 31], core->silences, core->gap_known;
+ */
+void estop__record_gap(estop_core_t *core);
+
+/*@ requires \valid(core);
+    assigns core->gaps[0 .. 31], core->silences, core->gap_known;
+ */
+void estop__age_gap(estop_core_t *core, uint32_t step);
+
+/* ---- CRCs and BLAKE2s (estop_crc.c, estop_blake2s.c): what they read and write ------------ */
+
+/*@ requires \valid_read(payload + (0 .. len - 1));
+    assigns \nothing;
+ */
+uint8_t estop_crc8_e2e(uint16_t data_id, const uint8_t *payload, size_t len);
+
+/*@ requires \valid_read(data + (0 .. len - 1));
+    assigns \nothing;
+ */
+uint32_t estop_crc32(const uint8_t *data, size_t len);
+
+/*@ requires \valid(k) && \valid_read(key + (0 .. keylen - 1)) && \separated(k, key + (0 .. keylen - 1));
+    assigns *k;
+ */
+int estop_b2s_key_init(estop_b2s_key_t *k, const uint8_t *key, size_t keylen, size_t outlen);
+
+/*@ requires \valid_read(k) && k->outlen <= 16 && \valid_read(msg + (0 .. len - 1));
+    requires \valid(out + (0 .. 15)) && \separated(out + (0 .. 15), k, msg + (0 .. len - 1));
+    assigns out[0 .. 15];
+ */
+int estop_b2s_mac(const estop_b2s_key_t *k, const uint8_t *msg, size_t len, uint8_t *out);
+
+/*@ requires \valid(out + (0 .. outlen - 1));
+    requires key == \null || \valid_read(key + (0 .. keylen - 1));
+    requires msg == \null || \valid_read(msg + (0 .. len - 1));
+    assigns out[0 .. outlen - 1];
+ */
+int estop_blake2s(uint8_t *out, size_t outlen, const uint8_t *key, size_t keylen,
+                  const uint8_t *msg, size_t len);
+
+/*@ requires a == \null || \valid_read(a + (0 .. n - 1));
+    requires b == \null || \valid_read(b + (0 .. n - 1));
+    requires n <= 0xFFFFFFFF;  // no object of 4 GiB: i + 4 cannot wrap
+    assigns \nothing;
+    ensures \result == 0 || \result == 1;
+ */
+int estop_ct_equal(const uint8_t *a, const uint8_t *b, size_t n);
+
+/* ---- the entry points (estop_core.h) ------------------------------------------------------- */
+
+/*@ requires core == \null || \valid(core);
+    requires cfg == \null || (\valid_read(cfg) && \separated(core, cfg));
+    assigns *core;
+ */
+estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t now_us);
+
+/*@ requires core == \null || out == \null || host(core, out);
+    assigns *core, *out;
+    ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
+ */
+estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out);
+
+/*@ requires core == \null || out == \null || host(core, out);
+    requires data == \null || (\valid_read(data + (0 .. len - 1)) &&
+        \separated(data + (0 .. len - 1), core, out));
+    assigns *core, *out;
+    ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
+ */
+estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
+                         estop_out_t *out);
+
+/*@ requires core == \null || out == \null || host(core, out);
+    assigns *core, *out;
+    ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
+ */
+estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out);
+
+/*@ requires core == \null || out == \null || host(core, out);
+    assigns *core, *out;
+    ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
+ */
+estop_err_t estop_tcp_open(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out);
+
+/*@ requires core == \null || out == \null || host(core, out);
+    assigns *core, *out;
+    ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
+ */
+estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out);
+
+/*@ requires core == \null || out == \null || host(core, out);
+    requires consumed == \null || (\valid(consumed) && \separated(consumed, core, out));
+    requires data == \null || (\valid_read(data + (0 .. len - 1)) &&
+        \separated(data + (0 .. len - 1), core, out, consumed));
+    assigns *core, *out, *consumed;
+    ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures consumed_bound: \result == ESTOP_OK ==> *consumed <= len;
+    ensures leaves_stopped_only_by_release: core != \null && \old(core->state) == 0 &&
+        core->state != 0 ==> \result == ESTOP_OK && out->has_reply == 1 &&
+        slot < 8 && core->slots[slot].fill == 0 &&
+        ((core->cfg.key_len == 0 && out->reply[11] == 0 &&
+          rd_u32le_l(&core->slots[slot].buf[0]) == ESTOP_MSG_RELEASE) ||
+         (core->cfg.key_len != 0 && out->reply[15] == 0 &&
+          rd_u32le_l(&core->slots[slot].buf[0]) == ESTOP_MAGIC_REQUEST &&
+          rd_u32le_l(&core->slots[slot].buf[4]) == ESTOP_MSG_RELEASE));
+ */
+estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data, size_t len,
+                         size_t *consumed, uint32_t now_us, estop_out_t *out);
+
+#endif /* ESTOP_PROVE_CONTRACTS_H */

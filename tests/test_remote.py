@@ -264,6 +264,8 @@ def test_ctrl_c_while_held_ends_the_hold_with_the_lift_datagrams(
         sink: UdpSink, capsys: pytest.CaptureFixture[str]) -> None:
     main = threading.main_thread().ident
     assert main is not None and threading.get_ident() == main
+    # Python's own Ctrl-C, whatever an earlier test in this process left installed
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     with StallProbe() as probe:  # started first: the SIGINT must find cli.main running
         # Ctrl-C (a real SIGINT to this thread), 0.3 s into a hold of 20 s
         timer = threading.Timer(0.3, signal.pthread_kill, (main, signal.SIGINT))

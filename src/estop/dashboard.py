@@ -199,7 +199,13 @@ async def _serve(args: argparse.Namespace, model: Any, host: str, listen_port: i
         done = asyncio.Event()
         for sig in (signal.SIGINT, signal.SIGTERM):
             loop.add_signal_handler(sig, done.set)
-        await done.wait()
+        try:
+            await done.wait()
+        finally:
+            # Ctrl-C is the process's own again (a caller in the same process, tests too,
+            # would otherwise find SIGINT still going to this loop's wake-up pipe)
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.remove_signal_handler(sig)
     finally:
         for feed in feeds:
             with contextlib.suppress(Exception):

@@ -84,7 +84,8 @@ def test_readme_start_line_has_the_keys_of_a_real_start_line(tmp_path: Path) -> 
     key.write_text("00" * 32 + "\n")
     key.chmod(0o600)
     proc = subprocess.Popen([find_estopd(), "--key-file", str(key), "--udp-port", "0",
-                             "--tcp-port", "0", "--bind", "127.0.0.1", "--can-log", "off"],
+                             "--tcp-port", "0", "--bind", "127.0.0.1",
+                             "--can-log", str(tmp_path / "can.log")],
                             stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
     try:

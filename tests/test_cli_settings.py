@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import re
-import secrets
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -14,8 +13,9 @@ import pytest
 
 from estop import cli
 from estop.cliutil import COMMON_SETTINGS, resolve_settings
+from estop.keyfile import write_key_file
 from estop.loopback import Daemon
-from estop.protocol import auth, tcp, udp
+from estop.protocol import tcp, udp
 from estop.settings import ConfigFile, config_path
 from estop.stopchannel import MessageCounter, StopChannel
 from tool_util import estopd_or_skip
@@ -90,8 +90,7 @@ def test_status_from_environment_and_config_against_estopd(config: Path, tmp_pat
     """A team sets the unit once: `estop status` with no option at all reaches it."""
     exe = estopd_or_skip()
     key_path = tmp_path / "key"
-    key_path.write_bytes(auth.format_key(secrets.token_bytes(32)))
-    key_path.chmod(0o600)
+    write_key_file(key_path)  # a new random key, mode 0600
     with Daemon([exe], key_file=str(key_path)) as d:
         write(config, f'host = "{LOCAL}"\ntcp_port = {d.tcp_port}\nkey_file = "../../key"\n'
                       f'remote_id = 77\n')
@@ -166,8 +165,7 @@ def test_remote_id_is_made_once_per_installation_with_a_key(config: Path, tmp_pa
                                                             ) -> None:
     exe = estopd_or_skip()
     key_path = tmp_path / "key"
-    key_path.write_bytes(auth.format_key(secrets.token_bytes(32)))
-    key_path.chmod(0o600)
+    write_key_file(key_path)  # a new random key, mode 0600
     with Daemon([exe], key_file=str(key_path)) as d:
         base = ["status", "--host", LOCAL, "--tcp-port", str(d.tcp_port)]
         code, _, err = run_cli(capsys, *base)  # without a key: no id needed, none made
@@ -192,8 +190,7 @@ def test_remote_id_that_cannot_be_kept_is_one_line(tmp_path: Path,
     # readable (absent) but not writable, even for root
     monkeypatch.setenv("ESTOP_CONFIG", "/proc/estop-test-config.toml")
     key_path = tmp_path / "key"
-    key_path.write_bytes(auth.format_key(secrets.token_bytes(32)))
-    key_path.chmod(0o600)
+    write_key_file(key_path)  # a new random key, mode 0600
     code, _, err = run_cli(capsys, "status", "--host", LOCAL, "--key-file", str(key_path))
     line = error_line(err)
     assert code == 2 and "cannot keep this installation's remote id" in line
@@ -203,10 +200,8 @@ def test_remote_id_that_cannot_be_kept_is_one_line(tmp_path: Path,
 @pytest.fixture
 def keyed_unit(tmp_path: Path) -> Iterator[tuple[Daemon, bytes, str]]:
     exe = estopd_or_skip()
-    key = secrets.token_bytes(32)
     key_path = tmp_path / "key"
-    key_path.write_bytes(auth.format_key(key))
-    key_path.chmod(0o600)
+    key = write_key_file(key_path)
     with Daemon([exe], key_file=str(key_path)) as d:
         yield d, key, str(key_path)
 

@@ -99,12 +99,12 @@ FUZZ_CFLAGS     := -std=c99 -D_GNU_SOURCE -g -O2 -fsanitize=fuzzer,address,undef
 FUZZ_CORE_SRC   := $(wildcard firmware/core/*.c)
 FUZZ_PARSER_SRC := firmware/estopd/keyfile.c firmware/estopd/opts.c
 
-$(FUZZDIR)/fuzz_core: fuzz/fuzz_core.c $(wildcard fuzz/core/* firmware/core/*)
+$(FUZZDIR)/fuzz_core: fuzz/fuzz_core.c fuzz/fuzz_check.h $(wildcard fuzz/core/* firmware/core/*)
 	@mkdir -p $(FUZZDIR)
 	clang $(FUZZ_CFLAGS) -Ifuzz/core -o $@ fuzz/fuzz_core.c $(wildcard fuzz/core/*.c) \
 	  $(FUZZ_CORE_SRC)
 
-$(FUZZDIR)/fuzz_parsers: fuzz/fuzz_parsers.c $(wildcard firmware/core/*) $(FUZZ_PARSER_SRC) \
+$(FUZZDIR)/fuzz_parsers: fuzz/fuzz_parsers.c fuzz/fuzz_check.h $(wildcard firmware/core/*) $(FUZZ_PARSER_SRC) \
                          firmware/estopd/keyfile.h firmware/estopd/opts.h
 	@mkdir -p $(FUZZDIR)
 	clang $(FUZZ_CFLAGS) -o $@ fuzz/fuzz_parsers.c $(FUZZ_PARSER_SRC) $(FUZZ_CORE_SRC)

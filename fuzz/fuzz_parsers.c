@@ -24,13 +24,7 @@
 
 #define MAX_ARGS 64
 
-#define CHECK(cond, what)                                                                      \
-    do {                                                                                       \
-        if (!(cond)) {                                                                         \
-            fprintf(stderr, "invariant broken: %s (%s:%d)\n", what, __FILE__, __LINE__);       \
-            abort();                                                                           \
-        }                                                                                      \
-    } while (0)
+#include "fuzz_check.h"
 
 int LLVMFuzzerInitialize(int *argc, char ***argv);
 int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size);

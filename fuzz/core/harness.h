@@ -21,13 +21,7 @@
 #define SLOTS_TRIED (ESTOP_MAX_SLOTS + 1u) /* one index past the end: ESTOP_ERR_SLOT */
 #define MAX_OPS 128u
 
-#define CHECK(cond, what)                                                                      \
-    do {                                                                                       \
-        if (!(cond)) {                                                                         \
-            fprintf(stderr, "invariant broken: %s (%s:%d)\n", what, __FILE__, __LINE__);       \
-            abort();                                                                           \
-        }                                                                                      \
-    } while (0)
+#include "../fuzz_check.h"
 
 /* ---- the input and the harness's world ------------------------------------------------- */
 

@@ -13,6 +13,7 @@ PROTOCOL.md. The can-log line format is checked here with its own strict pattern
 
 from __future__ import annotations
 
+import itertools
 import os
 import re
 import shutil
@@ -174,14 +175,20 @@ class _Tail:
         return new
 
 
+_DAEMON_NUMBERS = itertools.count(1)
+
+
 class Daemon:
     """One estopd process on loopback; use as a context manager (always killed on exit)."""
 
     def __init__(self, tmp_path: Path, *extra: str) -> None:
         self.argv = [find_estopd(), *with_auth(["--udp-port", "0", "--tcp-port", "0", "--bind",
                                                 "127.0.0.1", "--can-log", "-", *extra])]
-        self.out_path = tmp_path / f"canlog-{id(self)}.log"
-        self.err_path = tmp_path / f"stderr-{id(self)}.log"
+        # files of this daemon's own: id(self) comes back once an object is freed, and the
+        # files are opened for appending, so a later daemon read its predecessor's start line
+        n = next(_DAEMON_NUMBERS)
+        self.out_path = tmp_path / f"canlog-{n}.log"
+        self.err_path = tmp_path / f"stderr-{n}.log"
         self.proc: subprocess.Popen[bytes] | None = None
         self.udp_port = 0
         self.tcp_port = 0

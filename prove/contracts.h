@@ -31,6 +31,7 @@
       assumes core != \null && out != \null;
       ensures ok_iff_init: \result == ESTOP_OK <==> core->magic == 0x45535450;
       ensures begin_inv: \result == ESTOP_OK ==> inv(core);
+      ensures begin_times: \result == ESTOP_OK ==> times_ok(core);
       ensures begin_out: \result == ESTOP_OK ==> core->now_us == now_us && out->n_can <= 3 &&
           out->has_reply == 0 && out->close_slot == 0;
       ensures refused_keeps_state: \result != ESTOP_OK ==> core->state == \old(core->state);
@@ -39,9 +40,17 @@
  */
 estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 
-/*@ requires host(core, out) && inv(core);
+/*@ requires \valid(core) && \valid(out) && \separated(core, out);
+    requires finish_inv: cfg_ok(core);
+    requires finish_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
+    requires finish_inv: core->state != 0 ==> core->link_fresh != 0;
+    requires finish_times: brake_due_ok(core);
+    requires finish_times: status_due_ok(core);
+    requires finish_times: link_ok(core);
+    requires finish_times: armed_ok(core);
     assigns out->next_call_us, out->state, out->reason, out->flags;
     ensures out->state == core->state && out->reason == core->reason;
+    ensures next_call_ahead: 1 <= udiff(out->next_call_us, core->now_us) <= core->cfg.brake_period_us;
  */
 void estop__finish(const estop_core_t *core, estop_out_t *out);
 
@@ -51,14 +60,23 @@ void estop__finish(const estop_core_t *core, estop_out_t *out);
  */
 uint8_t estop__current_flags(const estop_core_t *core);
 
-/*@ requires host(core, out) && core->magic == 0x45535450 && inv(core);
+/*@ requires host(core, out) && core->magic == 0x45535450 && inv(core) && times_ok(core);
     requires out->n_can <= 3;
-    assigns *core, out->can[0 .. 2], out->n_can, out->state_changed;
-    ensures msg_inv: inv(core);
+    assigns core->counters, core->valid_run, core->state, core->reason, core->slow_run,
+            core->status_stops, core->status_slowdowns, core->brake_counter,
+            core->brake_due_us, out->can[0 .. 2], out->n_can, out->state_changed;
+    ensures msg_inv: cfg_ok(core);
+    ensures msg_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
+    ensures msg_inv: slots_ok(core);
+    ensures msg_inv: core->state != 0 ==> core->link_fresh != 0;
+    ensures msg_times: brake_due_ok(core);
+    ensures msg_times: status_due_ok(core);
+    ensures msg_times: link_ok(core);
+    ensures msg_times: armed_ok(core);
     ensures msg_frames: out->n_can <= 3;
     ensures msg_keeps_clock: core->now_us == \old(core->now_us) &&
         core->magic == \old(core->magic);
-    ensures msg_keeps_fills: fills_kept{Pre, Post}(core);
+    ensures msg_keeps_fills: fills_kept(Pre, Post, core);
     ensures leaves_stopped_only_by_release: \old(core->state) == 0 && core->state != 0 ==>
         msg_id == ESTOP_MSG_RELEASE && release_authenticated != 0 && \result == 0;
     ensures nak_code: \result <= 4;
@@ -70,7 +88,6 @@ uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
 
 /*@ requires \valid(core) && \valid_read(msg + (0 .. tag_at + 15)) && \valid_read(msg + (ids_at .. ids_at + 19));
     requires 1 <= tag_at <= 64 && channel <= 1;
-    requires \separated(core, msg + (0 .. tag_at + 15));
     assigns core->counters, core->status_auth_failed, core->remotes[0 .. 7],
             core->tag_window_us, core->newcomer_checks;
  */
@@ -142,6 +159,8 @@ estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t n
 /*@ requires core == \null || out == \null || host(core, out);
     assigns *core, *out;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures next_call_ahead: \result == ESTOP_OK ==>
+        1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
  */
 estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out);
@@ -151,6 +170,8 @@ estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out);
         \separated(data + (0 .. len - 1), core, out));
     assigns *core, *out;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures next_call_ahead: \result == ESTOP_OK ==>
+        1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
  */
 estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
@@ -159,6 +180,8 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
 /*@ requires core == \null || out == \null || host(core, out);
     assigns *core, *out;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures next_call_ahead: \result == ESTOP_OK ==>
+        1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
  */
 estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out);
@@ -166,6 +189,8 @@ estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 /*@ requires core == \null || out == \null || host(core, out);
     assigns *core, *out;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures next_call_ahead: \result == ESTOP_OK ==>
+        1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
  */
 estop_err_t estop_tcp_open(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out);
@@ -173,6 +198,8 @@ estop_err_t estop_tcp_open(estop_core_t *core, uint32_t slot, uint32_t now_us, e
 /*@ requires core == \null || out == \null || host(core, out);
     assigns *core, *out;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures next_call_ahead: \result == ESTOP_OK ==>
+        1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
  */
 estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out);
@@ -183,6 +210,8 @@ estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, 
         \separated(data + (0 .. len - 1), core, out, consumed));
     assigns *core, *out, *consumed;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures next_call_ahead: \result == ESTOP_OK ==>
+        1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures consumed_bound: \result == ESTOP_OK ==> *consumed <= len;
     ensures leaves_stopped_only_by_release: core != \null && \old(core->state) == 0 &&
         core->state != 0 ==> \result == ESTOP_OK && out->has_reply == 1 &&

@@ -8,39 +8,58 @@
 
 #include "estop_core.h"
 
+/* Written as macros, not ACSL predicates: Qed then sees each field read on its own and drops
+ * the memory updates that cannot touch it (a predicate is opaque to Qed, and the solvers
+ * time out on the separation of every field behind every havoc). */
+#define cfg_ok(c) \
+    (1000 <= (c)->cfg.timeout_us <= 60000000 && 1 <= (c)->cfg.slow_us <= (c)->cfg.timeout_us && \
+     1 <= (c)->cfg.warn_us <= (c)->cfg.slow_us && 1 <= (c)->cfg.slow_level <= 99 && \
+     (c)->cfg.brake_can_id != (c)->cfg.status_can_id && \
+     1000 <= (c)->cfg.brake_period_us <= 25000 && \
+     10000 <= (c)->cfg.status_period_us <= 1000000)
+#define slots_ok(c) (\forall integer i; 0 <= i < 8 ==> (c)->slots[i].fill < 48)
+#define inv_base(c) (cfg_ok(c) && (c)->state <= 2 && (c)->reason <= 5 && slots_ok(c) && \
+                     (c)->mac.outlen <= 16)
+#define inv(c) (inv_base(c) && ((c)->state != 0 ==> (c)->link_fresh != 0))
+/* The times between calls: both periodic frames due within their period, a fresh link younger
+ * than the timeout, and an ARMED unit's link younger than the slow time. estop__begin makes
+ * them, every step after it keeps them, and estop__finish turns them into next_call_us. */
+#define brake_due_ok(c) (1 <= udiff((c)->brake_due_us, (c)->now_us) <= (c)->cfg.brake_period_us)
+#define status_due_ok(c) \
+    (1 <= udiff((c)->status_due_us, (c)->now_us) <= (c)->cfg.status_period_us)
+#define link_ok(c) \
+    ((c)->link_fresh != 0 ==> udiff((c)->now_us, (c)->last_valid_us) < (c)->cfg.timeout_us)
+#define armed_ok(c) \
+    ((c)->state == 1 ==> udiff((c)->now_us, (c)->last_valid_us) < (c)->cfg.slow_us)
+#define times_ok(c) (brake_due_ok(c) && status_due_ok(c) && link_ok(c) && armed_ok(c))
+#define core_ok(c) ((c)->magic == 0x45535450 ==> inv(c))
+#define host(c, o) (\valid(c) && \valid(o) && \separated(c, o) && core_ok(c))
+#define fills_kept(L1, L2, c) \
+    (\at((c)->slots[0].fill, L1) == \at((c)->slots[0].fill, L2) && \
+     \at((c)->slots[1].fill, L1) == \at((c)->slots[1].fill, L2) && \
+     \at((c)->slots[2].fill, L1) == \at((c)->slots[2].fill, L2) && \
+     \at((c)->slots[3].fill, L1) == \at((c)->slots[3].fill, L2) && \
+     \at((c)->slots[4].fill, L1) == \at((c)->slots[4].fill, L2) && \
+     \at((c)->slots[5].fill, L1) == \at((c)->slots[5].fill, L2) && \
+     \at((c)->slots[6].fill, L1) == \at((c)->slots[6].fill, L2) && \
+     \at((c)->slots[7].fill, L1) == \at((c)->slots[7].fill, L2))
+
 /*@
-  // The configuration estop_config_check accepts (the parts the proofs use).
-  predicate cfg_ok(estop_core_t *c) =
-      1000 <= c->cfg.timeout_us <= 60000000 && 1 <= c->cfg.slow_us <= c->cfg.timeout_us &&
-      1 <= c->cfg.warn_us <= c->cfg.slow_us && 1 <= c->cfg.slow_level <= 99 &&
-      c->cfg.brake_can_id != c->cfg.status_can_id &&
-      1000 <= c->cfg.brake_period_us <= 25000 &&
-      10000 <= c->cfg.status_period_us <= 1000000;
+  // C99 6.3.1.3p2: a value converted to an unsigned type is reduced modulo 2^32. Why3's
+  // to_uint32 (WP's model of the conversion) only says that its result is in range and that
+  // an in-range value is kept; the solvers then cannot follow the core's wrapping time
+  // arithmetic at all. These two axioms give the standard's rule for the range the core's
+  // sums and differences of two 32-bit values take (docs/PROOF.md: assumptions).
+  axiomatic U32Wrap {
+    axiom u32_wrap_up: \forall integer x; 4294967296 <= x < 8589934592 ==>
+        (uint32_t)x == x - 4294967296;
+    axiom u32_wrap_down: \forall integer x; -4294967296 <= x < 0 ==>
+        (uint32_t)x == x + 4294967296;
+  }
 
-  // What holds between any two calls of an initialised core: a known state and reason, every
-  // TCP slot's fill inside its buffer, and ARMED or SLOWING only with a fresh link.
-  // Written out slot by slot: ground terms, which the solvers carry across memory updates far
-  // more easily than a quantifier.
-  predicate slots_ok(estop_core_t *c) =
-      c->slots[0].fill < 48 && c->slots[1].fill < 48 && c->slots[2].fill < 48 &&
-      c->slots[3].fill < 48 && c->slots[4].fill < 48 && c->slots[5].fill < 48 &&
-      c->slots[6].fill < 48 && c->slots[7].fill < 48;
-  predicate fills_kept{L1, L2}(estop_core_t *c) =
-      \at(c->slots[0].fill, L1) == \at(c->slots[0].fill, L2) &&
-      \at(c->slots[1].fill, L1) == \at(c->slots[1].fill, L2) &&
-      \at(c->slots[2].fill, L1) == \at(c->slots[2].fill, L2) &&
-      \at(c->slots[3].fill, L1) == \at(c->slots[3].fill, L2) &&
-      \at(c->slots[4].fill, L1) == \at(c->slots[4].fill, L2) &&
-      \at(c->slots[5].fill, L1) == \at(c->slots[5].fill, L2) &&
-      \at(c->slots[6].fill, L1) == \at(c->slots[6].fill, L2) &&
-      \at(c->slots[7].fill, L1) == \at(c->slots[7].fill, L2);
-
-  predicate inv_base(estop_core_t *c) =
-      cfg_ok(c) && c->state <= 2 && c->reason <= 5 &&
-      slots_ok(c) && c->mac.outlen <= 16;
-  predicate inv(estop_core_t *c) = inv_base(c) && (c->state != 0 ==> c->link_fresh != 0);
-
-  predicate core_ok(estop_core_t *c) = c->magic == 0x45535450 ==> inv(c);
+  // How far time a lies ahead of time b on the 32-bit microsecond clock: (a - b) mod 2^32, as
+  // the core computes it.
+  logic integer udiff(integer a, integer b) = (uint32_t)(a - b);
 
   // ESTOP_BRAKE byte 0 (brake_request) and byte 1 (brake_level) match byte 2 (the state):
   // 0/0 ARMED, 2/L SLOWING, 1/100 STOPPED.
@@ -49,8 +68,6 @@
       (o->can[k].data[2] == 2 && o->can[k].data[0] == 2 && o->can[k].data[1] == level) ||
       (o->can[k].data[2] == 0 && o->can[k].data[0] == 1 && o->can[k].data[1] == 100);
 
-  predicate host(estop_core_t *c, estop_out_t *o) =
-      \valid(c) && \valid(o) && \separated(c, o) && core_ok(c);
 */
 
 #endif /* ESTOP_PROVE_PREDICATES_H */

@@ -295,6 +295,22 @@ static void state_changed(estop_core_t *core, estop_out_t *out)
             core->status_stops, out->state_changed, out->can[0 .. 2], out->n_can,
             core->brake_counter, core->brake_due_us;
     ensures inv_base(core) && core->state == 0 && out->n_can <= 3;
+    behavior moving:
+      assumes core->state != 0;
+      ensures out->state_changed == 1 && core->reason == reason;
+      ensures core->brake_due_us == (uint32_t)(core->now_us + core->cfg.brake_period_us);
+      ensures brake_due_ok(core);
+      ensures \old(out->n_can) < 3 ==> out->n_can == \old(out->n_can) + 1 &&
+          out->can[\old(out->n_can)].id == core->cfg.brake_can_id &&
+          out->can[\old(out->n_can)].data[2] == 0 &&
+          brake_ok(out, \old(out->n_can), core->cfg.slow_level);
+      ensures \old(out->n_can) >= 3 ==> out->n_can == \old(out->n_can);
+    behavior stopped:
+      assumes core->state == 0;
+      ensures out->n_can == \old(out->n_can) && out->state_changed == \old(out->state_changed);
+      ensures core->brake_due_us == \old(core->brake_due_us) && core->reason == \old(core->reason);
+      ensures \at(brake_due_ok(core), Pre) ==> brake_due_ok(core);
+    complete behaviors; disjoint behaviors;
  */
 static void stop(estop_core_t *core, uint8_t reason, estop_out_t *out)
 {
@@ -328,6 +344,15 @@ static void enter_slowing(estop_core_t *core)
             core->brake_counter, core->brake_due_us;
     ensures inv_base(core) && core->state != 0 && out->state_changed == 1 &&
         out->n_can <= 3;
+    ensures arm_slows: core->state == 1 ==>
+        udiff(core->now_us, core->last_valid_us) < core->cfg.slow_us;
+    ensures core->brake_due_us == (uint32_t)(core->now_us + core->cfg.brake_period_us);
+    ensures brake_due_ok(core);
+    ensures \old(out->n_can) < 3 ==> out->n_can == \old(out->n_can) + 1 &&
+        out->can[\old(out->n_can)].id == core->cfg.brake_can_id &&
+        out->can[\old(out->n_can)].data[2] == core->state &&
+        brake_ok(out, \old(out->n_can), core->cfg.slow_level);
+    ensures \old(out->n_can) >= 3 ==> out->n_can == \old(out->n_can);
  */
 static void arm(estop_core_t *core, estop_out_t *out)
 {
@@ -339,29 +364,67 @@ static void arm(estop_core_t *core, estop_out_t *out)
     state_changed(core, out);
 }
 
-static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
+/* A link that has been silent for the timeout is no longer fresh (latched: a wrapped tick can
+ * never make it young again), and a RELEASE then needs its packets from after the silence. An
+ * old link's gap is aged by every step: a step may be too long to measure, and the next one
+ * could wrap the age back to a short one. */
+/*@ requires \valid(core) && cfg_ok(core);
+    assigns core->link_fresh, core->valid_run, core->gaps[0 .. 31], core->silences,
+            core->gap_known;
+    ensures link_young: core->link_fresh != 0 ==>
+        udiff(core->now_us, core->last_valid_us) < core->cfg.timeout_us;
+    ensures link_latched: core->link_fresh != 0 ==> \old(core->link_fresh) != 0;
+ */
+static void age_link(estop_core_t *core, uint32_t step)
 {
-    uint32_t step = (uint32_t)(now_us - core->now_us);
-    core->now_us = now_us;
-    if (step > ESTOP_MAX_STEP_US) {
-        /* The tick went backwards: the unit can no longer trust any age it computes. */
-        core->link_fresh = 0u;
-        sat32_inc(&core->counters.faults);
-        stop(core, (uint8_t)ESTOP_REASON_FAULT, out);
-    }
     if (core->link_fresh == 0u) {
         estop__age_gap(core, step); /* a fresh link is younger than 60 s: nothing to age */
     } else if (link_age(core) >= core->cfg.timeout_us) {
-        core->link_fresh = 0u; /* latched: a wrapped tick can never make this link young again */
-        core->valid_run = 0u;  /* a RELEASE needs its packets from after the silence */
-        /* This step may already be too long to measure, and the next one could wrap the age
-         * back to a short one: the gap is aged now too. */
+        core->link_fresh = 0u;
+        core->valid_run = 0u;
         estop__age_gap(core, step);
     } else {
         /* a fresh link: its age is measured from last_valid_us */
     }
-    if ((moving(core) != 0) && (core->link_fresh == 0u)) {
-        stop(core, (uint8_t)ESTOP_REASON_UDP_TIMEOUT, out);
+}
+
+/*@ requires \valid(core) && \valid(out) && \separated(core, out) && inv(core);
+    requires out->n_can == 0 && out->state_changed == 0;
+    assigns core->now_us, core->link_fresh, core->valid_run, core->counters.faults,
+            core->counters.stops[0 .. 5], core->counters.slowdowns, core->state, core->reason,
+            core->slow_run, core->status_stops, core->status_slowdowns, core->gaps[0 .. 31],
+            core->silences, core->gap_known, core->brake_counter, core->brake_due_us,
+            out->can[0 .. 2], out->n_can, out->state_changed, out->changed_by_clock;
+    ensures clock_inv: cfg_ok(core);
+    ensures clock_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
+    ensures clock_inv: slots_ok(core);
+    ensures clock_inv: core->state != 0 ==> core->link_fresh != 0;
+    ensures clock_now: core->now_us == now_us && out->n_can <= 1;
+    ensures clock_link: core->link_fresh != 0 ==>
+        udiff(core->now_us, core->last_valid_us) < core->cfg.timeout_us;
+    ensures clock_armed: core->state == 1 ==>
+        udiff(core->now_us, core->last_valid_us) < core->cfg.slow_us;
+    ensures clock_brake_due: out->state_changed != 0 ==>
+        udiff(core->brake_due_us, core->now_us) == core->cfg.brake_period_us;
+    ensures never_leaves_stopped: \old(core->state) == 0 ==> core->state == 0;
+ */
+static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
+{
+    const uint32_t step = (uint32_t)(now_us - core->now_us);
+    uint8_t reason = (uint8_t)ESTOP_REASON_UDP_TIMEOUT;
+    core->now_us = now_us;
+    if (step > ESTOP_MAX_STEP_US) {
+        /* The tick went backwards: the unit can no longer trust any age it computes. */
+        core->link_fresh = 0u;
+        core->valid_run = 0u; /* on a STOPPED unit too: a RELEASE needs packets from after it */
+        sat32_inc(&core->counters.faults);
+        reason = (uint8_t)ESTOP_REASON_FAULT;
+    }
+    age_link(core, step);
+    /* The state itself rather than moving(): Eva then keeps the test and the stop together
+     * (through the call it split the states apart and lost that a moving unit is stopped). */
+    if ((core->state != ESTOP_STATE_STOPPED) && (core->link_fresh == 0u)) {
+        stop(core, reason, out);
     } else if ((core->state == ESTOP_STATE_ARMED) && (link_age(core) >= core->cfg.slow_us)) {
         enter_slowing(core); /* ARMED implies a fresh link, so the age is meaningful */
         state_changed(core, out);
@@ -390,6 +453,16 @@ static uint32_t next_due(uint32_t due, uint32_t period, uint32_t now)
     return next;
 }
 
+/*@ requires \valid(core) && \valid(out) && \separated(core, out) && inv(core);
+    requires out->n_can <= 1;
+    assigns out->can[0 .. 2], out->n_can, core->brake_counter, core->status_counter,
+            core->brake_due_us, core->status_due_us, core->status_valid, core->status_invalid,
+            core->status_auth_failed, core->status_stops, core->status_slowdowns;
+    ensures due_brake: 1 <= udiff(core->brake_due_us, core->now_us) <= core->cfg.brake_period_us;
+    ensures due_status:
+        1 <= udiff(core->status_due_us, core->now_us) <= core->cfg.status_period_us;
+    ensures due_frames: out->n_can <= \old(out->n_can) + 2;
+ */
 static void send_due_frames(estop_core_t *core, estop_out_t *out)
 {
     if (frame_due(core->now_us, core->brake_due_us, core->cfg.brake_period_us) != 0) {
@@ -433,6 +506,10 @@ estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out)
     return err;
 }
 
+/*@ assigns \nothing;
+    ensures \result == a || \result == b;
+    ensures udiff(\result, now) <= udiff(a, now) && udiff(\result, now) <= udiff(b, now);
+ */
 static uint32_t earliest(uint32_t now, uint32_t a, uint32_t b)
 {
     return ((uint32_t)(a - now) <= (uint32_t)(b - now)) ? a : b;
@@ -478,6 +555,13 @@ static int body_valid(const uint8_t *b, int has_horn)
  * a key, authenticated with one), or NULL. d is not NULL. With a key, a control packet whose
  * body is valid but that is not authenticated counts as an authentication failure (the body
  * is checked first: docs/PROTOCOL.md 5). */
+/*@ requires \valid(core) && \valid_read(d + (0 .. len - 1)) &&
+        \separated(core, d + (0 .. len - 1));
+    assigns core->counters, core->status_auth_failed, core->remotes[0 .. 7],
+            core->tag_window_us, core->newcomer_checks;
+    ensures \result == \null || (\result == d && len >= 16) || (\result == d + 24 && len == 60);
+    ensures body_keeps_state: core->state == \old(core->state);
+ */
 static const uint8_t *valid_body(estop_core_t *core, const uint8_t *d, size_t len)
 {
     const uint8_t *body = NULL;
@@ -533,14 +617,43 @@ static uint8_t stop_datagram(const estop_core_t *core, const uint8_t *d, size_t 
     return reason;
 }
 
-/* Section 3: a valid packet while SLOWING counts toward the way back to ARMED. */
-static void count_rearm(estop_core_t *core, estop_out_t *out)
+/* Section 3: a valid packet makes the link fresh from now; while SLOWING it counts toward the
+ * way back to ARMED. */
+/*@ requires \valid(core) && \valid(out) && \separated(core, out) && inv(core) && times_ok(core);
+    requires \valid_read(body + (0 .. 3)) && \separated(body + (0 .. 3), core, out);
+    requires out->n_can <= 3;
+    assigns core->gaps[0 .. 31], core->silences, core->gap_known, core->counters.udp_valid,
+            core->counters.rearms, core->status_valid, core->valid_run, core->last_valid_us,
+            core->link_fresh, core->last_neutral, core->slow_run, core->state,
+            out->state_changed, out->can[0 .. 2], out->n_can, core->brake_counter,
+            core->brake_due_us;
+    ensures valid_inv: cfg_ok(core);
+    ensures valid_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
+    ensures valid_inv: slots_ok(core);
+    ensures valid_inv: core->state != 0 ==> core->link_fresh != 0;
+    ensures valid_times: brake_due_ok(core);
+    ensures valid_times: status_due_ok(core);
+    ensures valid_times: link_ok(core);
+    ensures valid_times: armed_ok(core);
+    ensures valid_frames: out->n_can <= 3;
+    ensures never_leaves_stopped: \old(core->state) == 0 ==> core->state == 0;
+ */
+static void take_valid(estop_core_t *core, const uint8_t *body, estop_out_t *out)
 {
-    core->slow_run++;
-    if (core->slow_run >= ESTOP_REARM_PACKETS) {
-        sat32_inc(&core->counters.rearms);
-        core->state = (uint8_t)ESTOP_STATE_ARMED;
-        state_changed(core, out);
+    estop__record_gap(core); /* core->now_us is now_us from here on */
+    sat32_inc(&core->counters.udp_valid);
+    core->status_valid = sat8_inc(core->status_valid);
+    sat32_inc(&core->valid_run);
+    core->last_valid_us = core->now_us;
+    core->link_fresh = 1u;
+    core->last_neutral = non_positive_bits(rd_u32le(body)) ? 1u : 0u;
+    if (core->state == ESTOP_STATE_SLOWING) {
+        core->slow_run++;
+        if (core->slow_run >= ESTOP_REARM_PACKETS) {
+            sat32_inc(&core->counters.rearms);
+            core->state = (uint8_t)ESTOP_STATE_ARMED;
+            state_changed(core, out);
+        }
     }
 }
 
@@ -561,16 +674,7 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
             sat32_inc(&core->counters.udp_stops);
             stop(core, reason, out);
         } else if (body != NULL) {
-            estop__record_gap(core); /* core->now_us is now_us from here on */
-            sat32_inc(&core->counters.udp_valid);
-            core->status_valid = sat8_inc(core->status_valid);
-            sat32_inc(&core->valid_run);
-            core->last_valid_us = core->now_us;
-            core->link_fresh = 1u;
-            core->last_neutral = non_positive_bits(rd_u32le(body)) ? 1u : 0u;
-            if (core->state == ESTOP_STATE_SLOWING) {
-                count_rearm(core, out);
-            }
+            take_valid(core, body, out);
         } else {
             sat32_inc(&core->counters.udp_invalid);
             core->status_invalid = sat8_inc(core->status_invalid);
@@ -584,6 +688,25 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
 
 /* Section 3: a RELEASE that is authenticated (or needs no authentication) still needs a live
  * link and a neutral latest packet. */
+/*@ requires \valid(core) && \valid(out) && \separated(core, out) && inv(core) && times_ok(core);
+    requires out->n_can <= 3;
+    assigns core->state, core->reason, core->slow_run, core->counters.slowdowns,
+            core->counters.releases_accepted, core->counters.releases_refused,
+            core->status_slowdowns, out->state_changed, out->can[0 .. 2], out->n_can,
+            core->brake_counter, core->brake_due_us;
+    ensures rel_inv: cfg_ok(core);
+    ensures rel_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
+    ensures rel_inv: slots_ok(core);
+    ensures rel_inv: core->state != 0 ==> core->link_fresh != 0;
+    ensures rel_times: brake_due_ok(core);
+    ensures rel_times: status_due_ok(core);
+    ensures rel_times: link_ok(core);
+    ensures rel_times: armed_ok(core);
+    ensures rel_frames: out->n_can <= 3;
+    ensures rel_only_authenticated: \old(core->state) == 0 && core->state != 0 ==>
+        authenticated != 0 && \result == 0;
+    ensures \result <= 4;
+ */
 static uint8_t release(estop_core_t *core, int authenticated, estop_out_t *out)
 {
     uint8_t nak = (uint8_t)ESTOP_NAK_NONE;

@@ -64,6 +64,10 @@ static void reply_head(const estop_core_t *core, uint8_t *r, uint32_t seq, uint8
 }
 
 /* Section 2: the 16-byte reply to a plain frame. */
+/*@ requires \valid_read(core) && \valid(out) && \separated(out, core);
+    assigns out->reply[0 .. 15], out->reply_len, out->has_reply;
+    ensures out->has_reply == 1 && out->reply[11] == nak_code;
+ */
 static void reply_plain(const estop_core_t *core, uint32_t seq, uint8_t nak_code, estop_out_t *out)
 {
     reply_head(core, out->reply, seq, nak_code);
@@ -75,7 +79,7 @@ static void reply_plain(const estop_core_t *core, uint32_t seq, uint8_t nak_code
 /* Section 5.3: the 48-byte reply to a request frame, tagged over the request's tag and the
  * reply's first 32 bytes (zero tag without a key, or when the MAC cannot be made). */
 /*@ requires \valid_read(core) && \valid(out) && \valid_read(req + (0 .. 47));
-    requires \separated(out, core, req + (0 .. 47));
+    requires \separated(out, core) && \separated(out, req + (0 .. 47));
     assigns out->reply[0 .. 47], out->reply_len, out->has_reply;
     ensures out->has_reply == 1 && out->reply[15] == nak_code;
  */
@@ -101,32 +105,66 @@ static void reply_request(const estop_core_t *core, const uint8_t *req, uint8_t 
     out->has_reply = 1u;
 }
 
-/* Section 2: one whole 16-byte plain frame. A plain RELEASE is authenticated only on a unit
- * without a key. */
-static void handle_plain(estop_core_t *core, estop_slot_t *slot, estop_out_t *out)
+/* Section 2: one whole 16-byte plain frame with a good CRC, in slot k. A plain RELEASE is
+ * authenticated only on a unit without a key. */
+/*@ requires \valid(core) && \valid(out) && \separated(core, out);
+    requires core->magic == 0x45535450 && inv(core) && times_ok(core);
+    requires k < 8 && out->n_can <= 3;
+    assigns core->counters, core->status_auth_failed, core->valid_run, core->state,
+            core->reason, core->slow_run, core->status_stops, core->status_slowdowns,
+            core->brake_counter, core->brake_due_us, out->can[0 .. 2], out->n_can,
+            out->state_changed, out->reply[0 .. 47], out->reply_len, out->has_reply;
+    ensures plain_inv: cfg_ok(core);
+    ensures plain_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
+    ensures plain_inv: slots_ok(core);
+    ensures plain_inv: core->state != 0 ==> core->link_fresh != 0;
+    ensures plain_times: brake_due_ok(core);
+    ensures plain_times: status_due_ok(core);
+    ensures plain_times: link_ok(core);
+    ensures plain_times: armed_ok(core);
+    ensures plain_frames: out->n_can <= 3;
+    ensures plain_release: \old(core->state) == 0 && core->state != 0 ==>
+        out->has_reply == 1 && core->cfg.key_len == 0 && out->reply[11] == 0 &&
+        rd_u32le_l(&core->slots[k].buf[0]) == ESTOP_MSG_RELEASE;
+ */
+static void handle_plain(estop_core_t *core, uint32_t k, estop_out_t *out)
 {
-    const uint8_t *f = slot->buf;
-    if (estop_crc32(f, 12u) != rd_u32le(&f[12])) {
-        /* The stream has lost framing: nothing after this can be trusted. */
-        sat32_inc(&core->counters.tcp_bad_crc);
-        slot->open = 0u;
-        out->close_slot = 1u;
-    } else {
-        const uint32_t msg_id = rd_u32le(f);
-        uint8_t nak;
-        if ((msg_id == ESTOP_MSG_RELEASE) && (core->cfg.key_len != 0u)) {
-            estop__unauthenticated(core); /* the key holder's RELEASE is a request frame */
-        }
-        nak = estop__handle_msg(core, msg_id, core->cfg.key_len == 0u, out);
-        reply_plain(core, rd_u32le(&f[4]), nak, out);
+    const uint8_t *f = core->slots[k].buf;
+    const uint32_t msg_id = rd_u32le(f);
+    uint8_t nak;
+    if ((msg_id == ESTOP_MSG_RELEASE) && (core->cfg.key_len != 0u)) {
+        estop__unauthenticated(core); /* the key holder's RELEASE is a request frame */
     }
+    nak = estop__handle_msg(core, msg_id, core->cfg.key_len == 0u, out);
+    reply_plain(core, rd_u32le(&f[4]), nak, out);
 }
 
-/* Section 5.2: one whole 48-byte request frame. Only a RELEASE needs authentication; a STOP or
- * LIFT is honoured and a STATUS answered whatever the tag says. */
-static void handle_request(estop_core_t *core, const estop_slot_t *slot, estop_out_t *out)
+/* Section 5.2: one whole 48-byte request frame, in slot k. Only a RELEASE needs
+ * authentication; a STOP or LIFT is honoured and a STATUS answered whatever the tag says. */
+/*@ requires \valid(core) && \valid(out) && \separated(core, out);
+    requires core->magic == 0x45535450 && inv(core) && times_ok(core);
+    requires k < 8 && out->n_can <= 3;
+    assigns core->counters, core->status_auth_failed, core->remotes[0 .. 7],
+            core->tag_window_us, core->newcomer_checks, core->valid_run, core->state,
+            core->reason, core->slow_run, core->status_stops, core->status_slowdowns,
+            core->brake_counter, core->brake_due_us, out->can[0 .. 2], out->n_can,
+            out->state_changed, out->reply[0 .. 47], out->reply_len, out->has_reply;
+    ensures request_inv: cfg_ok(core);
+    ensures request_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
+    ensures request_inv: slots_ok(core);
+    ensures request_inv: core->state != 0 ==> core->link_fresh != 0;
+    ensures request_times: brake_due_ok(core);
+    ensures request_times: status_due_ok(core);
+    ensures request_times: link_ok(core);
+    ensures request_times: armed_ok(core);
+    ensures request_frames: out->n_can <= 3;
+    ensures request_release: \old(core->state) == 0 && core->state != 0 ==>
+        out->has_reply == 1 && core->cfg.key_len != 0 && out->reply[15] == 0 &&
+        rd_u32le_l(&core->slots[k].buf[4]) == ESTOP_MSG_RELEASE;
+ */
+static void handle_request(estop_core_t *core, uint32_t k, estop_out_t *out)
 {
-    const uint8_t *f = slot->buf;
+    const uint8_t *f = core->slots[k].buf;
     uint32_t msg_id = rd_u32le(&f[4]);
     int authenticated = 0;
     uint8_t nak;
@@ -146,6 +184,50 @@ static uint32_t frame_len(const estop_slot_t *s)
                : PLAIN_FRAME_LEN;
 }
 
+/* Appends bytes to a slot, up to one whole frame: first its 4 magic bytes, which decide its
+ * length, then the rest of it. Each loop bounds both indexes itself (fill below the frame's
+ * length, at most 48; take below len). Returns 1, with the slot empty again and the frame in
+ * its buffer, when the frame is whole; *took is how many bytes it took. */
+/*@ requires \valid(s) && \valid(took) && s->fill < 48 && \valid_read(data + (0 .. len - 1));
+    requires \separated(s, took, data + (0 .. len - 1));
+    assigns s->fill, s->buf[0 .. 47], *took;
+    ensures *took <= len;
+    ensures \result == 0 || \result == 1;
+    ensures \result == 1 ==> s->fill == 0;
+    ensures s->fill < 48;
+ */
+static int take_frame(estop_slot_t *s, const uint8_t *data, size_t len, size_t *took)
+{
+    size_t take = 0u;
+    uint32_t need;
+    int whole = 0;
+    /*@ loop invariant 0 <= take <= len && s->fill <= 47;
+        loop assigns take, s->fill, s->buf[0 .. 47];
+        loop variant len - take;
+     */
+    while ((take < len) && (s->fill < MAGIC_LEN)) {
+        s->buf[s->fill] = data[take];
+        s->fill++;
+        take++;
+    }
+    need = frame_len(s);
+    /*@ loop invariant 0 <= take <= len && need <= 48 && (s->fill <= 47 || s->fill == need);
+        loop assigns take, s->fill, s->buf[0 .. 47];
+        loop variant len - take;
+     */
+    while ((take < len) && (s->fill < need)) {
+        s->buf[s->fill] = data[take];
+        s->fill++;
+        take++;
+    }
+    if (s->fill == need) {
+        s->fill = 0u;
+        whole = 1;
+    }
+    *took = take;
+    return whole;
+}
+
 estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data, size_t len,
                          size_t *consumed, uint32_t now_us, estop_out_t *out)
 {
@@ -162,43 +244,23 @@ estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data,
         estop__finish(core, out);
     }
     if (err == ESTOP_OK) {
-        estop_slot_t *s = &core->slots[slot];
         size_t take = 0u;
-        uint32_t need;
-        /* Up to one whole frame: first its 4 magic bytes, which decide its length, then the
-         * rest of it. Each loop bounds both indexes itself (fill below the frame's length,
-         * at most 48; take below len). */
-        /*@ loop invariant 0 <= take <= len && s->fill <= 47;
-            loop assigns take, s->fill, s->buf[0 .. 47];
-            loop variant len - take;
-         */
-        while ((take < len) && (s->fill < MAGIC_LEN)) {
-            s->buf[s->fill] = data[take];
-            s->fill++;
-            take++;
-        }
-        need = frame_len(s);
-        /*@ loop invariant 0 <= take <= len && s->fill <= need;
-            loop assigns take, s->fill, s->buf[0 .. 47];
-            loop variant len - take;
-         */
-        while ((take < len) && (s->fill < need)) {
-            s->buf[s->fill] = data[take];
-            s->fill++;
-            take++;
+        if (take_frame(&core->slots[slot], data, len, &take) != 0) {
+            const uint8_t *f = core->slots[slot].buf;
+            if (rd_u32le(f) == ESTOP_MAGIC_REQUEST) {
+                handle_request(core, slot, out);
+            } else if (estop_crc32(f, 12u) == rd_u32le(&f[12])) {
+                handle_plain(core, slot, out);
+            } else {
+                /* The stream has lost framing: nothing after this can be trusted, and the
+                 * rest of it is dropped. */
+                sat32_inc(&core->counters.tcp_bad_crc);
+                core->slots[slot].open = 0u;
+                out->close_slot = 1u;
+                take = len;
+            }
         }
         *consumed = take;
-        if (s->fill == need) {
-            s->fill = 0u;
-            if (rd_u32le(s->buf) == ESTOP_MAGIC_REQUEST) {
-                handle_request(core, s, out);
-            } else {
-                handle_plain(core, s, out);
-            }
-            if (out->close_slot != 0u) {
-                *consumed = len; /* the rest of a broken stream is dropped */
-            }
-        }
         estop__finish(core, out);
     }
     return err;

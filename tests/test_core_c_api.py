@@ -250,6 +250,27 @@ def test_tick_that_goes_backwards_is_a_fault_stop() -> None:
     assert st.counters.faults == 1 and not st.link_live
 
 
+def test_tick_going_backwards_restarts_a_stopped_units_release_count() -> None:
+    """A STOPPED unit with 5 valid packets counted, then a tick backwards: the link is stale and
+    the count starts over, so one packet after it cannot make a RELEASE succeed (advance_clock
+    resets valid_run itself since it stops a moving unit only; the mutant that dropped the
+    reset survived every test)."""
+    raw = Raw(1_000_000)
+    t = 1_000_000
+    for _ in range(5):
+        t += 20 * MS
+        raw.tick(t)
+        raw.udp(packet(), t)
+    assert raw.state() == (0, 1)  # still STOPPED, reason boot: no RELEASE sent yet
+    back = t - 1
+    assert raw.tick(back) == 0
+    raw.udp(packet(), back)
+    assert raw.release(back)[5] == 2  # NAK no live link: 1 packet since the step back
+    for k in range(1, 5):
+        raw.udp(packet(), back + k * MS)
+    assert raw.release(back + 4 * MS)[5] == 0
+
+
 def _frame_times(raw: Raw, start: int, end: int, step: int, can_id: int) -> list[int]:
     """Ticks the raw core every `step` us from start to end; the times frames of can_id left."""
     times = []

@@ -252,9 +252,9 @@ def test_tick_that_goes_backwards_is_a_fault_stop() -> None:
 
 def test_tick_going_backwards_restarts_a_stopped_units_release_count() -> None:
     """A STOPPED unit with 5 valid packets counted, then a tick backwards: the link is stale and
-    the count starts over, so one packet after it cannot make a RELEASE succeed (advance_clock
+    the count starts over from 0, so four packets after it cannot make a RELEASE succeed (advance_clock
     resets valid_run itself since it stops a moving unit only; the mutant that dropped the
-    reset survived every test)."""
+    reset, or reset to 1, survived every test)."""
     raw = Raw(1_000_000)
     t = 1_000_000
     for _ in range(5):
@@ -264,10 +264,10 @@ def test_tick_going_backwards_restarts_a_stopped_units_release_count() -> None:
     assert raw.state() == (0, 1)  # still STOPPED, reason boot: no RELEASE sent yet
     back = t - 1
     assert raw.tick(back) == 0
-    raw.udp(packet(), back)
-    assert raw.release(back)[5] == 2  # NAK no live link: 1 packet since the step back
-    for k in range(1, 5):
+    for k in range(4):
         raw.udp(packet(), back + k * MS)
+    assert raw.release(back + 3 * MS)[5] == 2  # NAK no live link: 4 packets since the step
+    raw.udp(packet(), back + 4 * MS)
     assert raw.release(back + 4 * MS)[5] == 0
 
 

@@ -386,7 +386,18 @@ def main() -> int:
             secs = re.search(r"wall time (\d+) s", w.log.read_text()) if w.log.exists() else None
             print(f"prove: wp {w.name}: {w.proved}/{w.total} goals proved ({provers})"
                   + (f" in {secs.group(1)} s" if secs else ""))
-            left_out = [f[1:] for f in dict(wp_groups())[w.name] if f.startswith("-")]
+            groups = dict(wp_groups())
+            left_out = [f[1:] for f in groups[w.name] if f.startswith("-")]
+            # A property left out of this run may be the only one of another run (+property)
+            # over the same functions: proved there, with other options.
+            elsewhere = {f"-{p}": n for n, fs in groups.items() if n != w.name
+                         for p in (x[1:] for x in fs if x.startswith("+"))
+                         if set(fs) & set(groups[w.name])}
+            moved = [f"{p} (proved in run {elsewhere['-' + p]})" for p in left_out
+                     if f"-{p}" in elsewhere]
+            left_out = [p for p in left_out if f"-{p}" not in elsewhere]
+            if moved:
+                print(f"prove:   proved in a run of its own: {' '.join(moved)}")
             if left_out:
                 print(f"prove:   left out, not proved (docs/PROOF.md): {' '.join(left_out)}")
             for g in w.failed:

@@ -228,6 +228,51 @@ static int take_frame(estop_slot_t *s, const uint8_t *data, size_t len, size_t *
     return whole;
 }
 
+/* One whole frame in slot k, of either form. Returns 1 when the stream has lost framing (a
+ * plain frame with a bad CRC): nothing after it can be trusted, and the slot is closed. */
+/*@ requires \valid(core) && \valid(out) && \separated(core, out);
+    requires core->magic == 0x45535450 && inv(core) && times_ok(core);
+    requires k < 8 && out->n_can <= 3;
+    assigns core->counters, core->status_auth_failed, core->remotes[0 .. 7],
+            core->tag_window_us, core->newcomer_checks, core->valid_run, core->state,
+            core->reason, core->slow_run, core->status_stops, core->status_slowdowns,
+            core->brake_counter, core->brake_due_us, core->slots[k].open, out->can[0 .. 2],
+            out->n_can, out->state_changed, out->reply[0 .. 47], out->reply_len,
+            out->has_reply, out->close_slot;
+    ensures frame_inv: cfg_ok(core) && core->magic == 0x45535450;
+    ensures frame_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
+    ensures frame_inv: slots_ok(core);
+    ensures frame_inv: core->state != 0 ==> core->link_fresh != 0;
+    ensures frame_times: brake_due_ok(core);
+    ensures frame_times: status_due_ok(core);
+    ensures frame_times: link_ok(core);
+    ensures frame_times: armed_ok(core);
+    ensures frame_out: out->n_can <= 3;
+    ensures frame_release: \old(core->state) == 0 && core->state != 0 ==>
+        out->has_reply == 1 && core->slots[k].fill == \old(core->slots[k].fill) &&
+        ((core->cfg.key_len == 0 && out->reply[11] == 0 &&
+          rd_u32le_l(&core->slots[k].buf[0]) == ESTOP_MSG_RELEASE) ||
+         (core->cfg.key_len != 0 && out->reply[15] == 0 &&
+          rd_u32le_l(&core->slots[k].buf[0]) == ESTOP_MAGIC_REQUEST &&
+          rd_u32le_l(&core->slots[k].buf[4]) == ESTOP_MSG_RELEASE));
+ */
+static int handle_frame(estop_core_t *core, uint32_t k, estop_out_t *out)
+{
+    const uint8_t *f = core->slots[k].buf;
+    int broken = 0;
+    if (rd_u32le(f) == ESTOP_MAGIC_REQUEST) {
+        handle_request(core, k, out);
+    } else if (estop_crc32(f, 12u) == rd_u32le(&f[12])) {
+        handle_plain(core, k, out);
+    } else {
+        sat32_inc(&core->counters.tcp_bad_crc);
+        core->slots[k].open = 0u;
+        out->close_slot = 1u;
+        broken = 1;
+    }
+    return broken;
+}
+
 estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data, size_t len,
                          size_t *consumed, uint32_t now_us, estop_out_t *out)
 {
@@ -245,21 +290,24 @@ estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data,
     }
     if (err == ESTOP_OK) {
         size_t take = 0u;
-        if (take_frame(&core->slots[slot], data, len, &take) != 0) {
-            const uint8_t *f = core->slots[slot].buf;
-            if (rd_u32le(f) == ESTOP_MAGIC_REQUEST) {
-                handle_request(core, slot, out);
-            } else if (estop_crc32(f, 12u) == rd_u32le(&f[12])) {
-                handle_plain(core, slot, out);
-            } else {
-                /* The stream has lost framing: nothing after this can be trusted, and the
-                 * rest of it is dropped. */
-                sat32_inc(&core->counters.tcp_bad_crc);
-                core->slots[slot].open = 0u;
-                out->close_slot = 1u;
-                take = len;
-            }
+        const int whole = take_frame(&core->slots[slot], data, len, &take);
+        /*@ assert taken_inv: cfg_ok(core) && core->magic == 0x45535450; */
+        /*@ assert taken_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16; */
+        /*@ assert taken_inv: core->state != 0 ==> core->link_fresh != 0; */
+        /*@ assert taken_inv: slots_ok(core); */
+        /*@ assert taken_times: times_ok(core); */
+        /*@ assert taken_state: \at(core->state, Pre) == 0 ==> core->state == 0; */
+        /*@ assert taken_whole: whole != 0 ==> core->slots[slot].fill == 0; */
+        if ((whole != 0) && (handle_frame(core, slot, out) != 0)) {
+            take = len; /* the rest of a broken stream is dropped */
         }
+        /*@ assert handled_release: \at(core->state, Pre) == 0 && core->state != 0 ==>
+                out->has_reply == 1 && core->slots[slot].fill == 0 &&
+                ((core->cfg.key_len == 0 && out->reply[11] == 0 &&
+                  rd_u32le_l(&core->slots[slot].buf[0]) == ESTOP_MSG_RELEASE) ||
+                 (core->cfg.key_len != 0 && out->reply[15] == 0 &&
+                  rd_u32le_l(&core->slots[slot].buf[0]) == ESTOP_MAGIC_REQUEST &&
+                  rd_u32le_l(&core->slots[slot].buf[4]) == ESTOP_MSG_RELEASE)); */
         *consumed = take;
         estop__finish(core, out);
     }

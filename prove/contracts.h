@@ -104,6 +104,11 @@ void estop__unauthenticated(estop_core_t *core);
  */
 void estop__record_gap(estop_core_t *core);
 
+/*@ assigns \nothing;
+    ensures \result < 32;
+ */
+uint32_t estop_gap_bin(uint32_t gap_us);
+
 /*@ requires \valid(core);
     assigns core->gaps[0 .. 31], core->silences, core->gap_known;
  */

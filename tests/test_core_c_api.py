@@ -251,10 +251,10 @@ def test_tick_that_goes_backwards_is_a_fault_stop() -> None:
 
 
 def test_tick_going_backwards_restarts_a_stopped_units_release_count() -> None:
-    """A STOPPED unit with 5 valid packets counted, then a tick backwards: the link is stale and
-    the count starts over from 0, so four packets after it cannot make a RELEASE succeed (advance_clock
-    resets valid_run itself since it stops a moving unit only; the mutant that dropped the
-    reset, or reset to 1, survived every test)."""
+    """A STOPPED unit with 5 valid packets counted, then a tick backwards: the link is stale
+    and the count starts over from 0, so four packets after it cannot make a RELEASE succeed.
+    advance_clock resets valid_run itself, since it stops a moving unit only; the mutants that
+    dropped the reset, or reset to 1, survived every test."""
     raw = Raw(1_000_000)
     t = 1_000_000
     for _ in range(5):

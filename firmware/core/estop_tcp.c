@@ -301,6 +301,11 @@ estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data,
         if ((whole != 0) && (handle_frame(core, slot, out) != 0)) {
             take = len; /* the rest of a broken stream is dropped */
         }
+        /*@ assert handled_inv: cfg_ok(core) && core->magic == 0x45535450; */
+        /*@ assert handled_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16; */
+        /*@ assert handled_inv: core->state != 0 ==> core->link_fresh != 0; */
+        /*@ assert handled_inv: slots_ok(core); */
+        /*@ assert handled_times: times_ok(core); */
         /*@ assert handled_release: \at(core->state, Pre) == 0 && core->state != 0 ==>
                 out->has_reply == 1 && core->slots[slot].fill == 0 &&
                 ((core->cfg.key_len == 0 && out->reply[11] == 0 &&

@@ -42,8 +42,8 @@ estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 
 /*@ requires \valid(core) && \valid(out) && \separated(core, out);
     requires finish_inv: cfg_ok(core);
-    requires finish_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
-    requires finish_inv: core->state != 0 ==> core->link_fresh != 0;
+    requires finish_inv: known_ok(core);
+    requires finish_inv: fresh_ok(core);
     requires finish_times: brake_due_ok(core);
     requires finish_times: status_due_ok(core);
     requires finish_times: link_ok(core);
@@ -65,14 +65,7 @@ uint8_t estop__current_flags(const estop_core_t *core);
     assigns core->counters, core->valid_run, core->state, core->reason, core->slow_run,
             core->status_stops, core->status_slowdowns, core->brake_counter,
             core->brake_due_us, out->can[0 .. 2], out->n_can, out->state_changed;
-    ensures msg_inv: cfg_ok(core);
-    ensures msg_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
-    ensures msg_inv: slots_ok(core);
-    ensures msg_inv: core->state != 0 ==> core->link_fresh != 0;
-    ensures msg_times: brake_due_ok(core);
-    ensures msg_times: status_due_ok(core);
-    ensures msg_times: link_ok(core);
-    ensures msg_times: armed_ok(core);
+    ENSURES_KEPT(msg)
     ensures msg_frames: out->n_can <= 3;
     ensures msg_keeps_clock: core->now_us == \old(core->now_us) &&
         core->magic == \old(core->magic);

@@ -18,9 +18,10 @@
      1000 <= (c)->cfg.brake_period_us <= 25000 && \
      10000 <= (c)->cfg.status_period_us <= 1000000)
 #define slots_ok(c) (\forall integer i; 0 <= i < 8 ==> (c)->slots[i].fill < 48)
-#define inv_base(c) (cfg_ok(c) && (c)->state <= 2 && (c)->reason <= 5 && slots_ok(c) && \
-                     (c)->mac.outlen <= 16)
-#define inv(c) (inv_base(c) && ((c)->state != 0 ==> (c)->link_fresh != 0))
+#define known_ok(c) ((c)->state <= 2 && (c)->reason <= 5 && (c)->mac.outlen <= 16)
+#define fresh_ok(c) ((c)->state != 0 ==> (c)->link_fresh != 0)
+#define inv_base(c) (cfg_ok(c) && known_ok(c) && slots_ok(c))
+#define inv(c) (inv_base(c) && fresh_ok(c))
 /* The times between calls: both periodic frames due within their period, a fresh link younger
  * than the timeout, and an ARMED unit's link younger than the slow time. estop__begin makes
  * them, every step after it keeps them, and estop__finish turns them into next_call_us. */
@@ -32,6 +33,19 @@
 #define armed_ok(c) \
     ((c)->state == 1 ==> udiff((c)->now_us, (c)->last_valid_us) < (c)->cfg.slow_us)
 #define times_ok(c) (brake_due_ok(c) && status_due_ok(c) && link_ok(c) && armed_ok(c))
+/* The invariant and the times kept by a step, as separate clauses named tag_inv and tag_times:
+ * one proof goal each (as one conjunction the solvers timed out). */
+#define ENSURES_INV(tag) \
+    ensures tag##_inv: cfg_ok(core); \
+    ensures tag##_inv: known_ok(core); \
+    ensures tag##_inv: slots_ok(core); \
+    ensures tag##_inv: fresh_ok(core);
+#define ENSURES_KEPT(tag) \
+    ENSURES_INV(tag) \
+    ensures tag##_times: brake_due_ok(core); \
+    ensures tag##_times: status_due_ok(core); \
+    ensures tag##_times: link_ok(core); \
+    ensures tag##_times: armed_ok(core);
 #define core_ok(c) ((c)->magic == 0x45535450 ==> inv(c))
 #define host(c, o) (\valid(c) && \valid(o) && \separated(c, o) && core_ok(c))
 #define fills_kept(L1, L2, c) \

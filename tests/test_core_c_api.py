@@ -187,12 +187,18 @@ def test_names() -> None:
 
 
 # -- the raw tick ---------------------------------------------------------------------------
-def arm_raw(raw: Raw, start: int) -> int:
+def feed_raw(raw: Raw, start: int, n: int = 5) -> int:
+    """n valid packets 20 ms apart after start, each after a tick; returns the last time."""
     t = start
-    for _ in range(5):
+    for _ in range(n):
         t += 20 * MS
         raw.tick(t)
         raw.udp(packet(), t)
+    return t
+
+
+def arm_raw(raw: Raw, start: int) -> int:
+    t = feed_raw(raw, start)
     assert raw.release(t)[2] == 1
     return t
 
@@ -256,11 +262,7 @@ def test_tick_going_backwards_restarts_a_stopped_units_release_count() -> None:
     advance_clock resets valid_run itself, since it stops a moving unit only; the mutants that
     dropped the reset, or reset to 1, survived every test."""
     raw = Raw(1_000_000)
-    t = 1_000_000
-    for _ in range(5):
-        t += 20 * MS
-        raw.tick(t)
-        raw.udp(packet(), t)
+    t = feed_raw(raw, 1_000_000)
     assert raw.state() == (0, 1)  # still STOPPED, reason boot: no RELEASE sent yet
     back = t - 1
     assert raw.tick(back) == 0

@@ -395,10 +395,7 @@ static void age_link(estop_core_t *core, uint32_t step)
             core->slow_run, core->status_stops, core->status_slowdowns, core->gaps[0 .. 31],
             core->silences, core->gap_known, core->brake_counter, core->brake_due_us,
             out->can[0 .. 2], out->n_can, out->state_changed, out->changed_by_clock;
-    ensures clock_inv: cfg_ok(core);
-    ensures clock_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
-    ensures clock_inv: slots_ok(core);
-    ensures clock_inv: core->state != 0 ==> core->link_fresh != 0;
+    ENSURES_INV(clock)
     ensures clock_now: core->now_us == now_us && out->n_can <= 1;
     ensures clock_link: core->link_fresh != 0 ==>
         udiff(core->now_us, core->last_valid_us) < core->cfg.timeout_us;
@@ -627,14 +624,7 @@ static uint8_t stop_datagram(const estop_core_t *core, const uint8_t *d, size_t 
             core->link_fresh, core->last_neutral, core->slow_run, core->state,
             out->state_changed, out->can[0 .. 2], out->n_can, core->brake_counter,
             core->brake_due_us;
-    ensures valid_inv: cfg_ok(core);
-    ensures valid_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
-    ensures valid_inv: slots_ok(core);
-    ensures valid_inv: core->state != 0 ==> core->link_fresh != 0;
-    ensures valid_times: brake_due_ok(core);
-    ensures valid_times: status_due_ok(core);
-    ensures valid_times: link_ok(core);
-    ensures valid_times: armed_ok(core);
+    ENSURES_KEPT(valid)
     ensures valid_frames: out->n_can <= 3;
     ensures never_leaves_stopped: \old(core->state) == 0 ==> core->state == 0;
  */
@@ -694,14 +684,7 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
             core->counters.releases_accepted, core->counters.releases_refused,
             core->status_slowdowns, out->state_changed, out->can[0 .. 2], out->n_can,
             core->brake_counter, core->brake_due_us;
-    ensures rel_inv: cfg_ok(core);
-    ensures rel_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
-    ensures rel_inv: slots_ok(core);
-    ensures rel_inv: core->state != 0 ==> core->link_fresh != 0;
-    ensures rel_times: brake_due_ok(core);
-    ensures rel_times: status_due_ok(core);
-    ensures rel_times: link_ok(core);
-    ensures rel_times: armed_ok(core);
+    ENSURES_KEPT(rel)
     ensures rel_frames: out->n_can <= 3;
     ensures rel_only_authenticated: \old(core->state) == 0 && core->state != 0 ==>
         authenticated != 0 && \result == 0;

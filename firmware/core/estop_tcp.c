@@ -114,14 +114,7 @@ static void reply_request(const estop_core_t *core, const uint8_t *req, uint8_t 
             core->reason, core->slow_run, core->status_stops, core->status_slowdowns,
             core->brake_counter, core->brake_due_us, out->can[0 .. 2], out->n_can,
             out->state_changed, out->reply[0 .. 47], out->reply_len, out->has_reply;
-    ensures plain_inv: cfg_ok(core);
-    ensures plain_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
-    ensures plain_inv: slots_ok(core);
-    ensures plain_inv: core->state != 0 ==> core->link_fresh != 0;
-    ensures plain_times: brake_due_ok(core);
-    ensures plain_times: status_due_ok(core);
-    ensures plain_times: link_ok(core);
-    ensures plain_times: armed_ok(core);
+    ENSURES_KEPT(plain)
     ensures plain_frames: out->n_can <= 3;
     ensures plain_release: \old(core->state) == 0 && core->state != 0 ==>
         out->has_reply == 1 && core->cfg.key_len == 0 && out->reply[11] == 0 &&
@@ -149,14 +142,7 @@ static void handle_plain(estop_core_t *core, uint32_t k, estop_out_t *out)
             core->reason, core->slow_run, core->status_stops, core->status_slowdowns,
             core->brake_counter, core->brake_due_us, out->can[0 .. 2], out->n_can,
             out->state_changed, out->reply[0 .. 47], out->reply_len, out->has_reply;
-    ensures request_inv: cfg_ok(core);
-    ensures request_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
-    ensures request_inv: slots_ok(core);
-    ensures request_inv: core->state != 0 ==> core->link_fresh != 0;
-    ensures request_times: brake_due_ok(core);
-    ensures request_times: status_due_ok(core);
-    ensures request_times: link_ok(core);
-    ensures request_times: armed_ok(core);
+    ENSURES_KEPT(request)
     ensures request_frames: out->n_can <= 3;
     ensures request_release: \old(core->state) == 0 && core->state != 0 ==>
         out->has_reply == 1 && core->cfg.key_len != 0 && out->reply[15] == 0 &&
@@ -239,14 +225,8 @@ static int take_frame(estop_slot_t *s, const uint8_t *data, size_t len, size_t *
             core->brake_counter, core->brake_due_us, core->slots[k].open, out->can[0 .. 2],
             out->n_can, out->state_changed, out->reply[0 .. 47], out->reply_len,
             out->has_reply, out->close_slot;
-    ensures frame_inv: cfg_ok(core) && core->magic == 0x45535450;
-    ensures frame_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16;
-    ensures frame_inv: slots_ok(core);
-    ensures frame_inv: core->state != 0 ==> core->link_fresh != 0;
-    ensures frame_times: brake_due_ok(core);
-    ensures frame_times: status_due_ok(core);
-    ensures frame_times: link_ok(core);
-    ensures frame_times: armed_ok(core);
+    ensures frame_inv: core->magic == 0x45535450;
+    ENSURES_KEPT(frame)
     ensures frame_out: out->n_can <= 3;
     ensures frame_release: \old(core->state) == 0 && core->state != 0 ==>
         out->has_reply == 1 && core->slots[k].fill == \old(core->slots[k].fill) &&
@@ -292,8 +272,8 @@ estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data,
         size_t take = 0u;
         const int whole = take_frame(&core->slots[slot], data, len, &take);
         /*@ assert taken_inv: cfg_ok(core) && core->magic == 0x45535450; */
-        /*@ assert taken_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16; */
-        /*@ assert taken_inv: core->state != 0 ==> core->link_fresh != 0; */
+        /*@ assert taken_inv: known_ok(core); */
+        /*@ assert taken_inv: fresh_ok(core); */
         /*@ assert taken_inv: slots_ok(core); */
         /*@ assert taken_times: times_ok(core); */
         /*@ assert taken_state: \at(core->state, Pre) == 0 ==> core->state == 0; */
@@ -302,8 +282,8 @@ estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data,
             take = len; /* the rest of a broken stream is dropped */
         }
         /*@ assert handled_inv: cfg_ok(core) && core->magic == 0x45535450; */
-        /*@ assert handled_inv: core->state <= 2 && core->reason <= 5 && core->mac.outlen <= 16; */
-        /*@ assert handled_inv: core->state != 0 ==> core->link_fresh != 0; */
+        /*@ assert handled_inv: known_ok(core); */
+        /*@ assert handled_inv: fresh_ok(core); */
         /*@ assert handled_inv: slots_ok(core); */
         /*@ assert handled_times: times_ok(core); */
         /*@ assert handled_release: \at(core->state, Pre) == 0 && core->state != 0 ==>

@@ -148,10 +148,10 @@ int loop_init(daemon_t *d, char *err, size_t errlen)
     d->tcp.epfd = d->epfd;
     d->tcp.listen_tag = TAG_TCP;
     d->tcp.client_tag0 = TAG_CLIENT0;
-    d->tcp.unit = &d->unit;
-    d->tcp.apply = &d->apply;
-    d->tcp.prepare = prepare_hook;
-    d->tcp.prepare_ctx = d;
+    d->tcp.rx.unit = &d->unit;
+    d->tcp.rx.apply = &d->apply;
+    d->tcp.rx.prepare = prepare_hook;
+    d->tcp.rx.prepare_ctx = d;
     d->stats_src.core = &d->unit.core;
     d->stats_src.cfg = &d->opt.cfg;
     d->stats_src.udp_drops = &d->udp.drops;
@@ -287,7 +287,7 @@ static int finish(daemon_t *d)
     notify_send(&d->notify, "STOPPING=1");
     udp_round(&d->udp);
     if (!broken(d)) {
-        tcp_accept(&d->tcp); /* connections still in the backlog may hold a STOP too */
+        /* connections still in the backlog may hold a STOP too: accepted there */
         tcp_drain_all(&d->tcp, EXIT_DRAIN_US);
     }
     last_frame(d);
@@ -323,6 +323,7 @@ int loop_run(daemon_t *d)
         int i;
 
         udp_round(&d->udp);
+        tcp_round(&d->tcp);
         now = prepare(d); /* deadline work first, every round */
         if (broken(d)) {
             break;

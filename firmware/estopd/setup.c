@@ -257,6 +257,7 @@ int setup(daemon_t *d, char *err, size_t errlen)
         loop_init(d, err, errlen) != 0) {
         return -1;
     }
+    tcp_spare_open(&d->tcp); /* last: every descriptor the daemon needs comes first */
     /* The ports go out before the first frame: tests and supervisors read them here. */
     log_start_line(d);
     rc = loop_boot(d);

@@ -23,6 +23,7 @@ typedef struct {
     int retire_err;           /* the errno that broke it, which the close names instead */
     size_t drained;           /* bytes read since it began to go */
     size_t drain_max;         /* what its going reads at most (client_drain_bound) */
+    uint64_t drained_round;   /* the round (client_ctx_t.round_us) of its latest drain piece */
 } client_t;
 
 /* Called before every input handed to the unit: drains what arrived before it and acts on a

@@ -19,29 +19,25 @@ int room_unread(const client_t *c)
     return ioctl(c->fd, FIONREAD, &n) == 0 ? n : 0;
 }
 
-/* The client quiet longest among those served (-1: none): no complete frame received for the
- * most rounds, where a whole frame waiting in its socket counts as received this round (the
- * kernel has it; the unit handles it before any close). Among clients as quiet as each other,
+/* The client quiet longest among those served (-1: none): no complete frame for the most
+ * rounds. Among clients as quiet as each other (every client with input is served each round)
  * the one with the most input waiting: a well-behaved client has a request or none waiting, a
  * flood of requests has many (and its drain is spread over rounds: tcp.h). */
 int room_quietest(const tcp_t *t)
 {
     int i;
     int q = -1;
-    uint64_t q_since = 0u;
     int q_unread = 0;
     for (i = 0; i < (int)ESTOP_MAX_SLOTS; i++) {
         const client_t *c = &t->clients[i];
         int n;
-        uint64_t since;
         if (c->fd < 0 || c->retiring != NULL) {
             continue;
         }
         n = room_unread(c);
-        since = n >= (int)ESTOP_TCP_FRAME_LEN ? t->rx.round_us : c->quiet_since_us;
-        if (q < 0 || since < q_since || (since == q_since && n > q_unread)) {
+        if (q < 0 || c->quiet_since_us < t->clients[q].quiet_since_us ||
+            (c->quiet_since_us == t->clients[q].quiet_since_us && n > q_unread)) {
             q = i;
-            q_since = since;
             q_unread = n;
         }
     }

@@ -96,6 +96,7 @@ static void retire_step(tcp_t *t, uint32_t slot, uint64_t until)
 {
     client_t *c = &t->clients[slot];
 
+    c->drained_round = t->rx.round_us;
     while (c->fd >= 0) {
         size_t n = 0u;
         int err = 0;
@@ -219,9 +220,16 @@ static void settle(tcp_t *t)
     listener_sync(t);
 }
 
+/* The round's start, strictly later than the last one's (it also names the round). */
+static void next_round(tcp_t *t)
+{
+    uint64_t now = clock_unit_us();
+    t->rx.round_us = now > t->rx.round_us ? now : t->rx.round_us + 1u;
+}
+
 void tcp_round(tcp_t *t)
 {
-    t->rx.round_us = clock_unit_us();
+    next_round(t);
     t->evictions = 0u;
     t->spare_retry = 1u; /* a descriptor another part closed may have come back */
     settle(t);
@@ -331,7 +339,9 @@ void tcp_event(tcp_t *t, uint32_t slot)
         return;
     }
     if (c->retiring != NULL) {
-        retire_step(t, slot, clock_unit_us() + TCP_RETIRE_STEP_US);
+        if (c->drained_round != t->rx.round_us) { /* one piece a round: its event comes back */
+            retire_step(t, slot, clock_unit_us() + TCP_RETIRE_STEP_US);
+        }
     } else {
         r = client_read(&t->rx, c, slot, &n, &err, &why);
         if (r == CLIENT_EOF) {
@@ -360,7 +370,7 @@ void tcp_drain_all(tcp_t *t, uint64_t max_us)
         uint32_t i;
         int more = 0;
 
-        t->rx.round_us = clock_unit_us();
+        next_round(t);
         t->evictions = 0u;
         tcp_accept(t);
         for (i = 0; i < ESTOP_MAX_SLOTS; i++) {

@@ -31,8 +31,9 @@ import sys
 import time
 from pathlib import Path
 
-from estop.loopback import Daemon, DaemonError, find_estopd
 from estop.protocol import tcp
+from estop.unit.daemon import Daemon, find_estopd
+from estop.unit.log import DaemonError
 from latency_machine import timer_floor
 from latency_stats import summarize
 

@@ -142,6 +142,10 @@ def soak(exe: str, seconds: float, warmup: float) -> Soak:
                 next_sample = now + 1.0
         link.close()
         junk.close()
+        # The last sample once the traffic has stopped: a client closed at the end of the
+        # last cycle may still hold its descriptor until the daemon reads its end of file.
+        time.sleep(0.5)
+        samples.append({"t": round(time.monotonic() - start, 2), **proc_sample(daemon.pid)})
         state_changes = sum(" state " in line for line in daemon.log_lines)
     result = Soak(samples, cycles, state_changes, warmup)
     if len(result.settled) < 2:

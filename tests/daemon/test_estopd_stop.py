@@ -230,8 +230,9 @@ def test_udp_flood_cannot_delay_the_timeout_stop(tmp_path: Path) -> None:
             th.start()
             try:
                 time.sleep(0.02)
+                paused_at = time.time()  # before the signal: the daemon stops at once
                 pause(d)
-                paused_at, before = time.time(), sent[0]
+                before = sent[0]
                 # More than two budgets queue up; resumed well before the deadline.
                 while sent[0] - before < 3 * UDP_ROUND_MAX and time.time() < armed_at + 0.12:
                     time.sleep(0.002)

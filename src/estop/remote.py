@@ -8,6 +8,9 @@ The parts, one job each:
 - :mod:`estop.remoteterm` -- the interactive terminal (keys, status line);
 - :mod:`estop.gamepad` -- a game controller with a real dead-man (``--gamepad``; the mapping
   of its events in :mod:`estop.gamepadmap`);
+- :mod:`estop.touch` -- a touch page served to a phone or tablet, with a real dead-man
+  (``--touch``; the server :mod:`estop.touchserver`, the dead-man across the page's hop
+  :mod:`estop.touchhold`, its messages :mod:`estop.touchwire`);
 - this module -- the command line: options, the link model from them, the run and its summary.
 
 The names of those modules are importable from here as well (``from estop.remote import
@@ -15,12 +18,15 @@ Remote``).
 
 The keyboard is NOT a dead-man switch: a terminal sees a key pressed but never released, so the
 space bar toggles the hold, and the packets go on while nobody touches anything. A real
-dead-man (held trigger, released: lift at once) is ``estop remote --gamepad``.
+dead-man (held trigger, released: lift at once) is ``estop remote --gamepad``, or a finger
+on the page of ``estop remote --touch``.
 
 Exit code (the table of every command: :data:`estop.cliutil.EXIT_CODES`): 0 done, 1 an
 ``expect`` failed, 2 usage error or bad script, 3 the stop channel failed (connection refused
-or closed, timeout, malformed reply) or the game controller was not found or went away, 4 the
-script or key file cannot be read, 5 a needed extra (evdev for --gamepad) is not installed.
+or closed, timeout, malformed reply), the game controller was not found or went away, or
+(--touch) the unit did not answer at the start or the address cannot be listened on, 4 the
+script or key file cannot be read, 5 a needed extra (evdev for --gamepad, aiohttp and segno
+for --touch) is not installed.
 """
 
 from __future__ import annotations
@@ -57,6 +63,7 @@ from estop.remotesender import (
 from estop.remoteterm import handle_key, run_interactive
 from estop.stopbutton import DEFAULT_STOP_DEADLINE
 from estop.stopchannel import StopChannelError
+from estop.touch import DEFAULT_LISTEN, run_touch
 
 __all__ = [
     "DESCRIPTION",
@@ -117,6 +124,12 @@ gamepad (--gamepad): hold the dead-man (left trigger) to send, let go: lift at o
 left stick steering, right stick gas (up) / brake (down), B stop, START release,
 SELECT status, Y next gear, X horn, D-pad turn signal; a pad unplugged lifts (exit 3)
 
+touch (--touch [--listen ADDR:PORT]): serve a page; a finger on its drive area is the
+dead-man (steering across, gas up / brake down, neutral in the middle), STOP, RELEASE,
+gear; the last finger leaving, the page hidden or its connection closing lifts at once;
+a page that stops sending goes silent (the unit slows at S, stops at T). The address is
+printed first, with a pairing token the page needs to drive (docs/REMOTE.md)
+
 keys (terminal): space hold/lift, s stop, r release, t status, arrows gas/steering,
 n neutral, g next gear, h horn, 0-3 turn signal, q quit
 the space bar is a TOGGLE, NOT a dead-man: a terminal cannot see a key released, so
@@ -176,6 +189,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="a game controller is the remote, with a real dead-man (hold "
                              "the left trigger to drive; needs the gamepad extra): "
                              "/dev/input/eventN, or the first one found")
+    script.add_argument("--touch", action="store_true",
+                        help="serve a touch page and drive from a phone, tablet or touch "
+                             "laptop, with a real dead-man (a finger on the page; needs the "
+                             "touch extra); the address (with its pairing token) is printed "
+                             "first")
+    parser.add_argument("--listen", metavar="ADDR:PORT", default=None,
+                        help="--touch: serve the page here (default 127.0.0.1:8081: this "
+                             "machine only; another address serves the network, an explicit "
+                             "choice, with a QR code of the address; port 0: any free)")
     parser.add_argument("--deadman", metavar="CONTROL", default=None,
                         help="--gamepad: the dead-man control, e.g. BTN_TL (default: the "
                              "first of ABS_Z, BTN_TL2, BTN_TL the pad has)")
@@ -226,10 +248,12 @@ def run(args: argparse.Namespace) -> int:
             steps = parse_script(text)
         except ScriptError as exc:
             raise UsageError(f"script: {exc}") from None
-    elif args.gamepad is None and not sys.stdin.isatty():
+    elif args.gamepad is None and not args.touch and not sys.stdin.isatty():
         raise UsageError("interactive mode needs a terminal; use --script or --script-file")
     if args.deadman is not None and args.gamepad is None:
         raise UsageError("--deadman: only with --gamepad")
+    if args.listen is not None and not args.touch:
+        raise UsageError("--listen: only with --touch")
     key = key_from_args(args)
     if key is not None and args.legacy:
         raise UsageError("--legacy: with --key-file the remote sends 60-byte packets")
@@ -237,7 +261,7 @@ def run(args: argparse.Namespace) -> int:
         remote = Remote(args.host, args.udp_port, args.tcp_port, rate_hz=args.rate_hz, link=cfg,
                         seed=args.seed, stop_id=args.stop_id, tcp_timeout=args.timeout,
                         stop_deadline=args.stop_deadline, legacy=args.legacy, key=key,
-                        remote_id=args.remote_id)
+                        remote_id=args.remote_id, paced=not args.touch)
     except OSError as exc:
         raise ConnectionFailure(f"cannot open a UDP socket: {exc}") from None
     code = EXIT_OK
@@ -251,6 +275,8 @@ def run(args: argparse.Namespace) -> int:
         try:
             if args.gamepad is not None:
                 code = run_gamepad(remote, args.gamepad or None, args.deadman, log)
+            elif args.touch:
+                code = run_touch(remote, args.listen or DEFAULT_LISTEN, log)
             elif steps is None:
                 run_interactive(remote)
             else:

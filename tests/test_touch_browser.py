@@ -129,6 +129,9 @@ def phone(browser: Any, remote: TouchRemote) -> Iterator[Phone]:
     try:
         p.page.wait_for_function("window.estop.last && window.estop.last.paired")
         yield p
+        if not p.page.is_closed():  # every message of the server verified, in order
+            assert p.page.evaluate("[window.estop.renderErrors, window.estop.badMacs]") \
+                == [0, 0]
     finally:
         p.context.close()
 

@@ -13,8 +13,10 @@ stops at T. A frame is fresh when:
   change of route re-baselines within seconds), is at most two periods. Frames that waited in
   a buffer (a Wi-Fi stall, a paused page whose socket delivers late) are dropped instead of
   being replayed as if the finger were still there now;
-- it comes at least half a period after the previous packet: a backlog delivered at once is
-  not a burst of packets (docs/REMOTE.md: no bursts to catch up).
+- it was sent at least half a period after the frame of the previous packet (by the page's
+  clock, so that the network's jitter costs no packet), and arrives at least a quarter period
+  after that packet: a backlog delivered at once is not a burst of packets, and a page that
+  sends too fast does not raise the rate (docs/REMOTE.md: no bursts to catch up).
 
 A constant delay cannot be told from none without synchronised clocks; the page shows the
 round trip so the driver sees it.
@@ -39,7 +41,7 @@ DRIFT = 0.010  # s per s: how fast the smallest delay seen may rise (clock drift
 class Verdict(enum.Enum):
     SEND = "send"  # fresh: one control packet now
     STALE = "stale"  # held up on its way: nothing
-    EARLY = "early"  # within half a period of the previous packet: nothing
+    EARLY = "early"  # too soon after the previous packet's frame: nothing
     OTHER = "other"  # another page holds: nothing
 
 
@@ -50,7 +52,7 @@ class HoldStats:
     stale: int = 0
     early: int = 0
     other: int = 0
-    missed: int = 0  # control periods of a hold without a fresh frame
+    missed: int = 0  # control periods of a hold without a fresh frame (by the page's clock)
     holds: int = 0
     stalls: int = 0
 
@@ -91,6 +93,7 @@ class DeadMan:
         self.stats = HoldStats()
         self.last_fresh = 0.0
         self._last_sent = -1e9
+        self._last_sent_page_s = -1e9  # the page time of the latest packet's frame
         self._stalled = False
         self._clocks: dict[int, _PageClock] = {}
 
@@ -110,17 +113,22 @@ class DeadMan:
         if age > STALE_PERIODS * self.period:
             self.stats.stale += 1
             return Verdict.STALE
-        if now - self._last_sent < self.period / 2:
+        page_s = at_ms / 1000.0
+        if self.holder is None:
+            self._last_sent_page_s = -1e9  # a new hold: the page's clock may be another's
+        if (page_s - self._last_sent_page_s < self.period / 2
+                or now - self._last_sent < self.period / 4):
             self.stats.early += 1
             return Verdict.EARLY
         if self.holder is None:
             self.holder = conn
             self.stats.holds += 1
-        else:
-            gap = now - self.last_fresh
+        else:  # periods the page sent nothing for, or whose frames were dropped
+            gap = page_s - self._last_sent_page_s
             self.stats.missed += max(0, round(gap / self.period) - 1)
         self.stats.fresh += 1
         self.last_fresh = self._last_sent = now
+        self._last_sent_page_s = page_s
         self._stalled = False
         return Verdict.SEND
 

@@ -75,8 +75,10 @@ class _Page:
     page_nonce: bytes | None = None  # the page's: the server MACs with it, once paired
     n_in: int = 0
     n_out: int = 0
-    latest: str | None = None  # the newest state message, not yet written
-    replies: list[str] = field(default_factory=list)
+    # what waits to be written: (message, whether it is MACed); counters and MACs are put on
+    # as each is written, so the page sees the counters rise in the order it reads them
+    latest: tuple[dict[str, Any], bool] | None = None  # the newest state, not yet written
+    replies: list[tuple[dict[str, Any], bool]] = field(default_factory=list)
     wake: asyncio.Event = field(default_factory=asyncio.Event)
 
     @property
@@ -164,9 +166,12 @@ class TouchServer:
 
     def _held(self, page: _Page, fields: dict[str, Any]) -> None:
         frame = parse_held(fields)
+        was_stalled = self.deadman.is_stalled
         verdict = self.deadman.frame(page.id, frame.at_ms, time.monotonic())
         if verdict is not Verdict.SEND:
             return
+        if was_stalled:
+            self._changed.set()
         remote = self.remote
         try:
             remote.set_control(steering=frame.steer, gas_brake=frame.gas)
@@ -251,20 +256,23 @@ class TouchServer:
 
     def _push_state(self) -> None:
         for page in self.pages.values():
-            page.latest = self._seal(page, self._state_for(page))
-            page.wake.set()
+            self._set_state(page)
+
+    def _set_state(self, page: _Page) -> None:
+        page.latest = (self._state_for(page), page.paired)
+        page.wake.set()
 
     # ------------------------------------------------------------------ pages
 
-    def _seal(self, page: _Page, msg: dict[str, Any]) -> str:
-        if not page.paired:
+    def _seal(self, page: _Page, msg: dict[str, Any], authenticated: bool) -> str:
+        if not authenticated:
             return seal(msg)
         page.n_out += 1
         return seal({**msg, "n": page.n_out}, self.token, page.page_nonce)
 
     def _reply(self, page: _Page, msg: dict[str, Any]) -> None:
         if len(page.replies) < 16:  # a page that does not read keeps only a few
-            page.replies.append(self._seal(page, msg))
+            page.replies.append((msg, page.paired))
             page.wake.set()
 
     async def _writer(self, page: _Page) -> None:
@@ -277,8 +285,8 @@ class TouchServer:
             if page.latest is not None:
                 out.append(page.latest)
                 page.latest = None
-            for text in out:
-                await page.ws.send_str(text)
+            for msg, authenticated in out:
+                await page.ws.send_str(self._seal(page, msg, authenticated))
 
     async def _index(self, request: web.Request) -> web.Response:
         return self._asset("index.html")
@@ -311,8 +319,7 @@ class TouchServer:
             await ws.send_str(seal({"t": "hello", "nonce": page.nonce.hex(),
                                     "period_ms": round(self.deadman.period * 1000, 3),
                                     "page": page.id}))
-            page.latest = self._seal(page, self._state_for(page))
-            page.wake.set()
+            self._set_state(page)
             async for msg in ws:
                 if msg.type != WSMsgType.TEXT:
                     why = "it sent a binary frame"
@@ -373,9 +380,9 @@ class TouchServer:
         if page.paired:
             raise WireError("paired already")
         if not msg.authentic or not isinstance(nonce, str) or len(nonce) != 32:
-            self.log(f"page {page.id} ({page.addr}): pairing refused (no or wrong token)")
+            self.log(f"page {page.id} ({page.addr}): pairing refused (a wrong token)")
             self._reply(page, {"t": "refused", "what": "pair",
-                               "why": "pairing token missing or wrong"})
+                               "why": "wrong pairing token"})
             return
         try:
             page.page_nonce = bytes.fromhex(nonce)
@@ -383,8 +390,7 @@ class TouchServer:
             raise WireError("nonce: not hex") from None
         self.log(f"page {page.id} ({page.addr}): paired")
         self._reply(page, {"t": "paired"})
-        page.latest = self._seal(page, self._state_for(page))
-        page.wake.set()
+        self._set_state(page)
 
     def _gear(self, page: _Page, name: object) -> None:
         gear = _GEARS.get(name) if isinstance(name, str) else None

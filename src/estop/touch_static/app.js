@@ -94,6 +94,7 @@ function connect() {
     stopHold(null);
     ws = null; paired = false; serverNonce = null; nOut = 0; nIn = 0;
     show({ state: "NO REMOTE", reason: "connection to estop remote lost", cls: "unreachable" });
+    $("hold").textContent = "not driving: the unit stops (lift, or silence)";
     setTimeout(connect, 1000);
   };
 }
@@ -107,10 +108,11 @@ function handle(msg) {
         pageNonce = crypto.getRandomValues(new Uint8Array(16));
         send({ t: "pair", nonce: bytesToHex(pageNonce) });
       } else {
-        refused = "no pairing token in the address: view and STOP only";
+        refused = "no pairing token: view and STOP only";
       }
+      ping();
       break;
-    case "paired": paired = true; refused = ""; note("paired with estop remote"); break;
+    case "paired": paired = true; refused = ""; note("paired with estop remote"); ping(); break;
     case "refused":
       if (msg.what === "pair") refused = msg.why + ": view and STOP only";
       note(msg.what + " refused: " + msg.why, true);
@@ -123,12 +125,13 @@ function handle(msg) {
   }
 }
 
-setInterval(() => {
+function ping() {
   if (!ws || ws.readyState !== WebSocket.OPEN || !serverNonce) return;
   pings.set(++pingId, performance.now());
   if (pings.size > 10) pings.delete(pings.keys().next().value);
   send({ t: "ping", id: pingId });
-}, 1000);
+}
+setInterval(ping, 1000);
 
 // ---------------------------------------------------------------- the dead-man
 const touches = new Map();   // identifier -> {x, y}: fingers that drive, oldest first
@@ -298,12 +301,23 @@ function show(s) {
 
 function drawState(m) {
   let cls = m.state.toLowerCase(), state = m.state, reason = m.reason.replace(/_/g, " ");
-  if (m.error) { reason = m.error; }
-  if (refused) { cls = "refused"; reason = "REFUSED: " + refused + " \u00b7 unit " + state + (m.reason ? " " + reason : ""); state = "NOT PAIRED"; }
+  const unit = m.state + (m.reason ? " " + reason : "");
+  if (m.error) reason = m.error;
+  let hold;
+  if (refused) {
+    cls = "refused"; state = "NOT PAIRED"; reason = refused; hold = "unit: " + unit;
+  } else if (m.hold === "you") {
+    hold = m.stalled ? "YOUR HOLD IS STALLED: no fresh frames, nothing sent"
+      : m.state === "STOPPED" ? "FINGER DOWN \u00b7 RELEASE to drive"
+      : m.state === "ARMED" ? "FINGER DOWN: driving" : "FINGER DOWN";
+  } else if (m.hold === "other") {
+    hold = "another page holds";
+  } else {
+    hold = m.state === "STOPPED" ? "no finger \u00b7 hold one in the middle, then RELEASE"
+      : "no finger";
+  }
   show({ state, reason, cls, degraded: m.degraded });
   estop.last = m;
-  const hold = m.hold === "you" ? (m.stalled ? "YOUR HOLD: STALLED (no fresh frames)" : "FINGER DOWN: driving")
-    : m.hold === "other" ? "another page holds" : "no finger";
   $("hold").textContent = hold;
   drive.classList.toggle("stalled", m.hold === "you" && m.stalled);
   const rtt = pageRtt === null ? "\u2013" : pageRtt.toFixed(0) + " ms";
@@ -315,7 +329,5 @@ function drawState(m) {
   }
 }
 
-if (!token) {
-  refused = "no pairing token in the address: view and STOP only";
-}
+if (!token) refused = "no pairing token: view and STOP only";
 connect();

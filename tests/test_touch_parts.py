@@ -1,0 +1,141 @@
+"""The touch remote's pure parts: its messages and their MACs (estop.touchwire), and the
+dead-man across the page's hop (estop.touchhold), on made-up times."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from estop.touchhold import DRIFT, STALE_PERIODS, DeadMan, Verdict
+from estop.touchwire import (
+    WireError,
+    counter,
+    decode_token,
+    encode_token,
+    new_nonce,
+    new_token,
+    parse,
+    parse_held,
+    seal,
+)
+
+P = 0.020  # the control period
+
+
+def test_sealed_messages_verify_only_with_the_token_and_the_receivers_nonce() -> None:
+    token, nonce = new_token(), new_nonce()
+    text = seal({"t": "held", "n": 1, "at": 5.0, "steer": 0, "gas": 0}, token, nonce)
+    msg = parse(text, token, nonce)
+    assert msg.authentic and msg.kind == "held" and msg.fields["n"] == 1
+    assert not parse(text, new_token(), nonce).authentic  # another token
+    assert not parse(text, token, new_nonce()).authentic  # another connection's nonce
+    assert not parse(text, None, nonce).authentic
+    tag, body = text.split(" ", 1)
+    assert not parse(f"{tag} {body.replace('0', '1', 1)}", token, nonce).authentic  # altered
+    plain = parse(seal({"t": "stop"}), token, nonce)
+    assert plain.kind == "stop" and not plain.authentic
+
+
+@pytest.mark.parametrize("text", ["", "held", "- not json", "- [1, 2]", "- {\"x\": 1}",
+                                  "abc {\"t\": \"stop\"}", "- " + "x" * 2000])
+def test_malformed_messages_are_errors(text: str) -> None:
+    with pytest.raises(WireError):
+        parse(text, new_token(), new_nonce())
+
+
+def test_held_frames_hold_numbers_in_range() -> None:
+    assert parse_held({"at": 1.5, "steer": -1, "gas": 0.25}).gas == 0.25
+    for bad in ({"at": 1, "steer": 1.01, "gas": 0}, {"at": 1, "steer": 0, "gas": True},
+                {"at": 1, "steer": "0", "gas": 0}, {"at": -1, "steer": 0, "gas": 0},
+                {"steer": 0, "gas": 0}, json.loads('{"at": 1, "steer": NaN, "gas": 0}')):
+        with pytest.raises(WireError):
+            parse_held(bad)
+    assert counter({"n": 3}) == 3
+    for bad_n in (0, -1, 1.5, True, "2", None):
+        with pytest.raises(WireError):
+            counter({"n": bad_n})
+
+
+def test_the_token_in_the_fragment() -> None:
+    token = new_token()
+    text = encode_token(token)
+    assert "=" not in text and len(text) == 22 and decode_token(text) == token
+    for bad in ("", "AAAA", "!!!!", text + "AA"):
+        with pytest.raises(WireError):
+            decode_token(bad)
+
+
+def stream(dm: DeadMan, conn: int, t0: float, n: int, *, delay: float = 0.001,
+           page0: float = 100.0) -> list[Verdict]:
+    """n frames one period apart from ``t0``, each ``delay`` on its way."""
+    return [dm.frame(conn, (page0 + t0 + i * P) * 1000, t0 + i * P + delay) for i in range(n)]
+
+
+def test_a_steady_hold_sends_one_packet_per_frame() -> None:
+    dm = DeadMan(P)
+    assert stream(dm, 1, 10.0, 50) == [Verdict.SEND] * 50
+    assert dm.holder == 1 and dm.stats.missed == 0 and dm.stats.late == 0
+
+
+def test_jitter_costs_no_packet_and_a_gap_counts_as_missed() -> None:
+    dm = DeadMan(P)
+    verdicts = [dm.frame(1, (100 + i * P) * 1000, i * P + (0.015 if i % 2 else 0.001))
+                for i in range(20)]
+    assert verdicts == [Verdict.SEND] * 20  # 15 ms of jitter, one frame 6 ms after another
+    dm.frame(1, (100 + 25 * P) * 1000, 25 * P + 0.001)  # frames 20..24 never came
+    assert dm.stats.missed == 5
+
+
+def test_a_backlog_is_stale_and_never_a_burst() -> None:
+    dm = DeadMan(P)
+    stream(dm, 1, 0.0, 10)
+    assert dm.stalled(1.0)  # the network stalls: no fresh frame for two periods, said once
+    assert not dm.stalled(1.1)
+    # the 50 frames sent meanwhile arrive together at t = 1.2
+    verdicts = [dm.frame(1, (100 + 0.2 + i * P) * 1000, 1.2 + i * 1e-5) for i in range(50)]
+    assert verdicts.count(Verdict.SEND) <= 2
+    assert all(v is Verdict.STALE for v in verdicts[:45])
+
+
+def test_a_page_sending_too_fast_does_not_raise_the_rate() -> None:
+    dm = DeadMan(P)
+    verdicts = [dm.frame(1, (100 + i * 0.001) * 1000, i * 0.001 + 0.001) for i in range(100)]
+    assert verdicts.count(Verdict.SEND) <= 100 * 0.001 / (P / 2) + 1
+
+
+def test_one_page_holds_at_a_time() -> None:
+    dm = DeadMan(P)
+    assert stream(dm, 1, 0.0, 3) == [Verdict.SEND] * 3
+    assert dm.frame(2, 7_070.0, 0.07) is Verdict.OTHER
+    assert not dm.end(2)  # another page's finger leaving lifts nothing
+    assert dm.holder == 1
+    assert dm.end(1) and dm.holder is None
+    assert not dm.end(1)  # once
+    assert stream(dm, 2, 1.0, 2, page0=7.0) == [Verdict.SEND] * 2
+    assert dm.holder == 2 and dm.stats.holds == 2
+
+
+def test_a_lasting_change_of_delay_rebaselines_within_seconds() -> None:
+    dm = DeadMan(P)
+    stream(dm, 1, 0.0, 50)
+    step = 0.100  # the route changes: every frame 100 ms later from now on
+    verdicts = [dm.frame(1, (100 + 1.0 + i * P) * 1000, 1.0 + i * P + step)
+                for i in range(int(10 / P))]
+    first_fresh = verdicts.index(Verdict.SEND) * P
+    assert verdicts[0] is Verdict.STALE
+    assert first_fresh <= (step - STALE_PERIODS * P) / DRIFT + 0.1
+    assert all(v is Verdict.SEND for v in verdicts[int((first_fresh + 0.1) / P):])
+
+
+def test_a_stall_is_said_once_and_ends_with_a_fresh_frame() -> None:
+    dm = DeadMan(P)
+    stream(dm, 1, 0.0, 5)
+    last = 4 * P + 0.001
+    assert not dm.stalled(last + STALE_PERIODS * P - 0.001)
+    assert dm.stalled(last + STALE_PERIODS * P + 0.001) and dm.is_stalled
+    assert not dm.stalled(last + 1.0)
+    assert dm.frame(1, (100 + 1.0) * 1000, 1.0 + 0.001) is Verdict.SEND
+    assert not dm.is_stalled and dm.stats.stalls == 1
+    with pytest.raises(ValueError):
+        DeadMan(0.0)

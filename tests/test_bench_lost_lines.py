@@ -29,8 +29,9 @@ from typing import IO
 
 import pytest
 
-from estop.loopback import Daemon, Link
 from estop.protocol import can, canlog
+from estop.unit.daemon import Daemon
+from estop.unit.looplink import Link
 from tool_util import estopd_or_skip
 
 TIMEOUT_MS = 300  # packets > 150 ms apart would be discarded as a gap: far from any hiccup
@@ -223,13 +224,13 @@ def test_the_demo_gives_no_figure_for_a_stop_with_lost_lines(tmp_path: Path) -> 
     first stop frames of each stop from ARMED lost (the lift, the stop datagram, the stop
     button), it says so instead of printing a late figure; the loss of the link, which stops
     from SLOWING, loses nothing and keeps its figures."""
-    from estop.demo_bus import BusWatch
-    from estop.demo_car import LiveCar
-    from estop.demo_checks import check
-    from estop.demo_report import write_report
-    from estop.demo_result import Result, Settings
-    from estop.demo_story import finish_run, run_story
-    from estop.demo_view import View
+    from estop.demo.bus import BusWatch
+    from estop.demo.car import LiveCar
+    from estop.demo.checks import check
+    from estop.demo.report import write_report
+    from estop.demo.result import Result, Settings
+    from estop.demo.story import finish_run, run_story
+    from estop.demo.view import View
     from estop.protocol import auth
 
     key = bytes(range(32))

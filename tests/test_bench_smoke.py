@@ -94,7 +94,7 @@ def test_goals_and_report_on_synthetic_runs(bench: ModuleType, tmp_path: Path) -
 
 
 def test_start_line_ports_are_parsed() -> None:
-    from estop.loopback import parse_start_ports
+    from estop.unit.log import parse_start_ports
 
     assert parse_start_ports("estopd 0.000001 start udp=127.0.0.1:5700 tcp=127.0.0.1:5701") \
         == (5700, 5701)
@@ -196,8 +196,8 @@ def _fed(records: list[object]) -> object:
     """A daemon object that never ran, its can-log queue filled with ``records``."""
     import io
 
-    from estop.loopback import Daemon
     from estop.protocol import canlog
+    from estop.unit.daemon import Daemon
 
     d = Daemon(["estopd-not-run"])
     d._read_frames(io.StringIO("".join(canlog.format_line(r) + "\n" for r in records)))

@@ -7,7 +7,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from estop.brakecheck import BRAKE_TIMEOUT, BrakeFrameChecker, grade_kind, grade_text
+from estop.model.brakecheck import BRAKE_TIMEOUT, BrakeFrameChecker, grade_kind, grade_text
 from estop.protocol.can import BrakeFrame, StatusFrame
 from estop.protocol.crc import e2e_crc8
 

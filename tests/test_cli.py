@@ -14,21 +14,22 @@ import subprocess
 import sys
 import threading
 import time
-import types
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
 
-from estop import cli, remote, remoteterm
-from estop.linkmodel import WIFI, LinkConfig, LinkModel
+from estop import cli
+from estop.client.sender import Remote
+from estop.model.wifi import WIFI, LinkConfig, LinkModel
 from estop.protocol import auth, tcp, udp
 from estop.protocol.can import BrakeFrame, StatusFrame
 from estop.protocol.canlog import CanLogRecord, format_line
 from estop.protocol.tcp import FrameAssembler, Reply, Request
 from estop.protocol.udp import ControlPacket, Gear
-from estop.remote import Remote, ScriptError, parse_script
+from estop.remote import keys as remoteterm
+from estop.remote.script import ScriptError, parse_script
 from net_util import LOCAL, FakeUnitPorts, chunks, connections, datagrams, wait_until
 from stall_probe import StallProbe
 
@@ -315,26 +316,12 @@ def test_version(capsys) -> None:
 # ------------------------------------------------------------------------------ demo slot
 
 def test_demo_slot_dispatches_to_estop_demo(monkeypatch, capsys) -> None:
+    from estop.commands import demo
+
     seen: list[list[str]] = []
-    fake = types.ModuleType("estop.demo")
-    fake.main = lambda argv=None: seen.append(argv) or 5  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "estop.demo", fake)
+    monkeypatch.setattr(demo, "main", lambda argv=None: seen.append(argv) or 5)
     assert cli.main(["demo", "--fast", "x"]) == 5
     assert seen == [["--fast", "x"]]
-
-
-def test_demo_slot_without_module(monkeypatch, capsys) -> None:
-    monkeypatch.setitem(sys.modules, "estop.demo", None)  # import fails as if missing
-    real = cli.importlib.import_module
-
-    def fake_import(name: str, package: str | None = None) -> types.ModuleType:
-        if name == "estop.demo":
-            raise ModuleNotFoundError("No module named 'estop.demo'", name="estop.demo")
-        return real(name, package)
-
-    monkeypatch.setattr(cli.importlib, "import_module", fake_import)
-    code, _, err = run_cli(capsys, "demo")
-    assert code == 5 and "demo is not installed" in one_error_line(err)
 
 
 # ------------------------------------------------------------------------------- monitor
@@ -631,28 +618,28 @@ def test_remote_api_control_and_requests(unit: FakeUnit) -> None:
 def test_remote_handle_key(unit: FakeUnit) -> None:
     r = Remote(LOCAL, unit.udp_port, unit.tcp_port)
     try:
-        assert remote.handle_key(r, " ") is None and r.held
-        remote.handle_key(r, " ")
+        assert remoteterm.handle_key(r, " ") is None and r.held
+        remoteterm.handle_key(r, " ")
         assert not r.held
-        remote.handle_key(r, "\x1b[A")
-        remote.handle_key(r, "\x1b[A")
-        remote.handle_key(r, "\x1b[D")
+        remoteterm.handle_key(r, "\x1b[A")
+        remoteterm.handle_key(r, "\x1b[A")
+        remoteterm.handle_key(r, "\x1b[D")
         assert (r.control.gas_brake, r.control.steering) == (0.2, -0.1)
         for _ in range(30):
-            remote.handle_key(r, "\x1b[B")
+            remoteterm.handle_key(r, "\x1b[B")
         assert r.control.gas_brake == -1.0
-        remote.handle_key(r, "g")
+        remoteterm.handle_key(r, "g")
         assert r.control.gear == Gear.DRIVE
-        remote.handle_key(r, "g")
+        remoteterm.handle_key(r, "g")
         assert r.control.gear == Gear.PARK
-        remote.handle_key(r, "h")
-        remote.handle_key(r, "2")
+        remoteterm.handle_key(r, "h")
+        remoteterm.handle_key(r, "2")
         assert (r.control.horn, r.control.turn_signal) == (1, 2)
-        remote.handle_key(r, "n")
+        remoteterm.handle_key(r, "n")
         assert (r.control.gas_brake, r.control.gear) == (0.0, Gear.NEUTRAL)
-        line = remote.handle_key(r, "t")
+        line = remoteterm.handle_key(r, "t")
         assert line == "status -> ACK seq=1 state=STOPPED reason=boot flags=0x00"
-        assert remote.handle_key(r, "q") == "quit"
+        assert remoteterm.handle_key(r, "q") == "quit"
         assert list(remoteterm._split_keys("a\x1b[Ab")) == ["a", "\x1b[A", "b"]
     finally:
         r.close()

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from estop import cli, cliutil
+from estop import cli, errors
+from estop.commands import output
 
 pytestmark = pytest.mark.timeout(120)
 LOCAL = "127.0.0.1"
@@ -50,7 +51,7 @@ def test_no_unit_listening_is_3(name: str, capsys: pytest.CaptureFixture[str]) -
     argv = [*UNIT_COMMANDS[name], "--host", LOCAL, "--tcp-port", str(closed_port()),
             "--reply-timeout-ms", "300"]
     code, _, err = run_cli(capsys, *argv)
-    assert code == cliutil.EXIT_UNREACHABLE == 3, err
+    assert code == errors.EXIT_UNREACHABLE == 3, err
     assert "estop: error: " in err and "Traceback" not in err
 
 
@@ -59,7 +60,7 @@ def test_a_missing_key_file_is_4(name: str, tmp_path: Path,
                                  capsys: pytest.CaptureFixture[str]) -> None:
     code, out, err = run_cli(capsys, *UNIT_COMMANDS[name], "--host", LOCAL, "--key-file",
                              str(tmp_path / "missing.key"))
-    assert code == cliutil.EXIT_FILE == 4 and out == ""
+    assert code == errors.EXIT_FILE == 4 and out == ""
     assert "--key-file: key file" in one_line(err)
 
 
@@ -67,7 +68,7 @@ def test_a_missing_key_file_is_4(name: str, tmp_path: Path,
 def test_a_bad_option_or_setting_is_2(name: str, monkeypatch: pytest.MonkeyPatch,
                                       capsys: pytest.CaptureFixture[str]) -> None:
     code, out, err = run_cli(capsys, *UNIT_COMMANDS[name], "--host", LOCAL, "--tcp-port", "x")
-    assert code == cliutil.EXIT_USAGE == 2 and out == ""
+    assert code == errors.EXIT_USAGE == 2 and out == ""
     one_line(err)
     monkeypatch.setenv("ESTOP_TCP_PORT", "0")
     code, out, err = run_cli(capsys, *UNIT_COMMANDS[name], "--host", LOCAL)
@@ -87,7 +88,7 @@ def test_a_file_that_cannot_be_read_or_written_is_4(argv: list[str], tmp_path: P
     existing.write_text("")
     argv = [a.format(missing=tmp_path / "missing", existing=existing) for a in argv]
     code, out, err = run_cli(capsys, *argv)
-    assert code == cliutil.EXIT_FILE == 4 and out == "", err
+    assert code == errors.EXIT_FILE == 4 and out == "", err
     one_line(err)
 
 
@@ -104,29 +105,29 @@ def test_a_missing_extra_is_5_and_named(argv: list[str], extra: str, tmp_path: P
     for name in ("numpy", "dpkt", "matplotlib", "can", "cantools"):
         monkeypatch.setitem(sys.modules, name, None)  # import fails as if not installed
     code, out, err = run_cli(capsys, *[a.format(times=times) for a in argv])
-    assert code == cliutil.EXIT_NOT_INSTALLED == 5 and out == ""
+    assert code == errors.EXIT_NOT_INSTALLED == 5 and out == ""
     assert f"pip install 'estop[{extra}]'" in one_line(err)
 
 
 def test_an_internal_error_is_6_in_one_line(monkeypatch: pytest.MonkeyPatch,
                                             capsys: pytest.CaptureFixture[str]) -> None:
-    from estop import oneshot
+    from estop.commands import status
 
     def broken(args: object) -> int:
         raise ZeroDivisionError("x")
 
-    monkeypatch.setattr(oneshot, "run", broken)
+    monkeypatch.setattr(status, "run_request", broken)
     code, _, err = run_cli(capsys, "status", "--host", LOCAL)
-    assert code == cliutil.EXIT_INTERNAL == 6
+    assert code == errors.EXIT_INTERNAL == 6
     assert "internal error" in one_line(err) and "ZeroDivisionError" in err
 
 
 def test_help_and_readme_show_the_same_table(capsys: pytest.CaptureFixture[str]) -> None:
     code, out, _ = run_cli(capsys, "--help")
     assert code == 0
-    assert cliutil.exit_code_table() in out
+    assert output.exit_code_table() in out
     readme = README.read_text()
-    for number, text in cliutil.EXIT_CODES:
+    for number, text in errors.EXIT_CODES:
         row = re.search(rf"^\|\s*{number}\s*\|\s*(.+?)\s*\|\s*$", readme, re.MULTILINE)
         assert row is not None, f"README has no row for exit code {number}"
         assert row.group(1) == text, (number, row.group(1), text)

@@ -12,12 +12,12 @@ from pathlib import Path
 import pytest
 
 from estop import cli
-from estop.cliutil import COMMON_SETTINGS, resolve_settings
-from estop.keyfile import write_key_file
-from estop.loopback import Daemon
+from estop.client.channel import MessageCounter, StopChannel
+from estop.client.keyfile import write_key_file
+from estop.commands.configfile import ConfigFile, config_path
+from estop.commands.settings import COMMON_SETTINGS, resolve_settings
 from estop.protocol import tcp, udp
-from estop.settings import ConfigFile, config_path
-from estop.stopchannel import MessageCounter, StopChannel
+from estop.unit.daemon import Daemon
 from tool_util import estopd_or_skip
 
 pytestmark = pytest.mark.timeout(60)
@@ -272,7 +272,7 @@ def test_a_command_may_take_an_optional_host(tmp_path: Path) -> None:
     dashboard runs without a unit), and still comes from the environment when set."""
     import argparse
 
-    from estop.cliutil import add_settings
+    from estop.commands.settings import add_settings
 
     p = argparse.ArgumentParser()
     add_settings(p, "host", "tcp_port", host_required=False)
@@ -291,8 +291,8 @@ def test_first_uses_at_once_agree_on_one_remote_id(tmp_path: Path) -> None:
     import sys
 
     cfg = tmp_path / "cfg" / "config.toml"
-    prog = ("import sys; from estop.settings import ConfigFile, installation_remote_id; "
-            "from estop.cliutil import COMMON_SETTINGS; from pathlib import Path; "
+    prog = ("import sys; from estop.commands.configfile import ConfigFile, installation_remote_id; "
+            "from estop.commands.settings import COMMON_SETTINGS; from pathlib import Path; "
             "print(installation_remote_id(ConfigFile(Path(sys.argv[1]), COMMON_SETTINGS)))")
     procs = [subprocess.Popen([sys.executable, "-c", prog, str(cfg)], stdout=subprocess.PIPE,
                               text=True) for _ in range(6)]

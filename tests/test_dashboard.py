@@ -23,10 +23,10 @@ import pytest
 
 from daemon_util import ARMED, R_TCP_STOP, STOPPED, Daemon, find_estopd
 from estop.cli import main as estop_main
-from estop.dashboard import parse_listen
-from estop.dashboard_feed import FileFollower
-from estop.dashboard_model import NO_SIGNAL, DashboardModel
-from estop.dashboard_server import MIN_INTERVAL, DashboardServer, stop_action_for
+from estop.commands.options import parse_listen
+from estop.dashboard.feed import FileFollower
+from estop.dashboard.model import NO_SIGNAL, DashboardModel
+from estop.dashboard.server import MIN_INTERVAL, DashboardServer, stop_action_for
 from estop.protocol.can import BrakeFrame, Reason, State, StatusFrame
 from link_util import arrivals_us, gilbert_lost, simulate_unit, unit_log
 
@@ -354,7 +354,7 @@ def test_demo_serves_the_page_while_it_runs() -> None:
 
 
 def test_a_page_that_never_reads_keeps_only_the_latest_update() -> None:
-    from estop.dashboard_server import _Client
+    from estop.dashboard.server import _Client
 
     async def go() -> _Client:
         c = _Client()
@@ -398,7 +398,7 @@ def test_a_client_that_never_reads_does_not_stop_the_others() -> None:
 def test_frames_from_a_python_can_bus() -> None:
     import can
 
-    from estop.dashboard_feed import BusFeed
+    from estop.dashboard.feed import BusFeed
 
     async def go() -> dict[str, Any]:
         model = DashboardModel()
@@ -441,7 +441,7 @@ def test_an_input_that_breaks_the_model_is_said_and_the_feed_goes_on() -> None:
 
 
 def test_a_named_pipe_is_followed_across_writers(tmp_path: Path) -> None:
-    from estop.dashboard_feed import open_line_feed
+    from estop.dashboard.feed import open_line_feed
 
     fifo = tmp_path / "log.fifo"
     os.mkfifo(fifo)

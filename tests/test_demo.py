@@ -19,7 +19,7 @@ from pathlib import Path
 
 import pytest
 
-from estop.demo import main
+from estop.commands.demo import main
 from tool_util import estopd_or_skip
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -40,7 +40,7 @@ def _run_demo(exe: str, *args: str) -> subprocess.CompletedProcess[str]:
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join(
         [str(ROOT / "src"), *filter(None, [env.get("PYTHONPATH")])])
-    return subprocess.run([sys.executable, "-m", "estop.demo", "--estopd", exe, *args],
+    return subprocess.run([sys.executable, "-m", "estop", "demo", "--estopd", exe, *args],
                           capture_output=True, text=True, timeout=RUN_TIMEOUT_S, env=env,
                           stdin=subprocess.DEVNULL)
 

@@ -10,16 +10,16 @@ import math
 
 import pytest
 
-from estop.demo_bus import BusWatch, Change, state_lines
-from estop.demo_car import DRIVE_RAMP_S, LiveCar
-from estop.demo_checks import check
-from estop.demo_report import match_causes, write_report
-from estop.demo_result import BurstMeasure, Result, Settings, StopMeasure
-from estop.demo_view import View
+from estop.demo.bus import BusWatch, Change, state_lines
+from estop.demo.car import DRIVE_RAMP_S, LiveCar
+from estop.demo.checks import check
+from estop.demo.report import match_causes, write_report
+from estop.demo.result import BurstMeasure, Result, Settings, StopMeasure
+from estop.demo.view import View
+from estop.model.rollout import roll_out, timed_frames
+from estop.model.vehicle import kmh
 from estop.protocol import can, canlog
 from estop.protocol.can import Reason, State
-from estop.rollout import roll_out, timed_frames
-from estop.vehicle import kmh
 
 CRUISE = kmh(15)
 A_E = 8.0  # the model's default emergency deceleration

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import pytest
 
-from estop.keyfile import load_key_file
+from estop.client.keyfile import load_key_file
 
 ROOT = Path(__file__).resolve().parents[1]
 UNIT = "usr/lib/systemd/system/estopd.service"

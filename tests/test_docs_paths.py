@@ -62,7 +62,7 @@ def test_every_path_the_docs_name_exists() -> None:
 def test_the_path_check_finds_a_missing_path(tmp_path: Path) -> None:
     doc = ROOT / "docs" / "REMOTE.md"
     named = dict((p, n) for n, p in _named_paths(doc))
-    assert "src/estop/remotesender.py" in named
+    assert "src/estop/client/sender.py" in named
     assert not _exists("deploy/estopd.service") and not _exists("fuzz/regression/")
     assert _exists("tests/test_mcu_") and _exists("build/fuzz/fuzz_core")
 

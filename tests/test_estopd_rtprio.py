@@ -65,6 +65,21 @@ def test_a_service_already_at_the_priority_or_higher_keeps_it(tmp_path: Path, st
         assert d.proc is not None
         assert policy(d.proc.pid) == (os.SCHED_FIFO, started, True)
         assert d.request(MSG_STATUS, 1).state == STOPPED
+        assert f"rt_prio={started} " in d.start_line, d.start_line
+
+
+@pytest.mark.parametrize("started", [0, 50])
+def test_the_start_line_says_what_the_loop_runs_at(tmp_path: Path, started: int) -> None:
+    """As the service starts it (SCHED_FIFO 50 from systemd, no --rt-prio; issue 26): the
+    start line says rt_prio=50, the priority the loop runs at; before, it said what
+    --rt-prio asked for (0). At a normal policy it says 0."""
+    d = Daemon(tmp_path)
+    d.argv = as_service(started, d.argv)
+    with d:
+        assert d.proc is not None
+        assert policy(d.proc.pid)[:2] == ((os.SCHED_FIFO, started) if started
+                                          else (os.SCHED_OTHER, 0))
+        assert f"rt_prio={started} " in d.start_line, d.start_line
 
 
 def test_a_process_below_the_priority_asks_with_reset_on_fork(tmp_path: Path) -> None:
@@ -74,6 +89,7 @@ def test_a_process_below_the_priority_asks_with_reset_on_fork(tmp_path: Path) ->
     with Daemon(tmp_path, "--rt-prio", "20") as d:
         assert d.proc is not None
         assert policy(d.proc.pid) == (os.SCHED_FIFO, 20, True)
+        assert "rt_prio=20 " in d.start_line, d.start_line
 
 
 def test_a_priority_it_may_not_have_is_refused_naming_the_cause() -> None:

@@ -1,4 +1,4 @@
-"""The gamepad remote's event mapping (estop.gamepadmap), pure logic: no device needed.
+"""The gamepad remote's event mapping (estop.remote.gamepadmap), pure logic: no device needed.
 
 The same remote with a real (virtual) device: tests/test_gamepad_uinput.py.
 """
@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from estop.gamepadmap import (
+from estop.remote.gamepadmap import (
     ABS_NAMES,
     EV_ABS,
     EV_KEY,

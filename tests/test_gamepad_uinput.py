@@ -26,10 +26,10 @@ from typing import Any
 import pytest
 
 from daemon_util import Daemon
-from estop.keyfile import write_key_file
+from estop.client.button import LIFT_GAP, LIFT_SENDS
+from estop.client.keyfile import write_key_file
 from estop.protocol import tcp, udp
 from estop.protocol.auth import REQUEST_SIZE, AuthRequest
-from estop.stopchannel import LIFT_GAP, LIFT_SENDS
 from net_util import UdpSink
 
 ROOT = Path(__file__).resolve().parents[1]

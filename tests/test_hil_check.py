@@ -715,7 +715,7 @@ def test_roll_disagreement_is_reported() -> None:
     r = hilroll.roll(frames, 1000.5)
     bad = hilroll.Roll(r.moment, r.bus, hilroll.EmulatorRoll(r.bus.distance + 0.01, None, 1.0))
     assert r.agree and not bad.agree
-    assert "estop.rollout" in bad.disagreement()
+    assert "estop.model.rollout" in bad.disagreement()
     never = hilroll.Roll(r.moment, r.bus, hilroll.EmulatorRoll(r.bus.distance, None, None))
     assert not never.agree and "never stops" in never.disagreement()
 

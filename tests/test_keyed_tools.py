@@ -20,10 +20,10 @@ from pathlib import Path
 import pytest
 
 from estop import cli
+from estop.client.channel import ReplyNotAuthentic
+from estop.client.sender import Remote
 from estop.protocol import tcp, udp
 from estop.protocol.udp import Gear
-from estop.remote import Remote
-from estop.stopchannel import ReplyNotAuthentic
 from net_util import LOCAL, FakeUnitPorts, chunks, connections, datagrams, wait_until
 
 pytestmark = pytest.mark.timeout(60)

@@ -1,7 +1,7 @@
 """``estop link`` against known answers.
 
 Synthetic Gilbert traces (a seeded numpy generator in tests/link_util.py, independent of the
-tool and of ``estop.linkmodel``) have known loss and mean burst; the tool must recover them from
+tool and of ``estop.model.wifi``) have known loss and mean burst; the tool must recover them from
 arrival times, from the daemon's binned histogram (made there with an independent
 implementation of the daemon's bin function) and from a pcap written here with dpkt. Its
 false-stop rates must agree with the issue's closed form and with a count of stops made by the
@@ -21,9 +21,16 @@ import dpkt
 import numpy as np
 import pytest
 
-from estop import cli, linkfit
-from estop import linkstats as L
-from estop.linkmodel import WIFI, LinkConfig, LinkModel
+import estop.link.fit as linkfit
+from estop import cli
+from estop.link.fit import false_stops_per_hour, fit, lost_in_row
+from estop.link.format import format_report
+from estop.link.gaps import Histogram, gaps_from_histogram, gaps_from_times
+from estop.link.histogram import read_histogram_log
+from estop.link.poisson import poisson_lower95, poisson_upper95
+from estop.link.read import read_pcap_times
+from estop.link.report import ENOUGH, TIMEOUTS_MS, report
+from estop.model.wifi import WIFI, LinkConfig, LinkModel
 from link_util import (
     EDGES_US,
     HOURS10,
@@ -95,26 +102,26 @@ def deadline_packets(timeout_ms: int, rate_hz: int) -> int:
 
 
 def test_lost_in_row_is_the_issue_example() -> None:
-    assert L.lost_in_row(200, 50.0) == 9  # "9 losses in a row trip it"
-    assert L.lost_in_row(210, 50.0) == 10
-    assert L.lost_in_row(190, 50.0) == 9
-    assert L.lost_in_row(50, 50.0) == 2
-    assert L.lost_in_row(1000, 50.0) == 49
-    assert L.lost_in_row(20, 50.0) == 0  # timeout of one period: every gap trips it
+    assert lost_in_row(200, 50.0) == 9  # "9 losses in a row trip it"
+    assert lost_in_row(210, 50.0) == 10
+    assert lost_in_row(190, 50.0) == 9
+    assert lost_in_row(50, 50.0) == 2
+    assert lost_in_row(1000, 50.0) == 49
+    assert lost_in_row(20, 50.0) == 0  # timeout of one period: every gap trips it
 
 
 @pytest.mark.parametrize("rate_hz", [10, 20, 30, 50, 60, 100, 125])
 def test_lost_in_row_counts_packets_due_before_the_deadline(rate_hz: int) -> None:
-    for d in L.TIMEOUTS_MS:
-        assert L.lost_in_row(d, float(rate_hz)) == deadline_packets(d, rate_hz), (d, rate_hz)
+    for d in TIMEOUTS_MS:
+        assert lost_in_row(d, float(rate_hz)) == deadline_packets(d, rate_hz), (d, rate_hz)
 
 
 def test_closed_form_gives_the_issues_numbers() -> None:
-    n = L.lost_in_row(200, 50.0)
-    independent = L.false_stops_per_hour(0.09, 1.0 / 0.91, n, 50.0)  # burst of iid loss
+    n = lost_in_row(200, 50.0)
+    independent = false_stops_per_hour(0.09, 1.0 / 0.91, n, 50.0)  # burst of iid loss
     assert independent == pytest.approx(6.3e-5, rel=0.05)  # "about 6e-5"
-    assert L.false_stops_per_hour(0.09, 3.0, n, 50.0) == pytest.approx(210, rel=0.01)
-    assert L.false_stops_per_hour(0.09, 5.0, n, 50.0) == pytest.approx(540, rel=0.01)
+    assert false_stops_per_hour(0.09, 3.0, n, 50.0) == pytest.approx(210, rel=0.01)
+    assert false_stops_per_hour(0.09, 5.0, n, 50.0) == pytest.approx(540, rel=0.01)
 
 
 def test_deadline_rule_counts_stops_like_the_closed_form(trace10h: Trace) -> None:
@@ -124,12 +131,12 @@ def test_deadline_rule_counts_stops_like_the_closed_form(trace10h: Trace) -> Non
     gaps_us = np.diff(trace10h.t_us)
     runs = loss_runs(trace10h.lost)
     checked = 0
-    for d in L.TIMEOUTS_MS:
+    for d in TIMEOUTS_MS:
         stops = int((gaps_us >= d * 1000).sum())
-        n = L.lost_in_row(d, RATE)
+        n = lost_in_row(d, RATE)
         assert stops == int((runs >= n).sum())  # the stop rule is "n lost in a row"
         if stops >= 400:
-            expected = L.false_stops_per_hour(trace10h.loss, trace10h.burst, n, RATE)
+            expected = false_stops_per_hour(trace10h.loss, trace10h.burst, n, RATE)
             assert stops / trace10h.hours == pytest.approx(expected, rel=0.10), d
             checked += 1
     assert checked >= 8
@@ -139,7 +146,7 @@ def test_deadline_rule_counts_stops_like_the_closed_form(trace10h: Trace) -> Non
 
 
 def test_recovers_loss_and_burst_from_arrival_times(trace10h: Trace) -> None:
-    f = L.fit(L.gaps_from_times(trace10h.times, RATE), RATE)
+    f = fit(gaps_from_times(trace10h.times, RATE), RATE)
     assert f.loss == pytest.approx(trace10h.loss, rel=0.10)
     assert f.mean_burst == pytest.approx(trace10h.burst, rel=0.10)
     assert f.hours == pytest.approx(trace10h.hours, rel=0.001)
@@ -151,31 +158,31 @@ def test_recovers_loss_and_burst_from_arrival_times(trace10h: Trace) -> None:
 def test_recovers_loss_and_burst_from_the_daemon_log(trace10h: Trace, tmp_path: Path) -> None:
     log = tmp_path / "estopd.jsonl"
     log.write_text(histogram_log([trace10h.t_us]))
-    h = L.read_histogram_log(str(log))
+    h = read_histogram_log(str(log))
     assert h.runs == 1 and sum(h.counts) == trace10h.t_us.size - 1
-    fb = L.fit(L.gaps_from_histogram(h, RATE), RATE)
+    fb = fit(gaps_from_histogram(h, RATE), RATE)
     assert fb.loss == pytest.approx(trace10h.loss, rel=0.10)
     assert fb.mean_burst == pytest.approx(trace10h.burst, rel=0.10)
     # The bins are coarse above 4 losses (100 ms) but the burst length is mostly decided by
     # the short, exactly binned gaps: at 50 Hz the binned fit stays within 1 % of the fit to
     # the exact times (measured: within 0.1 %), and the estimated length within 1 %.
-    fe = L.fit(L.gaps_from_times(trace10h.times, RATE), RATE)
+    fe = fit(gaps_from_times(trace10h.times, RATE), RATE)
     assert fb.loss == pytest.approx(fe.loss, rel=0.01)
     assert fb.mean_burst == pytest.approx(fe.mean_burst, rel=0.01)
     assert fb.hours == pytest.approx(trace10h.hours, rel=0.01)
 
 
 def test_model_rates_are_the_closed_form(trace10h: Trace) -> None:
-    rep = L.report(L.gaps_from_times(trace10h.times, RATE), RATE)
+    rep = report(gaps_from_times(trace10h.times, RATE), RATE)
     f = rep.fit
     assert f.mean_burst is not None
     for row in rep.rows:
         # the tool's rate is the closed form at its own fit ...
-        at_fit = L.false_stops_per_hour(f.loss, f.mean_burst, row.lost_in_row, RATE)
+        at_fit = false_stops_per_hour(f.loss, f.mean_burst, row.lost_in_row, RATE)
         assert row.model == pytest.approx(at_fit, rel=1e-9)
         # ... and the closed form at the true parameters lies inside its 95 % range; within
         # 10 % up to 400 ms (n <= 19: the error of 1/burst grows by n - 1 with the timeout)
-        truth = L.false_stops_per_hour(trace10h.loss, trace10h.burst, row.lost_in_row, RATE)
+        truth = false_stops_per_hour(trace10h.loss, trace10h.burst, row.lost_in_row, RATE)
         assert row.model_low <= truth <= row.model_high, row
         if row.timeout_ms <= 400:
             assert row.model == pytest.approx(truth, rel=0.10), row
@@ -183,7 +190,7 @@ def test_model_rates_are_the_closed_form(trace10h: Trace) -> None:
 
 def test_model_agrees_with_the_counted_stops(trace10h: Trace) -> None:
     # the recording's own count (Monte Carlo) against the fitted model, where large enough
-    rep = L.report(L.gaps_from_times(trace10h.times, RATE), RATE)
+    rep = report(gaps_from_times(trace10h.times, RATE), RATE)
     checked = 0
     for row in rep.rows:
         assert row.gaps_sure == row.gaps_possible  # exact times: exact counts
@@ -191,7 +198,7 @@ def test_model_agrees_with_the_counted_stops(trace10h: Trace) -> None:
             assert row.empirical is not None
             assert row.model == pytest.approx(row.empirical, rel=0.10), row
             checked += 1
-        elif row.gaps_sure < L.ENOUGH:
+        elif row.gaps_sure < ENOUGH:
             assert row.empirical is None and row.empirical_upper95 > 0
     assert checked >= 8
 
@@ -199,7 +206,7 @@ def test_model_agrees_with_the_counted_stops(trace10h: Trace) -> None:
 def test_binned_counts_bracket_the_true_counts(trace10h: Trace, tmp_path: Path) -> None:
     log = tmp_path / "estopd.jsonl"
     log.write_text(histogram_log([trace10h.t_us], every_s=600.0))
-    rep = L.report(L.gaps_from_histogram(L.read_histogram_log(str(log)), RATE), RATE)
+    rep = report(gaps_from_histogram(read_histogram_log(str(log)), RATE), RATE)
     runs = loss_runs(trace10h.lost)
     exact_rows = 0
     for row in rep.rows:
@@ -214,8 +221,8 @@ def test_binned_counts_bracket_the_true_counts(trace10h: Trace, tmp_path: Path) 
 
 def test_binned_likelihood_on_exact_cells_is_the_closed_form() -> None:
     lost = gilbert_lost(300_000, 0.09, 3.0, 5)
-    g = L.gaps_from_times(arrivals_us(lost) / 1e6, RATE)
-    closed = L.fit(g, RATE)
+    g = gaps_from_times(arrivals_us(lost) / 1e6, RATE)
+    closed = fit(g, RATE)
     assert g.exact
     mask = g.k_lo >= 1
     r = linkfit._argmax_r(g.k_lo[mask], g.k_hi[mask], g.counts[mask])
@@ -228,12 +235,12 @@ def test_restarted_daemon_runs_add_up(tmp_path: Path) -> None:
     lost = gilbert_lost(400_000, 0.09, 3.0, 21)
     t = arrivals_us(lost)
     half = t.size // 2
-    whole = L.Histogram(tuple(EDGES_US), tuple(int(c) for c in np.bincount(
+    whole = Histogram(tuple(EDGES_US), tuple(int(c) for c in np.bincount(
         daemon_bin(np.diff(t)), minlength=32)), 0, 0, 0, 0, 1, False)
     crossing = int(daemon_bin(np.array([t[half] - t[half - 1]]))[0])
     log = tmp_path / "two.jsonl"
     log.write_text(histogram_log([t[:half], t[half:]]))
-    h = L.read_histogram_log(str(log))
+    h = read_histogram_log(str(log))
     assert h.runs == 2
     expected = list(whole.counts)
     expected[crossing] -= 1  # the gap across the restart is in neither run
@@ -242,7 +249,7 @@ def test_restarted_daemon_runs_add_up(tmp_path: Path) -> None:
     # a restart whose `start` line is missing shows as counts going down: a new run too
     text = "\n".join(x for x in log.read_text().splitlines() if '"start"' not in x)
     log.write_text(text + "\n")
-    h2 = L.read_histogram_log(str(log))
+    h2 = read_histogram_log(str(log))
     assert h2.runs == 2 and h2.counts == h.counts
 
 
@@ -253,10 +260,10 @@ def test_jittered_arrivals_still_fit(tmp_path: Path) -> None:
     rng = np.random.default_rng(9)
     t = arrivals_us(lost) + rng.integers(-1000, 1001, size=int((~lost).sum()))
     t = np.maximum.accumulate(t)
-    fe = L.fit(L.gaps_from_times(t / 1e6, RATE), RATE)
+    fe = fit(gaps_from_times(t / 1e6, RATE), RATE)
     log = tmp_path / "j.jsonl"
     log.write_text(histogram_log([t]))
-    fb = L.fit(L.gaps_from_histogram(L.read_histogram_log(str(log)), RATE), RATE)
+    fb = fit(gaps_from_histogram(read_histogram_log(str(log)), RATE), RATE)
     for f in (fe, fb):
         assert f.loss == pytest.approx(0.09, rel=0.10)
         assert f.mean_burst == pytest.approx(3.0, rel=0.10)
@@ -268,10 +275,10 @@ def test_jitter_beyond_a_bin_is_credited_to_the_nearest_period() -> None:
     counts[int(daemon_bin(np.array([20_000]))[0])] = 900
     counts[int(daemon_bin(np.array([27_000]))[0])] = 50
     counts[int(daemon_bin(np.array([40_000]))[0])] = 50
-    g = L.gaps_from_histogram(L.Histogram(tuple(EDGES_US), tuple(counts), 1001, 0, 0,
+    g = gaps_from_histogram(Histogram(tuple(EDGES_US), tuple(counts), 1001, 0, 0,
                                           100_000, 1, False), RATE)
     assert int(g.counts[g.k_lo == 0][0]) == 950 and g.notes
-    f = L.fit(g, RATE)
+    f = fit(g, RATE)
     assert f.bursts == 50 and f.mean_burst == pytest.approx(1.0)
 
 
@@ -279,12 +286,12 @@ def test_pauses_are_left_out(tmp_path: Path) -> None:
     lost = gilbert_lost(180_000, 0.09, 3.0, 4)
     t = arrivals_us(lost) / 1e6
     t2 = np.concatenate([t, t + t[-1] + 30.0])  # the finger lifted for 30 s
-    g1, g2 = L.gaps_from_times(t, RATE), L.gaps_from_times(t2, RATE)
+    g1, g2 = gaps_from_times(t, RATE), gaps_from_times(t2, RATE)
     assert g2.pauses == 1 and g1.pauses == 0
-    f1, f2 = L.fit(g1, RATE), L.fit(g2, RATE)
+    f1, f2 = fit(g1, RATE), fit(g2, RATE)
     assert f2.hours == pytest.approx(2 * f1.hours, rel=1e-3)
     assert f2.mean_burst == pytest.approx(f1.mean_burst, rel=1e-9)
-    g0 = L.gaps_from_times(t2, RATE, max_gap=0.0)  # no limit: the pause is one long burst
+    g0 = gaps_from_times(t2, RATE, max_gap=0.0)  # no limit: the pause is one long burst
     assert g0.pauses == 0 and int(g0.k_lo.max()) >= 1499
 
 
@@ -297,7 +304,7 @@ def test_remote_link_model_is_the_fitted_gilbert_model() -> None:
     cfg = LinkConfig(loss=0.09, burst=3.0)
     model = LinkModel(cfg, seed=3)
     lost = np.fromiter((model.lose_next() for _ in range(300_000)), dtype=bool, count=300_000)
-    f = L.fit(L.gaps_from_times(arrivals_us(lost) / 1e6, RATE), RATE)
+    f = fit(gaps_from_times(arrivals_us(lost) / 1e6, RATE), RATE)
     assert f.loss == pytest.approx(cfg.loss, rel=0.10)
     assert f.mean_burst == pytest.approx(cfg.burst, rel=0.10)
     assert model.stats.lost == int(lost.sum())
@@ -308,7 +315,7 @@ def test_remote_link_model_with_delay_and_small_jitter() -> None:
     model = LinkModel(cfg, seed=4)
     arrivals = [model.transmit(i / RATE) for i in range(300_000)]
     t = np.asarray([a for a in arrivals if a is not None])
-    f = L.fit(L.gaps_from_times(t, RATE), RATE)
+    f = fit(gaps_from_times(t, RATE), RATE)
     assert f.loss == pytest.approx(cfg.loss, rel=0.10)
     assert f.mean_burst == pytest.approx(cfg.burst, rel=0.10)
 
@@ -322,10 +329,10 @@ def test_heavy_jitter_wifi_preset_fits_the_long_runs() -> None:
     arrivals = [model.transmit(i / RATE) for i in range(300_000)]
     t = np.asarray([a for a in arrivals if a is not None])
     t_us = np.rint(t * 1e6).astype(np.int64)
-    gaps = L.gaps_from_times(t, RATE)
+    gaps = gaps_from_times(t, RATE)
     assert gaps.extra["off_grid"] > 0.2 and gaps.notes
-    auto = L.report(gaps, RATE)
-    plain = L.report(gaps, RATE, tail_from=1)
+    auto = report(gaps, RATE)
+    plain = report(gaps, RATE, tail_from=1)
     assert auto.fit.tail_from > 1
     assert auto.fit.mean_burst == pytest.approx(WIFI.burst, rel=0.10)
     assert plain.fit.mean_burst < 0.8 * WIFI.burst  # the misread short runs
@@ -347,12 +354,12 @@ def test_heavy_jitter_wifi_preset_fits_the_long_runs() -> None:
 
 def test_forced_tail_on_a_clean_trace_agrees(trace10h: Trace) -> None:
     # without jitter every tail follows the same law: k0 = 3 recovers the same link
-    gaps = L.gaps_from_times(trace10h.times, RATE)
-    f = L.fit(gaps, RATE, tail_from=3)
+    gaps = gaps_from_times(trace10h.times, RATE)
+    f = fit(gaps, RATE, tail_from=3)
     assert f.tail_from == 3 and f.tail_bursts < f.bursts
     assert f.loss == pytest.approx(trace10h.loss, rel=0.10)
     assert f.mean_burst == pytest.approx(trace10h.burst, rel=0.10)
-    assert L.fit(gaps, RATE).tail_from == 1  # and the automatic choice sees no jitter
+    assert fit(gaps, RATE).tail_from == 1  # and the automatic choice sees no jitter
 
 
 def test_recommendation_never_contradicts_the_recording() -> None:
@@ -362,11 +369,11 @@ def test_recommendation_never_contradicts_the_recording() -> None:
     for start in range(10_000, 350_000, 17_000):
         lost[start:start + 50] = True
     t = arrivals_us(lost) / 1e6
-    rep = L.report(L.gaps_from_times(t, RATE), RATE, tail_from=1)
+    rep = report(gaps_from_times(t, RATE), RATE, tail_from=1)
     one_s = next(r for r in rep.rows if r.timeout_ms == 1000)
     assert one_s.model < 0.01 and one_s.gaps_sure == 20 and one_s.contradicted
     assert rep.recommended_ms is not None and rep.recommended_ms > 1000
-    text = "\n".join(L.format_report(rep))
+    text = "\n".join(format_report(rep))
     assert "! the recording holds more such gaps" in text
 
 
@@ -407,12 +414,12 @@ def test_pcap_gives_the_same_arrival_times(tmp_path: Path) -> None:
                 w.writepkt(_udp_frame("10.0.0.2", "10.0.0.1", 5701, BODY20), ts=ts + 2e-4)
                 w.writepkt(_udp_frame("10.0.0.2", "10.0.0.1", 5700, BODY20 + b"x"),
                            ts=ts + 3e-4)
-    times, other = L.read_pcap_times(str(path), 5700)
+    times, other = read_pcap_times(str(path), 5700)
     assert times.size == t.size
     assert np.allclose(times, t, rtol=0, atol=1e-6)
     assert other == 2 * len(range(0, t.size, 50))
-    a = L.fit(L.gaps_from_times(times, RATE), RATE)
-    b = L.fit(L.gaps_from_times(t, RATE), RATE)
+    a = fit(gaps_from_times(times, RATE), RATE)
+    b = fit(gaps_from_times(t, RATE), RATE)
     assert (a.bursts, a.lost, a.gaps) == (b.bursts, b.lost, b.gaps)
 
 
@@ -433,7 +440,7 @@ def test_pcap_link_types(tmp_path: Path, linktype: str) -> None:
             else:
                 frame = bytes(ip)
             w.writepkt(frame, ts=ts)
-    got, other = L.read_pcap_times(str(path), 5700)
+    got, other = read_pcap_times(str(path), 5700)
     assert np.allclose(got, times, atol=1e-6) and other == 0
 
 
@@ -467,8 +474,8 @@ def test_cli_table_json_and_plot(tmp_path: Path, capsys: pytest.CaptureFixture[s
     ms = [r["timeout_ms"] for r in rep["rows"]]
     assert ms[0] == 50 and ms[-1] == 2000 and set(range(100, 1001, 100)) <= set(ms)
     for r in rep["rows"]:
-        assert r["false_stops_per_hour"] == pytest.approx(L.false_stops_per_hour(
-            rep["loss"], rep["mean_burst"], L.lost_in_row(r["timeout_ms"], 50.0), 50.0))
+        assert r["false_stops_per_hour"] == pytest.approx(false_stops_per_hour(
+            rep["loss"], rep["mean_burst"], lost_in_row(r["timeout_ms"], 50.0), 50.0))
     rec = rep["recommended_timeout_ms"]
     first_below = next(r["timeout_ms"] for r in rep["rows"]
                        if r["false_stops_per_hour"] < 0.01)
@@ -574,14 +581,14 @@ def test_cli_bad_options_exit_2(tmp_path: Path, capsys: pytest.CaptureFixture[st
 
 def test_poisson_bounds() -> None:
     # the usual tables (Garwood, one-sided 95 %)
-    assert L.poisson_upper95(0) == pytest.approx(2.996, abs=1e-3)
-    assert L.poisson_upper95(1) == pytest.approx(4.744, abs=1e-3)
-    assert L.poisson_upper95(10) == pytest.approx(16.962, abs=1e-3)
-    assert L.poisson_lower95(0) == 0.0
-    assert L.poisson_lower95(1) == pytest.approx(0.0513, abs=1e-4)
-    assert L.poisson_lower95(10) == pytest.approx(5.425, abs=1e-3)
+    assert poisson_upper95(0) == pytest.approx(2.996, abs=1e-3)
+    assert poisson_upper95(1) == pytest.approx(4.744, abs=1e-3)
+    assert poisson_upper95(10) == pytest.approx(16.962, abs=1e-3)
+    assert poisson_lower95(0) == 0.0
+    assert poisson_lower95(1) == pytest.approx(0.0513, abs=1e-4)
+    assert poisson_lower95(10) == pytest.approx(5.425, abs=1e-3)
     # past 100 events an approximation takes over without a jump
-    for f in (L.poisson_lower95, L.poisson_upper95):
+    for f in (poisson_lower95, poisson_upper95):
         assert f(101) == pytest.approx(f(100) * 101 / 100, rel=0.01)
         assert f(100) < f(101) < f(102)
 

@@ -13,8 +13,8 @@ from pathlib import Path
 import pytest
 
 from daemon_util import Daemon
-from estop.linkmodel import LinkConfig
-from estop.remote import Remote
+from estop.client.sender import Remote
+from estop.model.wifi import LinkConfig
 
 pytestmark = pytest.mark.timeout(120)
 

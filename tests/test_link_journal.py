@@ -14,7 +14,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from estop.cliutil import EXIT_FILE
+from estop.errors import EXIT_FILE
 from link_util import arrivals_us, gilbert_lost, histogram_log
 
 ROOT = Path(__file__).resolve().parents[1]

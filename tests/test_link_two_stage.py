@@ -16,7 +16,11 @@ import numpy as np
 import pytest
 
 from estop import cli
-from estop import linkstats as L
+from estop.link.fit import false_stops_per_hour, fit, lost_in_row
+from estop.link.gaps import gaps_from_times
+from estop.link.histogram import read_histogram_log
+from estop.link.poisson import poisson_lower95, poisson_upper95
+from estop.link.report import DEFAULT_SLOW_TARGET, DEFAULT_TARGET, TIMEOUTS_MS, report
 from link_util import (
     HOURS10,
     PERIOD_US,
@@ -49,15 +53,15 @@ def independent() -> np.ndarray:
     return arrivals_us(gilbert_lost(HOURS10, LOSS, IID_BURST, 14))
 
 
-def truth_pair(loss: float, burst: float, target: float = L.DEFAULT_TARGET,
-               slow_target: float = L.DEFAULT_SLOW_TARGET) -> tuple[int, int]:
+def truth_pair(loss: float, burst: float, target: float = DEFAULT_TARGET,
+               slow_target: float = DEFAULT_SLOW_TARGET) -> tuple[int, int]:
     """(S, T) from the closed form at the true parameters, by the rule of PROTOCOL.md 3 read
     as the brief says: T the shortest time below target, S the shortest one longer than a
     send period, not above T, below slow_target."""
-    rate = {d: L.false_stops_per_hour(loss, burst, L.lost_in_row(d, RATE), RATE)
-            for d in L.TIMEOUTS_MS}
-    t = next(d for d in L.TIMEOUTS_MS if rate[d] < target)
-    s = next((d for d in L.TIMEOUTS_MS if d * 1000 > PERIOD_US and d <= t
+    rate = {d: false_stops_per_hour(loss, burst, lost_in_row(d, RATE), RATE)
+            for d in TIMEOUTS_MS}
+    t = next(d for d in TIMEOUTS_MS if rate[d] < target)
+    s = next((d for d in TIMEOUTS_MS if d * 1000 > PERIOD_US and d <= t
               and rate[d] < slow_target), t)
     return s, t
 
@@ -82,7 +86,7 @@ def test_bursty_link_gets_two_stages(bursty: np.ndarray, tmp_path: Path,
     # but only costs slow-downs)
     s_true, t_true = truth_pair(LOSS, BURST)
     assert (s_true, t_true) == (130, 700)
-    rep = L.report(L.gaps_from_times(bursty / 1e6, RATE), RATE)
+    rep = report(gaps_from_times(bursty / 1e6, RATE), RATE)
     assert (rep.recommended_slow_ms, rep.recommended_ms) == (s_true, t_true)
     assert rep.two_stage
     assert (t_true - s_true) * 1000 >= 25 * PERIOD_US
@@ -105,8 +109,8 @@ def test_bursty_link_gets_two_stages(bursty: np.ndarray, tmp_path: Path,
     rep_j = json.loads(text)
     assert rep_j["recommended_slow_ms"] == 130 and rep_j["recommended_timeout_ms"] == 700
     assert rep_j["recommended_estopd_options"] == ["--slow-ms", "130", "--timeout-ms", "700"]
-    assert rep_j["slow_target_per_hour"] == L.DEFAULT_SLOW_TARGET
-    assert rep_j["target_per_hour"] == L.DEFAULT_TARGET
+    assert rep_j["slow_target_per_hour"] == DEFAULT_SLOW_TARGET
+    assert rep_j["target_per_hour"] == DEFAULT_TARGET
     for r in rep_j["rows"]:  # one model, read two ways
         assert r["slowdowns_per_hour"] == r["false_stops_per_hour"]
         assert r["slowdowns_per_hour_95"] == r["false_stops_per_hour_95"]
@@ -119,13 +123,13 @@ def test_independent_losses_need_almost_no_second_stage(independent: np.ndarray,
     # stops per hour takes 5 packets, not the 28 of bursts of 3
     s_true, t_true = truth_pair(LOSS, IID_BURST)
     assert (s_true, t_true) == (70, 150)
-    rep = L.report(L.gaps_from_times(independent / 1e6, RATE), RATE)
+    rep = report(gaps_from_times(independent / 1e6, RATE), RATE)
     assert rep.fit.mean_burst == pytest.approx(IID_BURST, rel=0.02)
     assert (rep.recommended_slow_ms, rep.recommended_ms) == (s_true, t_true)
     s, t = rep.recommended_slow_ms, rep.recommended_ms
     assert s is not None and t is not None
     gap_iid = t - s
-    b = L.report(L.gaps_from_times(bursty / 1e6, RATE), RATE)
+    b = report(gaps_from_times(bursty / 1e6, RATE), RATE)
     assert b.recommended_ms is not None and b.recommended_slow_ms is not None
     gap_bursty = b.recommended_ms - b.recommended_slow_ms
     assert gap_iid * 1000 <= 5 * PERIOD_US and gap_bursty >= 6 * gap_iid
@@ -150,15 +154,15 @@ def test_one_stage_when_no_shorter_time_meets_the_slow_target(
 
 
 def test_slow_time_is_never_above_the_timeout(bursty: np.ndarray) -> None:
-    gaps = L.gaps_from_times(bursty[:360_000] / 1e6, RATE)
+    gaps = gaps_from_times(bursty[:360_000] / 1e6, RATE)
     for slow_target in (1e-9, 1e-3, 0.01, 1.0, 100.0, 1e4, 1e9):
-        rep = L.report(gaps, RATE, slow_target=slow_target)
+        rep = report(gaps, RATE, slow_target=slow_target)
         assert rep.recommended_ms is not None and rep.recommended_slow_ms is not None
         assert rep.recommended_slow_ms <= rep.recommended_ms
         if rep.recommended_slow_ms < rep.recommended_ms:
             assert rep.row(rep.recommended_slow_ms).meets(slow_target)
     # a laxer slow target never lengthens S
-    s = [L.report(gaps, RATE, slow_target=x).recommended_slow_ms for x in (10.0, 300.0, 3000.0)]
+    s = [report(gaps, RATE, slow_target=x).recommended_slow_ms for x in (10.0, 300.0, 3000.0)]
     assert s == sorted(s, reverse=True) and s[0] != s[-1]  # type: ignore[type-var]
 
 
@@ -215,13 +219,13 @@ def test_slowdowns_of_the_units_rules_follow_the_model_at_s(bursty: np.ndarray, 
     silences = int((gaps >= slow_ms * 1000).sum())
     assert silences * 0.97 <= len(unit.slowdowns_us) <= silences
     hours = unit.moving_us / 3.6e9
-    f = L.fit(L.gaps_from_times(bursty / 1e6, RATE), RATE)
-    n = L.lost_in_row(slow_ms, RATE)
+    f = fit(gaps_from_times(bursty / 1e6, RATE), RATE)
+    n = lost_in_row(slow_ms, RATE)
     lo, hi = f.interval95(n)
     per_h = len(unit.slowdowns_us) / hours
     assert per_h == pytest.approx(f.false_stops(n), rel=0.04)
-    assert L.poisson_lower95(len(unit.slowdowns_us)) / hours <= hi
-    assert lo * 0.96 <= L.poisson_upper95(len(unit.slowdowns_us)) / hours
+    assert poisson_lower95(len(unit.slowdowns_us)) / hours <= hi
+    assert lo * 0.96 <= poisson_upper95(len(unit.slowdowns_us)) / hours
     assert len(unit.timeouts_us) == int((gaps >= timeout_ms * 1000).sum())  # all while moving
 
 
@@ -241,7 +245,7 @@ def test_unit_counts_are_read_from_a_v3_daemon_log(bursty: np.ndarray, tmp_path:
     runs = two_runs(bursty[:720_000], 200_000, 1_000_000)  # 4.4 hours
     log = tmp_path / "estopd.jsonl"
     log.write_text(unit_log(runs))
-    h = L.read_histogram_log(str(log))
+    h = read_histogram_log(str(log))
     u = h.unit
     assert h.runs == 2 and u is not None and h.unit_note == ""
     assert u.slowdowns == sum(len(r.slowdowns_us) for _, r in runs)
@@ -364,7 +368,7 @@ def test_older_daemon_logs_have_no_unit_row(bursty: np.ndarray, tmp_path: Path,
                                                     unit_keys=False))):
         log = tmp_path / name
         log.write_text(text)
-        h = L.read_histogram_log(str(log))
+        h = read_histogram_log(str(log))
         assert h.unit is None and h.unit_note == ""
         code, out, err = run_cli([str(log), "--json"], capsys)
         rep = json.loads(out)
@@ -436,8 +440,8 @@ def test_cli_defaults_are_the_reports(tmp_path: Path, capsys: pytest.CaptureFixt
     path = write_times(tmp_path / "t.txt", arrivals_us(lost))
     code, out, _ = run_cli([path, "--json"], capsys)
     rep = json.loads(out)
-    assert rep["target_per_hour"] == L.DEFAULT_TARGET
-    assert rep["slow_target_per_hour"] == L.DEFAULT_SLOW_TARGET
+    assert rep["target_per_hour"] == DEFAULT_TARGET
+    assert rep["slow_target_per_hour"] == DEFAULT_SLOW_TARGET
     assert cli.main(["link", "--help"]) == 0
     assert "--slow-target" in capsys.readouterr().out
 

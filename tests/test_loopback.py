@@ -1,4 +1,4 @@
-"""estop.loopback beyond starting a daemon: the daemon's ``output_dropped`` reports and the
+"""estop.unit.daemon beyond starting a daemon: the daemon's ``output_dropped`` reports and the
 windows they cover, the alive-counter follower, and the keyed Link against a real keyed
 estopd (session learnt, arming with authenticated packets, replies verified), plus the bench's
 forged flood packets reaching the keyed daemon's tag check.
@@ -16,17 +16,17 @@ from types import ModuleType
 
 import pytest
 
-from estop.loopback import (
+from estop.protocol import auth, can, canlog, tcp, udp
+from estop.unit.daemon import Daemon
+from estop.unit.log import (
     DROP_REPORT_REACH_S,
     CanLogLoss,
-    Daemon,
     DaemonError,
-    Link,
     OutputDropped,
     drop_windows,
     parse_output_dropped,
 )
-from estop.protocol import auth, can, canlog, tcp, udp
+from estop.unit.looplink import Link
 from tool_util import estopd_or_skip
 
 

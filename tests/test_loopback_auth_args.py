@@ -1,4 +1,4 @@
-"""estop.loopback.Daemon starts a protocol-v2 daemon, which refuses to start without exactly
+"""estop.unit.daemon.Daemon starts a protocol-v2 daemon, which refuses to start without exactly
 one of --key-file and --no-auth: --no-auth by default, --key-file with key_file."""
 
 from __future__ import annotations
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from estop.loopback import Daemon
+from estop.unit.daemon import Daemon
 
 pytestmark = pytest.mark.timeout(60)
 

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from estop.loopback import Daemon
+from estop.unit.daemon import Daemon
 from tool_util import estopd_or_skip
 
 pytestmark = pytest.mark.timeout(120)

@@ -17,7 +17,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 
 from estop import cli
-from estop.keyfile import KeyFileError, load_key_file, write_key_file
+from estop.client.keyfile import KeyFileError, load_key_file, write_key_file
 from estop.protocol import auth, tcp, udp
 from estop.protocol.auth import (
     AuthControlPacket,

@@ -1,6 +1,6 @@
-"""``estop remote`` / :class:`estop.remote.Remote`: the dead-man heartbeat ends at lift(), the
-end of a hold is told with three lift datagrams 10 ms apart (spec section 8), and the send rate
-is bounded. Real UDP sockets on 127.0.0.1; every thread and socket is closed.
+"""``estop remote`` / :class:`estop.client.sender.Remote`: the dead-man heartbeat ends at
+lift(), the end of a hold is told with three lift datagrams 10 ms apart (spec section 8), and
+the send rate is bounded. Real UDP sockets on 127.0.0.1; every thread and socket is closed.
 """
 
 from __future__ import annotations
@@ -13,8 +13,10 @@ from collections.abc import Iterator
 
 import pytest
 
-from estop import cli, remoteterm
-from estop.remote import MAX_RATE_HZ, MIN_RATE_HZ, Remote, ScriptError, parse_script
+from estop import cli
+from estop.client.sender import MAX_RATE_HZ, MIN_RATE_HZ, Remote
+from estop.remote import keys as remoteterm
+from estop.remote.script import ScriptError, parse_script
 from net_util import LOCAL, UdpSink, unused_tcp_port
 from stall_probe import StallProbe
 
@@ -99,7 +101,7 @@ def test_lift_at_the_highest_rate_many_times(sink: UdpSink) -> None:
 
 def test_packets_in_flight_may_still_arrive_after_lift(sink: UdpSink) -> None:
     # the link model's delay is the network's: what was sent before lift() still arrives
-    from estop.linkmodel import LinkConfig
+    from estop.model.wifi import LinkConfig
 
     with Remote(LOCAL, sink.port, unused_tcp_port(), rate_hz=200,
                 link=LinkConfig(delay=0.2)) as r:

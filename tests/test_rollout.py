@@ -1,4 +1,4 @@
-"""Roll-out from CAN frames (estop.rollout): ESTOP_BRAKE frames through the brake controller
+"""Roll-out from CAN frames (estop.model.rollout): ESTOP_BRAKE frames through the brake controller
 emulation into the vehicle model, checked against the closed forms of docs/VEHICLE.md."""
 
 from __future__ import annotations
@@ -9,11 +9,11 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
+from estop.model.rollout import RollOutReplay, TimedFrame, roll_out, timed_frames
+from estop.model.vehicle import VehicleParams, kmh
 from estop.protocol.can import BrakeFrame, StatusFrame
 from estop.protocol.canlog import CanLogRecord
 from estop.protocol.crc import e2e_crc8
-from estop.rollout import RollOutReplay, TimedFrame, roll_out, timed_frames
-from estop.vehicle import VehicleParams, kmh
 
 V = kmh(15)
 A = 8.0

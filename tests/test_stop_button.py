@@ -18,10 +18,11 @@ from collections.abc import Iterator
 
 import pytest
 
-from estop import cli, remote
+from estop import cli
+from estop.client.channel import StopChannelError
+from estop.client.sender import Remote
 from estop.protocol import auth, tcp
-from estop.remote import Remote
-from estop.stopchannel import StopChannelError
+from estop.remote.keys import handle_key
 from net_util import LOCAL, ScriptedStopPort, UdpSink, unused_tcp_port
 
 pytestmark = pytest.mark.timeout(60)
@@ -226,7 +227,7 @@ def test_remote_script_stop_retries(sink: UdpSink, restarting: ScriptedStopPort,
 def test_remote_stop_key_retries(sink: UdpSink, restarting: ScriptedStopPort) -> None:
     r = Remote(LOCAL, sink.port, restarting.port)
     try:
-        line = remote.handle_key(r, "s")
+        line = handle_key(r, "s")
     finally:
         r.close()
     assert line == "stop -> ACK seq=2 state=STOPPED reason=tcp_stop flags=0x00 (after 2 attempts)"

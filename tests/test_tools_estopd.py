@@ -13,11 +13,11 @@ from pathlib import Path
 import pytest
 
 from estop import cli
-from estop.keyfile import load_key_file
-from estop.loopback import Daemon
-from estop.loopback import stamp as canlog_stamp
+from estop.client.keyfile import load_key_file
+from estop.client.sender import Remote
 from estop.protocol import can, canlog
-from estop.remote import Remote
+from estop.unit.daemon import Daemon
+from estop.unit.log import stamp as canlog_stamp
 from net_util import LOCAL, unused_tcp_port
 from tool_util import estopd_or_skip
 

@@ -24,7 +24,7 @@ from typing import Any
 import pytest
 
 from daemon_util import ARMED, R_LIFT, R_TCP_STOP, R_UDP_TIMEOUT, ROOT, SLOWING, STOPPED, Daemon
-from estop.keyfile import write_key_file
+from estop.client.keyfile import write_key_file
 from touch_util import Phone, TcpCut, TouchRemote, UdpTap, control_of
 
 try:
@@ -158,13 +158,13 @@ def arm(phone: Phone, daemon: Daemon, tap: UdpTap) -> None:
 # ------------------------------------------------------------------------------ the tests
 
 def test_the_pages_mac_is_blake2s(browser: Any) -> None:
-    """static/blake2s.js (the page's MAC) gives hashlib's keyed BLAKE2s, at every length
+    """the page's static/blake2s.js (its MAC) gives hashlib's keyed BLAKE2s, at every length
     around the block size."""
     context = browser.new_context()
     try:
         page = context.new_page()
-        page.add_script_tag(content=resources.files("estop").joinpath(
-            "touch_static", "blake2s.js").read_text())
+        page.add_script_tag(content=resources.files("estop.remote.touch").joinpath(
+            "static", "blake2s.js").read_text())
         key = os.urandom(16)
         for n in (0, 1, 31, 63, 64, 65, 127, 128, 129, 300):
             data = os.urandom(n)

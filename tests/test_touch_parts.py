@@ -1,5 +1,5 @@
-"""The touch remote's pure parts: its messages and their MACs (estop.touchwire), and the
-dead-man across the page's hop (estop.touchhold), on made-up times."""
+"""The touch remote's pure parts: its messages and their MACs (estop.remote.touch.wire), and the
+dead-man across the page's hop (estop.remote.touch.hold), on made-up times."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import json
 
 import pytest
 
-from estop.touchhold import DRIFT, STALE_PERIODS, DeadMan, Verdict
-from estop.touchwire import (
+from estop.remote.touch.hold import DRIFT, STALE_PERIODS, DeadMan, Verdict
+from estop.remote.touch.wire import (
     WireError,
     counter,
     decode_token,

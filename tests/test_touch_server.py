@@ -14,9 +14,9 @@ import aiohttp
 import pytest
 
 from daemon_util import Daemon
-from estop.keyfile import write_key_file
-from estop.touchserver import MAX_PAGES
-from estop.touchwire import decode_token, new_nonce, new_token, parse, seal
+from estop.client.keyfile import write_key_file
+from estop.remote.touch.server import MAX_PAGES
+from estop.remote.touch.wire import decode_token, new_nonce, new_token, parse, seal
 from touch_util import TouchRemote, UdpTap
 
 KEY = bytes(range(32))

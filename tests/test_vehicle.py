@@ -1,4 +1,4 @@
-"""The longitudinal vehicle model (estop.vehicle, docs/VEHICLE.md): closed forms, and the
+"""The longitudinal vehicle model (estop.model.vehicle, docs/VEHICLE.md): closed forms, and the
 properties a stopping distance must have whatever the brake commands."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from estop.vehicle import (
+from estop.model.vehicle import (
     DEFAULT_EMERGENCY_DECEL,
     Vehicle,
     VehicleParams,

@@ -15,7 +15,7 @@ BENCH_DIR = Path(__file__).resolve().parents[1] / "bench"
 
 def estopd_or_skip() -> str:
     """The built estopd; skipped where it is not built, but a failure in CI, which builds it."""
-    from estop.loopback import find_estopd  # here: conftest imports this module for every test
+    from estop.unit.daemon import find_estopd  # here: conftest imports this module for every test
 
     exe = find_estopd()
     if exe is None:

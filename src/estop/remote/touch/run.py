@@ -4,11 +4,12 @@ laptop with a browser drives with a real dead-man (a finger on the page).
 The process is the remote: it holds the key, the counter and the stop channel
 (:class:`~estop.client.sender.Remote`, not paced: one control packet per fresh frame from the
 page); the page (``static/`` beside this module, served by :mod:`estop.remote.touch.server`)
-never sees the key. It listens on 127.0.0.1:8081 unless ``--listen ADDR:PORT`` says otherwise: another
-address serves the network, an explicit choice. Either way the page pairs with a token drawn
-at each start; the address printed first carries it in its fragment (``#k=...``, which a
-browser never sends), and beyond loopback a QR code of it is printed too, for the tablet's
-camera. A page without the token sees the state and may press STOP, nothing else.
+never sees the key. It listens on 127.0.0.1:8081 unless ``--listen ADDR:PORT`` says
+otherwise: another address serves the network, an explicit choice. Either way the page pairs
+with a token drawn at each start; the address printed first carries it in its fragment
+(``#k=...``, which a browser never sends), and beyond loopback a QR code of it is printed too,
+for the tablet's camera. A page without the token sees the state and may press STOP, nothing
+else.
 
 The run ends on Ctrl-C, SIGTERM or SIGHUP (a hold still on ends with its lift, as every run
 of ``estop remote``); exit code 3 when the unit cannot be reached at the start (with a key,
@@ -22,10 +23,10 @@ import io
 import signal
 from collections.abc import Callable
 
+from estop.client.channel import StopChannel, StopChannelError, format_reply
+from estop.client.sender import Remote
 from estop.errors import ConnectionFailure
 from estop.extras import require_extra
-from estop.client.sender import Remote
-from estop.client.channel import StopChannel, StopChannelError, format_reply
 from estop.remote.touch.wire import encode_token, new_token
 
 __all__ = ["DEFAULT_LISTEN", "LOOPBACK", "page_url", "qr_text", "run_touch"]

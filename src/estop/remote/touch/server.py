@@ -1,5 +1,6 @@
 """The web side of ``estop remote --touch`` (aiohttp): the page and its assets from the package
-(``estop/remote/touch/static``: no CDN), and one WebSocket per page (:mod:`estop.remote.touch.wire`).
+(``estop/remote/touch/static``: no CDN), and one WebSocket per page
+(:mod:`estop.remote.touch.wire`).
 
 The server is the remote's second hop. It holds the :class:`~estop.client.sender.Remote` (the
 key, the counter, the stop channel): the page never sees the key. From the page:
@@ -31,12 +32,12 @@ from typing import Any
 
 from aiohttp import WSMsgType, web
 
+from estop.client.button import press_stop
+from estop.client.channel import StopChannel, StopChannelError, format_reply
+from estop.client.sender import Remote
 from estop.protocol import tcp
 from estop.protocol.can import FLAG_LINK_DEGRADED, reason_name, state_name
 from estop.protocol.udp import Gear, InvalidPacket
-from estop.client.sender import Remote
-from estop.client.button import press_stop
-from estop.client.channel import StopChannel, StopChannelError, format_reply
 from estop.remote.touch.hold import DeadMan, Verdict
 from estop.remote.touch.wire import (
     Message,

@@ -108,13 +108,13 @@ function handle(msg) {
         pageNonce = crypto.getRandomValues(new Uint8Array(16));
         send({ t: "pair", nonce: bytesToHex(pageNonce) });
       } else {
-        refused = "no pairing token: view and STOP only";
+        refused = "no pairing token: STOP only";
       }
       ping();
       break;
     case "paired": paired = true; refused = ""; note("paired with estop remote"); ping(); break;
     case "refused":
-      if (msg.what === "pair") refused = msg.why + ": view and STOP only";
+      if (msg.what === "pair") refused = msg.why + ": STOP only";
       note(msg.what + " refused: " + msg.why, true);
       break;
     case "state": drawState(msg); break;
@@ -313,7 +313,7 @@ function drawState(m) {
   } else if (m.hold === "other") {
     hold = "another page holds";
   } else {
-    hold = m.state === "STOPPED" ? "no finger \u00b7 hold one in the middle, then RELEASE"
+    hold = m.state === "STOPPED" ? "no finger \u00b7 one in the middle, then RELEASE"
       : "no finger";
   }
   show({ state, reason, cls, degraded: m.degraded });
@@ -329,5 +329,5 @@ function drawState(m) {
   }
 }
 
-if (!token) refused = "no pairing token: view and STOP only";
+if (!token) refused = "no pairing token: STOP only";
 connect();

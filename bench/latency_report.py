@@ -1,5 +1,5 @@
 """The stop-latency report: Markdown and JSON (goals in ``latency_goals``, the histogram in
-``latency_plot``). Pure: tests/test_bench_smoke.py formats synthetic runs."""
+``latency_plot``). Pure: tests/harness/test_bench_smoke.py formats synthetic runs."""
 
 from __future__ import annotations
 

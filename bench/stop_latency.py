@@ -123,7 +123,7 @@ from latency_run import FLOOR_PERIOD_MS, DaemonSpec, make_key_file, run_load  # 
 from latency_stats import fmt_ms, log_bins, percentile, say, summarize  # noqa: E402
 from latency_trials import LiftSent, TcpSent, TimeoutSent, Trials  # noqa: E402
 
-__all__ = [  # the bench's names, for tests/test_bench_*.py (they load this script)
+__all__ = [  # the bench's names, for tests/harness/test_bench_*.py (they load this script)
     "FLOOD_PAYLOADS", "FORGED_REMOTE_ID", "KEYED", "KEYLESS", "LOST_LINES", "METRICS",
     "METRIC_TITLES", "CpuMeter", "PLAIN_METRICS", "TWO_STAGE_METRICS", "V2_METRICS",
     "DaemonSpec", "Flood", "FloodStats", "Hogs", "LiftSent", "RunResult", "TcpSent",

@@ -295,7 +295,7 @@ function setText(id, text) {
   const el = $(id);
   if (el.textContent !== text) el.textContent = text;
 }
-let linkAt = 0;
+let linkAt = -1e9;  // the first state draws it at once
 function note(text, bad) {
   const n = $("note");
   n.textContent = text;

@@ -141,7 +141,8 @@ def run(v: Variant, ffi: Any, lib: Any, rate: int, seconds: float = 0.5,
         now += REMOTE_PERIOD_US
         call("estop_udp_rx", now, False, data=genuine())
     call("estop_tcp_open", now, False, slot=0)
-    req = auth.AuthRequest(RELEASE, 1, RID, SESSION, 1).encode(KEY)
+    counters["genuine"] += 1  # the remote's one counter, for both channels (PROTOCOL.md 5)
+    req = auth.AuthRequest(RELEASE, 1, RID, SESSION, counters["genuine"]).encode(KEY)
     call("estop_tcp_rx", now, False, slot=0, data=req)
     if state["state"] != 1:
         raise AssertionError("the unit did not arm")

@@ -192,6 +192,26 @@ def test_an_unchecked_packet_uses_up_its_counter_under_its_remote_id() -> None:
     assert u.wd.status().counters.udp_valid == before.udp_valid + 1
 
 
+def test_a_remote_that_began_on_tcp_uses_up_a_counter_left_unchecked() -> None:
+    """A remote id that got its place with a RELEASE keeps no UDP counter yet: its first control
+    packet draws on the shared allowance. Left unchecked, its counter is used up all the same
+    (the place is there to keep it), and the copy is refused later."""
+    u = Keyed()
+    steps = u.send(auth.AuthRequest(RELEASE, 1, 9, N, 5).encode(K))  # remote 9: a place
+    assert steps[-1].reply is not None and steps[-1].reply[15] == 2  # authenticated, no link
+    u.wait(WINDOW_MS * MS)
+    for i in range(10):
+        u.udp(forged(10**6 + i, rid=1000 + i))  # the shared allowance, spent
+    first = auth.AuthControlPacket(9, N, 6, BODY).encode(K)
+    u.udp(first)
+    assert u.wd.status().counters.auth_unchecked == 1
+    u.wait(WINDOW_MS * MS)
+    before = u.wd.status().counters
+    u.udp(first)
+    c = u.wd.status().counters
+    assert (c.udp_valid, c.auth_old_counter) == (before.udp_valid, before.auth_old_counter + 1)
+
+
 def test_an_id_without_a_place_is_not_given_one_by_an_unchecked_packet() -> None:
     """Packets of ids without a place draw on the shared allowance; one left unchecked takes
     no place (forgeries would fill the table), so the remote's first packet later is taken."""

@@ -138,21 +138,19 @@ static int next_of(const estop_remote_t *r, uint64_t counter)
  * the remote out for the session); it stays above every control packet authenticated. */
 static void keep(estop_core_t *core, estop_remote_t *r, uint32_t channel, uint64_t counter)
 {
-    const uint8_t tcp = (uint8_t)(1u << CHANNEL_TCP);
-    const uint8_t udp = (uint8_t)(1u << CHANNEL_UDP);
+    /* (A counter not kept yet reads 0: places start zeroed and are never freed.) */
     if (channel == CHANNEL_UDP) {
         r->counter[CHANNEL_UDP] = counter;
-        if (((r->seen & tcp) == 0u) || (r->counter[CHANNEL_TCP] < counter)) {
+        if (r->counter[CHANNEL_TCP] < counter) {
             r->counter[CHANNEL_TCP] = counter;
         }
     } else {
         r->counter[CHANNEL_TCP] = counter;
-        if ((core->state == ESTOP_STATE_STOPPED) && ((r->seen & udp) != 0u) &&
-            (r->counter[CHANNEL_UDP] > counter)) {
+        if ((core->state == ESTOP_STATE_STOPPED) && (r->counter[CHANNEL_UDP] > counter)) {
             r->counter[CHANNEL_UDP] = counter;
         }
     }
-    r->seen = (uint8_t)(r->seen | (1u << channel) | tcp);
+    r->seen = (uint8_t)(r->seen | (1u << channel) | (1u << CHANNEL_TCP));
 }
 
 /* Section 5: msg[0 .. tag_at-1] is covered by the tag at msg[tag_at]; the remote id, session

@@ -141,6 +141,7 @@ static void keep(estop_core_t *core, estop_remote_t *r, uint32_t channel, uint64
     /* (A counter not kept yet reads 0: places start zeroed and are never freed.) */
     if (channel == CHANNEL_UDP) {
         r->counter[CHANNEL_UDP] = counter;
+        r->seen = (uint8_t)(r->seen | (1u << CHANNEL_UDP));
         if (r->counter[CHANNEL_TCP] < counter) {
             r->counter[CHANNEL_TCP] = counter;
         }
@@ -150,7 +151,7 @@ static void keep(estop_core_t *core, estop_remote_t *r, uint32_t channel, uint64
             r->counter[CHANNEL_UDP] = counter;
         }
     }
-    r->seen = (uint8_t)(r->seen | (1u << channel) | (1u << CHANNEL_TCP));
+    r->seen = (uint8_t)(r->seen | (1u << CHANNEL_TCP));
 }
 
 /* Section 5: msg[0 .. tag_at-1] is covered by the tag at msg[tag_at]; the remote id, session

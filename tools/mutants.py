@@ -68,6 +68,7 @@ TESTS = ["tests/test_spec_vectors.py", "tests/test_core_rules.py", "tests/test_c
          "tests/test_blake2s.py", "tests/test_core_auth.py", "tests/test_core_link_stats.py",
          "tests/test_core_mutants.py", "tests/test_core_two_stage.py",
          "tests/test_core_counters.py", "tests/test_core_tag_budget.py",
+         "tests/test_core_unchecked_replay.py",
          "tests/test_core_properties.py", "tests/test_core_stateful.py"]
 SLOW_TESTS = ("tests/test_core_properties.py", "tests/test_core_stateful.py")
 CLASSES = ["relational", "boundary", "logical", "arithmetic", "bitwise", "shift", "constant",

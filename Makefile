@@ -7,7 +7,7 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 COVDIR := build/cov
 
-.PHONY: setup demo test check coverage hil gamepad-vm bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install prove
+.PHONY: setup demo test test-fast check coverage hil gamepad-vm bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install prove
 setup: $(STAMP) $(VENV)/bin/estopd
 
 $(STAMP): pyproject.toml setup.py pyext/build_core.py pyext/estop_build_backend.py deps/debian-packages.txt $(wildcard firmware/core/*)
@@ -35,6 +35,14 @@ test: setup
 	$(MAKE) hil
 	$(MAKE) gamepad-vm
 
+# What needs no daemon, browser, VM or MCU toolchain (the tests' kinds: tests/conftest.py), in
+# under a minute: the Python package (tests/unit), the core through cffi (tests/core), the
+# harness's and the bench's own code, the docs. $ESTOPD points nowhere, so a test that needs
+# estopd without saying so (the estopd fixture marks it daemon) fails here.
+test-fast: $(STAMP)
+	ESTOPD=/nonexistent/estopd-not-in-test-fast $(VPY) -m pytest -q \
+	  -m "not daemon and not browser and not vm and not mcu"
+
 check: setup
 	scripts/ensure-debs check
 	$(MAKE) -C firmware strict
@@ -42,26 +50,28 @@ check: setup
 	$(VENV)/bin/mypy --strict src/estop
 	$(VPY) tools/misra.py
 
-# The whole suite runs once against a build of the core instrumented for gcov and UBSan
-# (UB aborts the process), then the spec vectors run again on the installed optimised build.
-# The MCU tests (tests/test_mcu_*.py) build the core for Cortex-M and need the toolchain.
+# The whole suite but the VM tests (gamepad-vm runs those) runs once against a build of the
+# core instrumented for gcov and UBSan (UB aborts the process), then the spec vectors run
+# again on the installed optimised build. The MCU tests (tests/mcu/) build the core for
+# Cortex-M and need the toolchain.
 coverage: setup
 	scripts/ensure-debs mcu browser
 	rm -rf $(COVDIR) && mkdir -p $(COVDIR)
 	$(VPY) pyext/build_instrumented.py $(COVDIR)
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" PYTHONPATH=$(COVDIR) ESTOP_CORE_MODULE=_estop_core_cov \
-	  UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 $(VPY) -m pytest -q
+	  UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 $(VPY) -m pytest -q -m "not vm"
 	$(VENV)/bin/gcovr --root . --filter 'firmware/core/' --object-directory $(COVDIR) \
 	  --txt-metric branch --print-summary --fail-under-line 100 $(COVDIR)
-	$(VPY) -m pytest -q tests/test_spec_vectors.py
+	$(VPY) -m pytest -q tests/core/test_spec_vectors.py
 
 hil: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" hil/run
 
-# estop remote --gamepad driven by a virtual game controller (uinput); in a virtme-ng VM where
-# this kernel has no uinput (tools/vm-pytest). Prints the lift latency it measured.
+# The VM tests (tests/vm/: estop remote --gamepad driven by a virtual game controller through
+# uinput); in a virtme-ng VM where this kernel has no uinput (tools/vm-pytest, selecting them
+# by their marker). Prints the lift latency it measured.
 gamepad-vm: setup
-	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" tools/vm-pytest tests/test_gamepad_uinput.py
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" tools/vm-pytest -m vm
 
 # The core under Frama-C (docs/PROOF.md): Eva over the whole API (0 alarms, every function
 # reached), WP on the ACSL contracts (every goal proved), and a self-test on planted faults.

@@ -21,8 +21,10 @@ import sys
 import time
 from pathlib import Path
 
-from estop.loopback import Daemon, DaemonError, Link, find_estopd
 from estop.protocol import tcp
+from estop.unit.daemon import Daemon, find_estopd
+from estop.unit.log import DaemonError
+from estop.unit.looplink import Link
 
 OUT = Path(__file__).resolve().parent / "out"
 PAGE_KIB = os.sysconf("SC_PAGE_SIZE") // 1024

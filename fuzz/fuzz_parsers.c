@@ -1,9 +1,11 @@
 /*
  * libFuzzer target of the daemon's parsers of outside input (issue 9): the key file
- * (keyfile_parse) and the command line (opts_parse).
+ * (keyfile_parse), its POSIX ACL (keyfile_acl_check) and the command line (opts_parse).
  *
  * Input: one selector byte, then
- *   - selector even: a key file's contents; byte 1 sets the size of the error buffer;
+ *   - selector 0 mod 4: a key file's contents; byte 1 sets the size of the error buffer;
+ *   - selector 2 mod 4: a key file's ACL attribute; bytes 1-4 the daemon's uid, byte 5 the
+ *     size of the error buffer;
  *   - selector odd: a command line, arguments separated by NUL bytes (argv[0] is "estopd").
  * Every buffer is a heap copy of its exact size (the sanitizer sees any overrun); getopt's
  * hidden state is reset before every parse (optind = 0: glibc's full re-initialisation), and
@@ -92,6 +94,64 @@ static void fuzz_keyfile(const uint8_t *data, size_t size)
     free(copy);
 }
 
+static uint32_t fz_le(const uint8_t *p, size_t n)
+{
+    uint32_t v = 0;
+    while (n-- > 0u) {
+        v = (v << 8) | p[n];
+    }
+    return v;
+}
+
+/* An ACL is taken only when, by the kernel's rules (named users and groups and the owning
+ * group under the mask, other unmasked), nobody but the owner, self and root has access. */
+static void fuzz_acl(const uint8_t *data, size_t size)
+{
+    uint32_t self = size >= 4u ? fz_le(data, 4u) : 0u;
+    size_t errlen = size >= 5u ? data[4] % 160u : 0u;
+    size_t len = size >= 5u ? size - 5u : 0u;
+    unsigned char *copy = malloc(len > 0u ? len : 1u);
+    char *err = malloc(errlen > 0u ? errlen : 1u);
+    uint32_t mask = 7u;
+    int ok;
+    int rc;
+    if (copy == NULL || err == NULL) {
+        abort();
+    }
+    if (len > 0u) {
+        memcpy(copy, data + 5, len);
+    }
+    memset(err, 'x', errlen > 0u ? errlen : 1u);
+    rc = keyfile_acl_check(copy, len, self, err, errlen);
+    ok = len >= 4u && (len - 4u) % 8u == 0u && fz_le(copy, 4u) == 2u;
+    for (size_t i = 4u; ok && i < len; i += 8u) {
+        if (fz_le(copy + i, 2u) == 0x10u) {
+            mask = fz_le(copy + i + 2u, 2u) & 7u;
+        }
+    }
+    for (size_t i = 4u; ok && i < len; i += 8u) {
+        uint32_t tag = fz_le(copy + i, 2u);
+        uint32_t perm = fz_le(copy + i + 2u, 2u) & 7u;
+        uint32_t id = fz_le(copy + i + 4u, 4u);
+        if (tag == 0x02u) {
+            ok = id == self || id == 0u || (perm & mask) == 0u;
+        } else if (tag == 0x04u || tag == 0x08u) {
+            ok = (perm & mask) == 0u;
+        } else if (tag == 0x20u) {
+            ok = perm == 0u;
+        } else {
+            ok = tag == 0x01u || tag == 0x10u;
+        }
+    }
+    CHECK(rc == (ok ? 0 : -1), "acl: taken exactly when nobody else has access");
+    if (!ok && errlen > 0u) {
+        CHECK(memchr(err, '\0', errlen) != NULL, "acl: error message terminated");
+        CHECK(err[0] != '\0' || errlen == 1u, "acl: error message given");
+    }
+    free(err);
+    free(copy);
+}
+
 /* p points into one of the argument strings (or is NULL or the default). */
 static int in_args(const char *p, char **args, int n)
 {
@@ -164,8 +224,10 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
     if (size == 0u) {
         return 0;
     }
-    if ((data[0] & 1u) == 0u) {
+    if ((data[0] & 3u) == 0u) {
         fuzz_keyfile(data + 1, size - 1u);
+    } else if ((data[0] & 3u) == 2u) {
+        fuzz_acl(data + 1, size - 1u);
     } else {
         fuzz_opts(data + 1, size - 1u);
     }

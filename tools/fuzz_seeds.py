@@ -28,7 +28,7 @@ SOON = 100  # time selector: most of the way to the core's next call time
 
 def spec_path() -> Path:
     """The project's own protocol document: it carries every example of the shared contract
-    (tests/test_docs.py checks that), and unlike ../shared it is always in the checkout."""
+    (tests/docs/test_docs.py checks that), and unlike ../shared it is always in the checkout."""
     return ROOT / "docs" / "PROTOCOL.md"
 
 
@@ -130,6 +130,15 @@ def parser_seeds() -> dict[str, bytes]:
     ]
     # keyfile: selector 0, the error buffer's size, the contents
     seeds = {"keyfile-ok": b"\x00\x80" + key + b"\n", "keyfile-short": b"\x00\x40" + key[:10]}
+    # ACL: selector 2, the daemon's uid, the error buffer's size, the attribute: systemd's
+    # credential (user::r--, user:61234:r--, group::---, mask::r--, other::---), and one
+    # that lets user 1000 read
+    uid = struct.pack("<I", 61234)
+    entries = [(1, 4, 0xFFFFFFFF), (2, 4, 61234), (4, 0, 0xFFFFFFFF), (0x10, 4, 0xFFFFFFFF),
+               (0x20, 0, 0xFFFFFFFF)]
+    acl = struct.pack("<I", 2) + b"".join(struct.pack("<HHI", *e) for e in entries)
+    seeds["acl-credential"] = b"\x02" + uid + b"\x80" + acl
+    seeds["acl-other-user"] = b"\x02" + uid + b"\x80" + acl + struct.pack("<HHI", 2, 4, 1000)
     for i, argv in enumerate(lines):
         seeds[f"opts-{i}"] = b"\x01" + b"\x00".join(argv)
     return seeds

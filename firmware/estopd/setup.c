@@ -188,6 +188,22 @@ static int setup_realtime(daemon_t *d, char *err, size_t n)
     return d->opt.rt_prio > 0 ? setup_rt_prio(d->opt.rt_prio, err, n) : 0;
 }
 
+/* The real-time priority the loop (this thread) runs at, whoever set it: --rt-prio, or
+ * systemd's CPUSchedulingPolicy= before estopd started (which --rt-prio then keeps or which
+ * runs without it); 0 for a normal policy. */
+static int loop_rt_prio(void)
+{
+    struct sched_param sp;
+    int policy = sched_getscheduler(0);
+
+    memset(&sp, 0, sizeof sp);
+    if (policy < 0 || sched_getparam(0, &sp) != 0) {
+        return 0;
+    }
+    policy &= ~SCHED_RESET_ON_FORK;
+    return policy == SCHED_FIFO || policy == SCHED_RR ? sp.sched_priority : 0;
+}
+
 static void log_start_line(const daemon_t *d)
 {
     char udp[48];
@@ -216,7 +232,7 @@ static void log_start_line(const daemon_t *d)
             KV_STR("auth", d->opt.cfg.key_len != 0u ? "key" : "none"),
             KV_STR("session", session),
             KV_NUM("udp_rcvbuf", d->udp.rcvbuf),
-            KV_NUM("rt_prio", d->opt.rt_prio),
+            KV_NUM("rt_prio", loop_rt_prio()),
             KV_NUM("mlock", d->opt.mlock),
             KV_NUM("pid", getpid()),
             KV_NUM("version_major", ESTOP_VERSION_MAJOR),

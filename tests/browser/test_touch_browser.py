@@ -326,6 +326,8 @@ def test_page_frozen_is_silence_slowing_at_s_stopped_at_t(
         assert SLOW_MS - 5 <= (t_slow - last) * 1000 <= SLOW_MS + 100
         assert TIMEOUT_MS - 5 <= (t_stop - last) * 1000 <= TIMEOUT_MS + 100
         phone.wait_state("STOPPED", "udp_timeout")  # latched, though the finger is still down
+        phone.page.wait_for_function("window.estop.last.hold === 'you' && "
+                                     "!window.estop.last.stalled")  # fresh frames again
         shoot(phone, "stopped-udp-timeout")
         phone.up(1)
     finally:

@@ -94,7 +94,7 @@ function connect() {
     stopHold(null);
     ws = null; paired = false; serverNonce = null; nOut = 0; nIn = 0;
     show({ state: "NO REMOTE", reason: "connection to estop remote lost", cls: "unreachable" });
-    $("hold").textContent = "not driving: the unit stops (lift, or silence)";
+    setText("hold", "not driving: the unit stops (lift, or silence)");
     setTimeout(connect, 1000);
   };
 }
@@ -145,9 +145,19 @@ function axis(v) {
   return Math.round(Math.sign(v) * Math.min(1, (a - NEUTRAL) / (1 - NEUTRAL)) * 1000) / 1000;
 }
 
+// The drive area's box, read once per layout change: reading it on every frame would force a
+// layout each period, and the page's thread must stay free for the touchend that lifts.
+let area = null;
+function driveBox() {
+  if (!area) area = drive.getBoundingClientRect();
+  return area;
+}
+new ResizeObserver(() => { area = null; }).observe(drive);
+window.addEventListener("resize", () => { area = null; });
+
 function control() {
   const first = touches.values().next().value;
-  const r = drive.getBoundingClientRect();
+  const r = driveBox();
   const x = (first.x - (r.left + r.width / 2)) / (r.width / 2);
   const y = ((r.top + r.height / 2) - first.y) / (r.height / 2);
   const steer = ($("tilt").checked && tilt !== null) ? tilt : axis(x);
@@ -160,7 +170,6 @@ function sendHeld() {
   if (paired && send({ t: "held", at: performance.now(), steer: c.steer, gas: c.gas })) {
     estop.framesSent++;
   }
-  drawFinger();
 }
 
 function startHold() {
@@ -171,16 +180,19 @@ function startHold() {
   drive.classList.add("held");
 }
 
-function stopHold(why) {
+function stopHold(why, ev) {
   if (timer === null) return;
   clearInterval(timer);
   timer = null;
   drive.classList.remove("held");
   $("finger").hidden = true;
+  fingerAt = "";
   if (why) {
     const t = now();
     send({ t: "lift", why });
-    estop.sent.push({ t: "lift", why, at: t });
+    // queued: how long the event waited for this page's thread (from the browser's stamp)
+    const queued = ev && ev.timeStamp ? performance.now() - ev.timeStamp : null;
+    estop.sent.push({ t: "lift", why, at: t, queued, sent: now() });
   }
 }
 
@@ -209,9 +221,9 @@ function fingerDown(id, x, y) {
   drawFinger();
 }
 
-function fingerUp(id, why) {
+function fingerUp(id, why, ev) {
   if (voided.delete(id) || !touches.delete(id)) return;
-  if (!touches.size) stopHold(why);
+  if (!touches.size) stopHold(why, ev);
   else drawFinger();
 }
 
@@ -229,7 +241,7 @@ drive.addEventListener("touchmove", (ev) => {
 for (const type of ["touchend", "touchcancel"]) {
   drive.addEventListener(type, (ev) => {
     ev.preventDefault();
-    for (const t of ev.changedTouches) fingerUp(t.identifier, type);
+    for (const t of ev.changedTouches) fingerUp(t.identifier, type, ev);
   }, { passive: false });
 }
 // a mouse held down on the drive area counts as a finger (a laptop without a touch screen)
@@ -241,13 +253,14 @@ window.addEventListener("mousemove", (ev) => {
 });
 window.addEventListener("mouseup", (ev) => { if (ev.button === 0) fingerUp("mouse", "mouseup"); });
 
-function drawFinger() {
+let fingerAt = "";
+function drawFinger() {  // on touches only, and moved by a transform: no repaint of the area
   const f = $("finger");
   const first = touches.values().next().value;
-  if (!first) { f.hidden = true; return; }
-  const r = drive.getBoundingClientRect();
-  f.style.left = (first.x - r.left) + "px";
-  f.style.top = (first.y - r.top) + "px";
+  if (!first) { f.hidden = true; fingerAt = ""; return; }
+  const r = driveBox();
+  const at = "translate(" + (first.x - r.left) + "px, " + (first.y - r.top) + "px)";
+  if (at !== fingerAt) { f.style.transform = at; fingerAt = at; }
   f.hidden = false;
 }
 
@@ -276,6 +289,13 @@ if ("DeviceOrientationEvent" in window) {
 }
 
 // ---------------------------------------------------------------- drawing
+// The DOM is touched only where something changed, and the link line at most once a second:
+// every change costs the page's thread a layout and a paint, and a touchend waits behind them.
+function setText(id, text) {
+  const el = $(id);
+  if (el.textContent !== text) el.textContent = text;
+}
+let linkAt = -1e9;  // the first state draws it at once
 function note(text, bad) {
   const n = $("note");
   n.textContent = text;
@@ -286,9 +306,10 @@ let lastShown = "";
 function show(s) {
   try {
     const st = $("status");
-    st.className = s.cls + (s.degraded ? " degraded" : "");
-    $("state").textContent = s.state;
-    $("reason").textContent = s.reason;
+    const cls = s.cls + (s.degraded ? " degraded" : "");
+    if (st.className !== cls) st.className = cls;
+    setText("state", s.state);
+    setText("reason", s.reason);
     const key = s.state + "/" + s.reason;
     if (key !== lastShown) {
       lastShown = key;
@@ -318,15 +339,17 @@ function drawState(m) {
   }
   show({ state, reason, cls, degraded: m.degraded });
   estop.last = m;
-  $("hold").textContent = hold;
+  setText("hold", hold);
   drive.classList.toggle("stalled", m.hold === "you" && m.stalled);
   const rtt = pageRtt === null ? "\u2013" : pageRtt.toFixed(0) + " ms";
   const urtt = m.unit_rtt_ms === null ? "\u2013" : m.unit_rtt_ms.toFixed(0) + " ms";
-  $("link").textContent = "round trip: page\u21c4remote " + rtt + " \u00b7 remote\u21c4unit " + urtt +
-    " \u00b7 packets " + m.sent + " sent, " + m.lost + " lost \u00b7 " + m.late + " frames late";
   for (const b of document.querySelectorAll("#gears button")) {
     b.classList.toggle("on", b.dataset.gear === m.gear);
   }
+  if (performance.now() - linkAt < 1000) return;
+  linkAt = performance.now();
+  setText("link", "round trip: page\u21c4remote " + rtt + " \u00b7 remote\u21c4unit " + urtt +
+    " \u00b7 packets " + m.sent + " sent, " + m.lost + " lost \u00b7 " + m.late + " frames late");
 }
 
 if (!token) refused = "no pairing token: STOP only";

@@ -8,10 +8,10 @@ import subprocess
 import sys
 
 import pytest
+from hil_util import BOOT
 
 import hilcheck
 from estop.protocol.can import StatusFrame
-from hil_util import BOOT
 from hilcheck import Frame
 from repo import ROOT
 

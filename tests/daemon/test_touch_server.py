@@ -208,13 +208,37 @@ def test_page_limit_assets_and_their_headers(setup: tuple[Daemon, UdpTap, TouchR
                     assert r.status == 200, name
             async with s.get(remote.base + "static/../touch.py") as r:
                 assert r.status == 404
-            pages = [await s.ws_connect(remote.base + "ws") for _ in range(MAX_PAGES)]
+            # a crowd of pages that never pair cannot keep the driver's page out: the oldest
+            # unpaired one makes room; paired pages are never pushed out (a ninth: 503)
+            crowd = [await s.ws_connect(remote.base + "ws") for _ in range(MAX_PAGES)]
+            driver = await connect(s, remote, token_of(remote))
+            await driver.pair()
+            assert (await crowd[0].receive(timeout=5)).type in (
+                aiohttp.WSMsgType.TEXT, aiohttp.WSMsgType.CLOSE, aiohttp.WSMsgType.CLOSED)
+            paired = [driver]
+            for _ in range(MAX_PAGES - 1):
+                page = await connect(s, remote, token_of(remote))
+                await page.pair()
+                paired.append(page)
             with pytest.raises(aiohttp.WSServerHandshakeError) as exc:
                 await s.ws_connect(remote.base + "ws")
             assert exc.value.status == 503
-            for ws in pages:
+            n = tap.count()
+            await driver.hold_for(0.2)  # the driver drives all along
+            assert len(tap.of("control", n)) >= 5
+            # STOP flooded: one press at a time, the presses meanwhile answered with its outcome
+            for _ in range(20):
+                await driver.send({"t": "stop"})
+            reply = await driver.expect("reply")
+            assert reply.fields["what"] == "stop" and reply.fields["ok"]
+            for ws in crowd:
                 await ws.close()
+            for page in paired:
+                await page.ws.close()
     run(go())
+    time.sleep(1.0)  # any press still queued would be done and said by now
+    presses = remote.output().count("STOP pressed")
+    assert presses == 20 and remote.output().count("stop -> ") < presses / 2, remote.output()
 
 
 def test_command_line_errors(setup: tuple[Daemon, UdpTap, TouchRemote],

@@ -53,8 +53,7 @@ __all__ = ["MAX_PAGES", "POLL_S", "TouchServer"]
 
 POLL_S = 0.1  # STATUS every 100 ms: the state on the page is at most that old (plus the trip)
 PUSH_S = 0.25  # the state goes to the pages at least this often, at once when it changes
-PAIR_WAIT_S = 5.0
-MAX_PAGES = 8  # connections at once; a ninth is turned away (503)
+MAX_PAGES = 8  # pages at once; a ninth pushes out the oldest unpaired one, else 503
 _STATIC = {"index.html": "text/html", "app.js": "text/javascript", "style.css": "text/css",
            "blake2s.js": "text/javascript"}
 _HEADERS = {"Cache-Control": "no-store", "X-Frame-Options": "DENY",
@@ -121,6 +120,7 @@ class TouchServer:
         self._tasks: list[asyncio.Task[None]] = []
         self._changed = asyncio.Event()
         self._poll_now = asyncio.Event()
+        self._stop_waiters: list[_Page] | None = None  # pages waiting for the press in flight
         # TCP off the loop: STATUS and RELEASE share the remote's channel (its session), one
         # at a time; the stop button has its own channel and thread, so it never waits
         self._tcp = ThreadPoolExecutor(1, thread_name_prefix="touch-tcp")
@@ -307,10 +307,18 @@ class TouchServer:
 
     async def _ws(self, request: web.Request) -> web.StreamResponse:
         if len(self.pages) >= MAX_PAGES:
-            raise web.HTTPServiceUnavailable(text=f"{MAX_PAGES} pages are connected already")
+            # room for a newcomer: the oldest page that never paired goes (else a few sockets
+            # opened by anyone would keep the driver's page out)
+            unpaired = [p for p in self.pages.values() if not p.paired]
+            if not unpaired:
+                raise web.HTTPServiceUnavailable(text=f"{MAX_PAGES} paired pages already")
+            oldest = min(unpaired, key=lambda p: p.id)
+            self.log(f"page {oldest.id} ({oldest.addr}): closed to make room (never paired)")
+            del self.pages[oldest.id]
+            self._spawn(oldest.ws.close())  # its handler ends when the close is done
         # the heartbeat finds a page whose network went away without a word (its socket
         # half-open): closed, and a hold on it ends with a lift
-        ws = web.WebSocketResponse(heartbeat=1.0, max_msg_size=4096)
+        ws = web.WebSocketResponse(heartbeat=1.0, max_msg_size=4096, timeout=2.0)
         await ws.prepare(request)
         page = _Page(next(self._ids), ws, request.remote or "?")
         self.pages[page.id] = page
@@ -334,7 +342,7 @@ class TouchServer:
         finally:
             self._end_hold(page.id, f"WebSocket closed ({why})")
             self.deadman.forget(page.id)
-            del self.pages[page.id]
+            self.pages.pop(page.id, None)
             writer.cancel()
             with contextlib.suppress(asyncio.CancelledError, ConnectionError):
                 await writer
@@ -422,7 +430,14 @@ class TouchServer:
         self._spawn(run())
 
     def _press_stop(self, page: _Page) -> None:
+        """One press at a time: STOP pressed again (on any page) while a press is still
+        trying is answered with that press's outcome, so a page that floods STOP queues
+        nothing behind it."""
         self.log(f"page {page.id}: STOP pressed")
+        if self._stop_waiters is not None:
+            self._stop_waiters.append(page)
+            return
+        self._stop_waiters = [page]
 
         def press() -> tuple[bool, str]:
             outcome = press_stop(self.stop_channel, deadline=self.remote.stop_deadline,
@@ -430,9 +445,13 @@ class TouchServer:
             return outcome.acked, outcome.line()
 
         async def run() -> None:
-            ok, line = await asyncio.get_running_loop().run_in_executor(self._stop, press)
-            self.log(f"page {page.id}: stop -> {line}")
-            self._reply(page, {"t": "reply", "what": "stop", "ok": ok, "line": line})
+            try:
+                ok, line = await asyncio.get_running_loop().run_in_executor(self._stop, press)
+            finally:
+                waiters, self._stop_waiters = self._stop_waiters or [], None
+            self.log(f"stop -> {line}")
+            for waiter in {w.id: w for w in waiters}.values():
+                self._reply(waiter, {"t": "reply", "what": "stop", "ok": ok, "line": line})
             self._poll_now.set()
 
         self._spawn(run())
@@ -440,4 +459,12 @@ class TouchServer:
     def _spawn(self, coro: Any) -> None:
         task = asyncio.get_running_loop().create_task(coro)
         self._tasks.append(task)
-        task.add_done_callback(lambda t: self._tasks.remove(t) if t in self._tasks else None)
+        task.add_done_callback(self._done)
+
+    def _done(self, task: asyncio.Task[Any]) -> None:
+        """A task's end; one that failed is said (a bug), never swallowed."""
+        if task in self._tasks:
+            self._tasks.remove(task)
+        if not task.cancelled() and task.exception() is not None:
+            exc = task.exception()
+            self.log(f"internal error (a bug, please report it): {type(exc).__name__}: {exc}")

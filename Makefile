@@ -7,7 +7,7 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 COVDIR := build/cov
 
-.PHONY: setup demo test check coverage hil gamepad-vm systemd-vm bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install prove
+.PHONY: setup demo test test-fast check coverage hil gamepad-vm systemd-vm bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install prove
 setup: $(STAMP) $(VENV)/bin/estopd
 
 $(STAMP): pyproject.toml setup.py pyext/build_core.py pyext/estop_build_backend.py deps/debian-packages.txt $(wildcard firmware/core/*)
@@ -36,6 +36,14 @@ test: setup
 	$(MAKE) gamepad-vm
 	$(MAKE) systemd-vm
 
+# What needs no daemon, browser, VM or MCU toolchain (the tests' kinds: tests/conftest.py), in
+# under a minute: the Python package (tests/unit), the core through cffi (tests/core), the
+# harness's and the bench's own code, the docs. $ESTOPD points nowhere, so a test that needs
+# estopd without saying so (the estopd fixture marks it daemon) fails here.
+test-fast: $(STAMP)
+	ESTOPD=/nonexistent/estopd-not-in-test-fast $(VPY) -m pytest -q \
+	  -m "not daemon and not browser and not vm and not mcu"
+
 check: setup
 	scripts/ensure-debs check
 	$(MAKE) -C firmware strict
@@ -43,26 +51,28 @@ check: setup
 	$(VENV)/bin/mypy --strict src/estop
 	$(VPY) tools/misra.py
 
-# The whole suite runs once against a build of the core instrumented for gcov and UBSan
-# (UB aborts the process), then the spec vectors run again on the installed optimised build.
-# The MCU tests (tests/test_mcu_*.py) build the core for Cortex-M and need the toolchain.
+# The whole suite but the VM tests (gamepad-vm runs those) runs once against a build of the
+# core instrumented for gcov and UBSan (UB aborts the process), then the spec vectors run
+# again on the installed optimised build. The MCU tests (tests/mcu/) build the core for
+# Cortex-M and need the toolchain.
 coverage: setup
 	scripts/ensure-debs mcu browser
 	rm -rf $(COVDIR) && mkdir -p $(COVDIR)
 	$(VPY) pyext/build_instrumented.py $(COVDIR)
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" PYTHONPATH=$(COVDIR) ESTOP_CORE_MODULE=_estop_core_cov \
-	  UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 $(VPY) -m pytest -q
+	  UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1 $(VPY) -m pytest -q -m "not vm"
 	$(VENV)/bin/gcovr --root . --filter 'firmware/core/' --object-directory $(COVDIR) \
 	  --txt-metric branch --print-summary --fail-under-line 100 $(COVDIR)
-	$(VPY) -m pytest -q tests/test_spec_vectors.py
+	$(VPY) -m pytest -q tests/core/test_spec_vectors.py
 
 hil: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" hil/run
 
-# estop remote --gamepad driven by a virtual game controller (uinput); in a virtme-ng VM where
-# this kernel has no uinput (tools/vm-pytest). Prints the lift latency it measured.
+# The VM tests (tests/vm/: estop remote --gamepad driven by a virtual game controller through
+# uinput); in a virtme-ng VM where this kernel has no uinput (tools/vm-pytest, selecting them
+# by their marker). Prints the lift latency it measured.
 gamepad-vm: setup
-	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" tools/vm-pytest tests/test_gamepad_uinput.py
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" tools/vm-pytest -m vm
 
 # estopd installed as docs/DEPLOY.md says and run under a real systemd, in qemu VMs (TCG):
 # Debian 12 (systemd 252, this machine's kernel) and Debian 13 (systemd 257, its own kernel).
@@ -78,16 +88,19 @@ prove:
 	scripts/ensure-debs prove
 	$(PYTHON) tools/prove.py
 
-# Benchmarks (not part of `make test`): stop latency vs the asyncio baseline, memory soak,
-# instructions per input (host and Cortex-M), the dashboard's cost. Reports land in bench/out/.
+# Benchmarks (not part of `make test`): stop latency vs the asyncio baseline, memory soak, the
+# stop port under connection churn, instructions per input (host and Cortex-M), the dashboard's
+# cost, the touch page's lift. Reports land in bench/out/.
 bench: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/stop_latency.py
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/rss_soak.py
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/tcp_churn.py
 	$(VPY) bench/core_instructions.py
 	scripts/ensure-debs mcu
 	$(VPY) bench/mcu_instructions.py
 	scripts/ensure-debs browser
 	$(VPY) bench/dashboard_load.py
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/touch_lift.py
 
 # The core on Cortex-M0+ and M4 (-Os, -O2) under build/mcu/: footprint, stack per entry point,
 # instructions per call in the emulator, checked against the budget (docs/MCU.md).

@@ -7,7 +7,7 @@ not depend on machine load), so they suit a comparison across commits. Targets: 
 authenticated control packet costs at most 2,000 instructions in all (issue 8); the link's
 gap histogram costs the plain packet at most 30 more than before it (133, issue 12); with
 protocol version 3 (LIFT, SLOWING) the plain packet costs at most 230 in all (issue 15).
-``--strict`` exits 1 when a row is over its budget (tests/test_core_budget.py runs it).
+``--strict`` exits 1 when a row is over its budget (tests/core/test_core_budget.py runs it).
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """The stop-latency report: Markdown and JSON (goals in ``latency_goals``, the histogram in
-``latency_plot``). Pure: tests/test_bench_smoke.py formats synthetic runs."""
+``latency_plot``). Pure: tests/harness/test_bench_smoke.py formats synthetic runs."""
 
 from __future__ import annotations
 
@@ -150,7 +150,7 @@ def roll_table(results: list[RunResult], meta: dict[str, Any]) -> list[str]:
     speed = meta.get("speed_kmh", 15.0)
     decel = meta.get("decel_ms2", 8.0)
     braking = meta.get("braking_m")
-    lines = ["", f"Roll-out at {speed:g} km/h (estop.rollout: the trial's can-log frames "
+    lines = ["", f"Roll-out at {speed:g} km/h (estop.model.rollout: the trial's can-log frames "
              f"through the brake controller and the vehicle model, {decel:g} m/s^2 emergency "
              f"deceleration, no actuator delay), metres from the moment that mattered to "
              f"standstill" + (f"; full braking alone takes {braking:.3f} m" if braking else "")

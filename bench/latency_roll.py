@@ -1,7 +1,7 @@
 """How far the car rolled in a stop-latency trial: the trial's can-log frames replayed through
-the brake controller and the vehicle model (:mod:`estop.rollout`, docs/VEHICLE.md), from the
+the brake controller and the vehicle model (:mod:`estop.model.rollout`, docs/VEHICLE.md), from the
 moment that mattered (the last valid packet of a silence trial, the first lift datagram of a
-lift trial) to standstill. Pure: tests/test_bench_smoke.py feeds it synthetic frames.
+lift trial) to standstill. Pure: tests/harness/test_bench_smoke.py feeds it synthetic frames.
 
 A trial's record is every frame the bench read from the can-log since the previous trial's
 stop frame, up to and including this trial's first emergency stop frame (brake_request 1):
@@ -14,9 +14,9 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 
+from estop.model.rollout import RollOut, roll_out, timed_frames
+from estop.model.vehicle import DEFAULT_PARAMS, VehicleParams, kmh, stopping_distance
 from estop.protocol.canlog import CanLogRecord
-from estop.rollout import RollOut, roll_out, timed_frames
-from estop.vehicle import DEFAULT_PARAMS, VehicleParams, kmh, stopping_distance
 
 DEFAULT_SPEED_KMH = 15.0  # a research car driven remotely on a test ground
 

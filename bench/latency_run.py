@@ -12,9 +12,11 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from estop.loopback import Daemon, DaemonError, Link
+from estop.model.vehicle import VehicleParams
 from estop.protocol import auth, tcp
-from estop.vehicle import VehicleParams
+from estop.unit.daemon import Daemon
+from estop.unit.log import DaemonError
+from estop.unit.looplink import Link
 from latency_flood import Flood, reported_udp_drops, start_rcvbuf
 from latency_machine import CpuMeter, timer_floor
 from latency_result import PLAIN_METRICS, ROLE_MAIN, RunResult

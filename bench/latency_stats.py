@@ -1,5 +1,5 @@
 """Statistics of the stop-latency bench (pure; exercised on synthetic data by
-tests/test_bench_smoke.py): percentiles, summaries, histogram edges, number formats."""
+tests/harness/test_bench_smoke.py): percentiles, summaries, histogram edges, number formats."""
 
 from __future__ import annotations
 

@@ -9,7 +9,7 @@ refused):
   overshoot past S; the roll-out runs from the last packet;
 - TCP: drive 1 packet and send STOP over TCP;
 - lift: drive 3 packets 1 ms apart, then the remote's lift (three lift datagrams 10 ms apart,
-  ``estop.stopbutton.send_lift``); the first stop frame (reason lift) times it from the first
+  ``estop.client.button.send_lift``); the first stop frame (reason lift) times it from the first
   datagram, and the roll-out runs from there.
 """
 
@@ -20,11 +20,13 @@ import random
 import time
 from dataclasses import dataclass
 
-from estop.loopback import Daemon, DaemonError, Link, is_stop_frame, stamp
+from estop.client.button import LiftDatagram, send_lift
+from estop.model.vehicle import DEFAULT_PARAMS, VehicleParams
 from estop.protocol import can, tcp, udp
 from estop.protocol.canlog import CanLogRecord
-from estop.stopbutton import LiftDatagram, send_lift
-from estop.vehicle import DEFAULT_PARAMS, VehicleParams
+from estop.unit.daemon import Daemon
+from estop.unit.log import DaemonError, is_stop_frame, stamp
+from estop.unit.looplink import Link
 from latency_result import LOST_LINES, TIMEOUT_FIRST, RunResult, Span
 from latency_roll import DEFAULT_SPEED_KMH, roll_from_record
 

@@ -1,7 +1,7 @@
 """The closing table of issue 12: ``estop link`` against the closed form on 10-hour traces.
 
 Each trace is 10 hours of a 50 Hz remote through ``estop remote``'s own link model
-(:class:`estop.linkmodel.LinkModel`, seeded) at 9 % loss with mean bursts of 1.5, 3 and 5
+(:class:`estop.model.wifi.LinkModel`, seeded) at 9 % loss with mean bursts of 1.5, 3 and 5
 packets. The tool fits its Gilbert model to the arrival times (or, with ``--binned``, to the
 daemon's half-octave histogram of the same gaps) and its false stops per hour for 100 ms .. 1 s
 are printed beside the closed form at the true parameters
@@ -19,8 +19,10 @@ from pathlib import Path
 
 import numpy as np
 
-from estop import linkstats as L
-from estop.linkmodel import LinkConfig, LinkModel
+from estop.link.fit import false_stops_per_hour, lost_in_row
+from estop.link.gaps import Gaps, Histogram, gaps_from_histogram, gaps_from_times
+from estop.link.report import report
+from estop.model.wifi import LinkConfig, LinkModel
 
 RATE = 50.0
 LOSS = 0.09
@@ -36,7 +38,7 @@ def trace(burst: float, hours: float, seed: int) -> np.ndarray:
     return np.flatnonzero(~lost) / RATE
 
 
-def binned(times: np.ndarray) -> L.Gaps:
+def binned(times: np.ndarray) -> Gaps:
     """The daemon's histogram of the gaps (its bin function, written again here)."""
     g = np.diff(np.rint(times * 1e6).astype(np.int64))
     e = np.frexp(g.astype(np.float64))[1].astype(np.int64) - 1
@@ -45,9 +47,9 @@ def binned(times: np.ndarray) -> L.Gaps:
     edges = [0] + [(1 << (10 + (k - 1) // 2)) + ((k - 1) % 2) * (1 << (9 + (k - 1) // 2))
                    for k in range(1, 32)]
     counts = np.bincount(b, minlength=32)
-    h = L.Histogram(tuple(edges), tuple(int(c) for c in counts), times.size, 0, 0, 100_000, 1,
+    h = Histogram(tuple(edges), tuple(int(c) for c in counts), times.size, 0, 0, 100_000, 1,
                     False)
-    return L.gaps_from_histogram(h, RATE)
+    return gaps_from_histogram(h, RATE)
 
 
 def fmt(x: float) -> str:
@@ -76,10 +78,10 @@ def main() -> None:
         if args.save:
             args.save.mkdir(parents=True, exist_ok=True)
             np.savetxt(args.save / f"burst-{burst:g}.txt", t, fmt="%.6f")
-        gaps = binned(t) if args.binned else L.gaps_from_times(t, RATE)
-        reports.append(L.report(gaps, RATE, timeouts_ms=TIMEOUTS))
+        gaps = binned(t) if args.binned else gaps_from_times(t, RATE)
+        reports.append(report(gaps, RATE, timeouts_ms=TIMEOUTS))
     form = "binned daemon histogram" if args.binned else "arrival times"
-    print(f"{args.hours:g}-hour traces at {RATE:g} Hz from estop.linkmodel (seed {args.seed}+), "
+    print(f"{args.hours:g}-hour traces at {RATE:g} Hz from estop.model.wifi (seed {args.seed}+), "
           f"{LOSS * 100:g} % loss; tool fitted to the {form}. False stops per hour: tool "
           "(its Gilbert fit), closed form (true parameters), seen (gaps in the trace).")
     print()
@@ -93,11 +95,11 @@ def main() -> None:
     print(head)
     print("|" + "---:|" * (2 + 3 * len(BURSTS)))
     for j, d in enumerate(TIMEOUTS):
-        n = L.lost_in_row(d, RATE)
+        n = lost_in_row(d, RATE)
         cells = [f"{d} ms", str(n)]
         for burst, rep in zip(BURSTS, reports, strict=True):
             row = rep.rows[j]
-            closed = L.false_stops_per_hour(LOSS, burst, n, RATE)
+            closed = false_stops_per_hour(LOSS, burst, n, RATE)
             if row.gaps_sure == row.gaps_possible:
                 seen = fmt(row.gaps_sure / row.hours)
             else:

@@ -25,7 +25,7 @@ stops and early stops (overshoot < 0) are counted and reported, never dropped.
 
 Roll-out: for every timeout and lift trial, the distance the car rolled at --speed-kmh (15)
 from the moment that mattered (the last packet, the first lift datagram) to standstill, from
-the trial's can-log frames through ``estop.rollout`` (docs/VEHICLE.md), as percentiles.
+the trial's can-log frames through ``estop.model.rollout`` (docs/VEHICLE.md), as percentiles.
 
 Lost log lines (issue 11): the daemon writes its can-log through a queue and drops lines when
 its reader is slow, so a lost first stop frame would make the next one look like a late stop.
@@ -91,8 +91,8 @@ HERE = Path(__file__).resolve().parent
 if str(HERE) not in sys.path:  # the bench's modules beside this script (also when imported)
     sys.path.insert(0, str(HERE))
 
-from estop.loopback import Daemon, find_estopd, set_realtime  # noqa: E402
-from estop.vehicle import VehicleParams  # noqa: E402
+from estop.model.vehicle import VehicleParams  # noqa: E402
+from estop.unit.daemon import Daemon, find_estopd, set_realtime  # noqa: E402
 from latency_flood import (  # noqa: E402
     FLOOD_PAYLOADS,
     FORGED_REMOTE_ID,
@@ -123,7 +123,7 @@ from latency_run import FLOOR_PERIOD_MS, DaemonSpec, make_key_file, run_load  # 
 from latency_stats import fmt_ms, log_bins, percentile, say, summarize  # noqa: E402
 from latency_trials import LiftSent, TcpSent, TimeoutSent, Trials  # noqa: E402
 
-__all__ = [  # the bench's names, for tests/test_bench_*.py (they load this script)
+__all__ = [  # the bench's names, for tests/harness/test_bench_*.py (they load this script)
     "FLOOD_PAYLOADS", "FORGED_REMOTE_ID", "KEYED", "KEYLESS", "LOST_LINES", "METRICS",
     "METRIC_TITLES", "CpuMeter", "PLAIN_METRICS", "TWO_STAGE_METRICS", "V2_METRICS",
     "DaemonSpec", "Flood", "FloodStats", "Hogs", "LiftSent", "RunResult", "TcpSent",

@@ -4,7 +4,7 @@
 sections 4 and 7): it accepts only frames with a good CRC, a legal alive counter that moved
 on, and consistent fields, and it brakes by itself when no good frame has arrived for 50 ms.
 It grades its braking as a real controller does (section 7): the share of the emergency
-deceleration is estop.brakecheck's answer (0 release, brake_level/100 for brake_request 2,
+deceleration is estop.model.brakecheck's answer (0 release, brake_level/100 for brake_request 2,
 1 for an emergency brake and for any brake_request it does not know).
 Frame checks use the project's codecs in ``estop.protocol.can`` (``BrakeFrame.check``,
 ``StatusFrame.check``, ``CounterChecker``), which are written independently of the C core.
@@ -20,7 +20,7 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
-from estop.brakecheck import EMERGENCY, BrakeFrameChecker
+from estop.model.brakecheck import EMERGENCY, BrakeFrameChecker
 from estop.protocol.can import (
     BRAKE_ID,
     STATUS_ID,
@@ -89,9 +89,9 @@ class BrakeController:
     ``silence_s``. It powers up braking, as a real one would.
 
     How hard it brakes (:attr:`share`, every change in :attr:`changes`) is
-    :class:`estop.brakecheck.BrakeFrameChecker`'s graded answer: what the latest frame from the
-    unit commands (a frame with a right CRC and a new counter whose content is wrong, e.g. an
-    unknown brake_request, commands an emergency brake), or 1 after the silence. The grader
+    :class:`estop.model.brakecheck.BrakeFrameChecker`'s graded answer: what the latest frame
+    from the unit commands (a frame with a right CRC and a new counter whose content is wrong,
+    e.g. an unknown brake_request, commands an emergency brake), or 1 after the silence. The grader
     starts over whenever this controller's counter does (a new sender, a silence), so both
     agree on which frames came from the unit.
     """

@@ -168,7 +168,7 @@ def judge_rolls(res: Result, key: str, label: str, rolls: list[Roll], model_m: f
     """How far the car rolled from each moment (hilroll): the figures (metres), the samples
     for the report (with when braking began, the model's figure for an ideal unit, ``model``
     saying which, and model figures to ``compare`` with: (what, metres, of them before braking)),
-    and a failure where estop.rollout and the harness's emulator disagree."""
+    and a failure where estop.model.rollout and the harness's emulator disagree."""
     vals = [r.bus.distance for r in rolls]
     res.rollouts[label] = {
         "distance_m": [round(v, 4) for v in vals],

@@ -125,7 +125,7 @@ os.nice(19)
 sys.argv[0] = "estop"
 from estop.cli import build_parser, main
 build_parser()  # what main() imports as it builds its parser, loaded now
-import estop.keyfile, estop.oneshot, estop.stopchannel
+import estop.client.keyfile, estop.client.oneshot, estop.client.channel
 print("ready", flush=True)
 while sys.stdin.readline():
     try:

@@ -143,8 +143,9 @@ def rollout_md(doc: dict) -> list[str]:
     lines = ["", "## How far the car rolls", "",
              f"The car at {car} (the vehicle model's defaults, docs/VEHICLE.md), from the "
              "moment that mattered to standstill: replayed from the frames on the bus through "
-             "the brake controller's graded answer (estop.rollout; the harness's own emulator "
-             "must agree to 1 mm). *Model* is the figure for an ideal unit with the row's times.",
+             "the brake controller's graded answer (estop.model.rollout; the harness's own "
+             "emulator must agree to 1 mm). *Model* is the figure for an ideal unit with the "
+             "row's times.",
              "", "| From | n | braking began after, ms: p50 (min-max) | distance, m: p50 "
              "(min-max) | model, m |", "|---|---|---|---|---|"]
     compare: list[list] = []

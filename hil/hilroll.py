@@ -4,10 +4,10 @@ standstill. Pure (no sockets, no threads).
 
 Two ways to the same figure, so that each checks the other:
 
-- :func:`bus_roll_out`: ``estop.rollout.roll_out`` on the frames on the bus (the project's
-  brake controller emulation, ``estop.brakecheck``, into ``estop.vehicle``);
+- :func:`bus_roll_out`: ``estop.model.rollout.roll_out`` on the frames on the bus (the project's
+  brake controller emulation, ``estop.model.brakecheck``, into ``estop.model.vehicle``);
 - :func:`emulator_roll_out`: the harness's own emulator (:class:`hilemu.BrakeController`,
-  replayed on the same frames) commanding ``estop.vehicle.Vehicle``.
+  replayed on the same frames) commanding ``estop.model.vehicle.Vehicle``.
 
 The car: 15 km/h at the moment, emergency deceleration 8 m/s^2, no actuator delay (the
 model's defaults, :data:`PARAMS`); :func:`single_stage_distance` and
@@ -19,8 +19,8 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-from estop.rollout import RollOut, roll_out
-from estop.vehicle import Vehicle, VehicleParams, kmh, stopping_distance
+from estop.model.rollout import RollOut, roll_out
+from estop.model.vehicle import Vehicle, VehicleParams, kmh, stopping_distance
 from hilemu import BrakeChange, Frame, replay, share_at
 
 SPEED_KMH = 15.0  # a typical research-car speed (docs/VEHICLE.md)
@@ -36,7 +36,7 @@ def speed() -> float:
 
 
 def bus_roll_out(frames: Sequence[Frame], moment: float) -> RollOut:
-    """``estop.rollout.roll_out`` on the bus record ``frames`` (from well before ``moment``:
+    """``estop.model.rollout.roll_out`` on the bus record ``frames`` (from well before ``moment``:
     the controller's state at the moment comes from the frames before it)."""
     return roll_out(((f.ts, f.can_id, f.data) for f in frames), moment, speed(),
                     params=PARAMS)
@@ -86,7 +86,7 @@ class Roll:
 
     def disagreement(self) -> str:
         e = self.emulator
-        return (f"estop.rollout {self.bus.distance:.4f} m, the harness's emulator "
+        return (f"estop.model.rollout {self.bus.distance:.4f} m, the harness's emulator "
                 f"{e.distance:.4f} m" + ("" if e.standstill is not None
                                          else " (released at the end: never stops)"))
 

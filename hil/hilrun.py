@@ -19,7 +19,7 @@ from pathlib import Path
 
 import can
 
-from estop.keyfile import KeyFileError, load_key_file, write_key_file
+from estop.client.keyfile import KeyFileError, load_key_file, write_key_file
 from estop.protocol.can import BRAKE_ID, BrakeFrame
 from hilbus import BusMonitor
 from hilclients import NEUTRAL, AuthRemote, StopClient, UdpRemote, connect_retry

@@ -11,9 +11,9 @@ from __future__ import annotations
 import time
 from functools import partial
 
+from estop.client.button import LiftDatagram, send_lift
 from estop.protocol import tcp
 from estop.protocol.can import BRAKE_ID
-from estop.stopchannel import LiftDatagram, send_lift
 from hilclients import NEUTRAL, UdpRemote
 from hilemu import Frame, frame_commands, replay, share_at
 from hiljudge import (
@@ -62,7 +62,8 @@ LIFT, UDP_TIMEOUT = 5, 3
 
 def send_lift_datagrams(remote: UdpRemote, seq: int) -> float:
     """The end of a hold, as ``estop remote`` does it: three lift datagrams 10 ms apart
-    (stopchannel.send_lift), through the remote's socket. Returns the first one's send time."""
+    (estop.client.button.send_lift), through the remote's socket. Returns the first one's send
+    time."""
     times: list[float] = []
     dg = LiftDatagram("127.0.0.1", 0, transmit=lambda data: times.append(remote.send(data)))
     send_lift(dg, seq)

@@ -34,7 +34,7 @@ import struct
 import sys
 import time
 
-from estop.keyfile import KeyFileError, load_key_file
+from estop.client.keyfile import KeyFileError, load_key_file
 from estop.protocol import auth, tcp, udp
 from estop.protocol.can import BrakeFrame, StatusFrame
 from mmsg import Iovec, Mmsghdr  # this folder (run as a script)

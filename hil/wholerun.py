@@ -10,7 +10,7 @@ import json
 import time
 from collections import Counter
 
-from estop.brakecheck import grade_text
+from estop.model.brakecheck import grade_text
 from estop.protocol.can import BRAKE_ID, STATUS_ID, brake_request_name
 from hilbus import MARKER_ID
 from hilcandump import crosscheck, read_candump

@@ -3,26 +3,11 @@
 from __future__ import annotations
 
 import importlib.util
-import os
 import sys
 from pathlib import Path
 from types import ModuleType
 
-import pytest
-
 BENCH_DIR = Path(__file__).resolve().parents[1] / "bench"
-
-
-def estopd_or_skip() -> str:
-    """The built estopd; skipped where it is not built, but a failure in CI, which builds it."""
-    from estop.loopback import find_estopd  # here: conftest imports this module for every test
-
-    exe = find_estopd()
-    if exe is None:
-        if os.environ.get("CI"):
-            pytest.fail("estopd not found in CI (make setup should have built it)")
-        pytest.skip("estopd not built (make -C firmware)")
-    return exe
 
 
 def load_bench_script(name: str) -> ModuleType:

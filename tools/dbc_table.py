@@ -7,7 +7,7 @@ their comments. docs/PROTOCOL.md shows the table between the markers
     ...
     <!-- end dbc-table -->
 
-and tests/test_docs_dbc.py checks that the text there is what this prints.
+and tests/docs/test_docs_dbc.py checks that the text there is what this prints.
 
     python tools/dbc_table.py [MESSAGE]            # print the table
     python tools/dbc_table.py --write DOC [MESSAGE]   # rewrite the table in DOC

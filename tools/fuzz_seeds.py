@@ -28,7 +28,7 @@ SOON = 100  # time selector: most of the way to the core's next call time
 
 def spec_path() -> Path:
     """The project's own protocol document: it carries every example of the shared contract
-    (tests/test_docs.py checks that), and unlike ../shared it is always in the checkout."""
+    (tests/docs/test_docs.py checks that), and unlike ../shared it is always in the checkout."""
     return ROOT / "docs" / "PROTOCOL.md"
 
 

@@ -64,12 +64,14 @@ ORIGINAL = "_estop_orig"  # the unmutated build the test server imports the test
 SWAP_FAILED = 97  # a child's exit status: the mutant's module could not be set up
 CFLAGS = ["-O2", "-fPIC", "-fno-strict-aliasing", "-fwrapv", "-std=c99", "-w"]
 # Fastest killers first; the stateful model test always last.
-TESTS = ["tests/test_spec_vectors.py", "tests/test_core_rules.py", "tests/test_core_c_api.py",
-         "tests/test_blake2s.py", "tests/test_core_auth.py", "tests/test_core_link_stats.py",
-         "tests/test_core_mutants.py", "tests/test_core_two_stage.py",
-         "tests/test_core_counters.py", "tests/test_core_tag_budget.py",
-         "tests/test_core_properties.py", "tests/test_core_stateful.py"]
-SLOW_TESTS = ("tests/test_core_properties.py", "tests/test_core_stateful.py")
+TESTS = ["tests/core/test_spec_vectors.py", "tests/core/test_core_rules.py",
+         "tests/core/test_core_c_api.py", "tests/core/test_blake2s.py",
+         "tests/core/test_core_auth.py", "tests/core/test_core_link_stats.py",
+         "tests/core/test_core_mutants.py", "tests/core/test_core_two_stage.py",
+         "tests/core/test_core_counters.py", "tests/core/test_core_tag_budget.py",
+         "tests/core/test_core_unchecked_replay.py",
+         "tests/core/test_core_properties.py", "tests/core/test_core_stateful.py"]
+SLOW_TESTS = ("tests/core/test_core_properties.py", "tests/core/test_core_stateful.py")
 CLASSES = ["relational", "boundary", "logical", "arithmetic", "bitwise", "shift", "constant",
            "statement", "return"]
 

@@ -1,49 +1,58 @@
-"""The ``estop`` command line: argparse dispatch to one module per sub-command.
+"""The ``estop`` command line: the parser built from a table of command modules
+(:mod:`estop.commands`, one module per sub-command, each with ``add_parser`` and ``run``).
 
 ===================================  =======================================================
 ``estop remote``                     play the tablet: UDP control packets, stop/release keys
-                                     or a script (:mod:`estop.remote`)
+                                     or a script (:mod:`estop.commands.remote`)
 ``estop stop|lift|release|status``   one TCP request (stop and lift: with their datagrams),
-                                     print the reply (:mod:`estop.oneshot`)
+                                     print the reply (:mod:`estop.commands.stop` ...)
 ``estop monitor``                    decode and check ESTOP_BRAKE / ESTOP_STATUS
-                                     (:mod:`estop.monitor`)
-``estop demo``                       the scripted demo (:mod:`estop.demo`)
-``estop keygen PATH``                write a fresh key file, mode 0600 (:mod:`estop.keyfile`)
+                                     (:mod:`estop.commands.monitor`)
+``estop demo``                       the scripted demo (:mod:`estop.commands.demo`)
+``estop keygen PATH``                write a fresh key file, mode 0600
+                                     (:mod:`estop.commands.keygen`)
 ``estop link``                       false stops per hour per timeout from a recording of the
-                                     control link (:mod:`estop.link`)
-``estop dashboard``                  the live status page (:mod:`estop.dashboard`)
+                                     control link (:mod:`estop.commands.link`)
+``estop dashboard``                  the live status page (:mod:`estop.commands.dashboard`)
 ===================================  =======================================================
 
 Every command takes the common settings (``--host``, ``--udp-port``, ``--tcp-port``,
 ``--key-file``, ``--remote-id``, ``--stop-id``, ``--rate-hz``) from the command line, the
-environment (``ESTOP_HOST`` ...) or the configuration file (:mod:`estop.settings`), and exits
-with the codes of :data:`estop.cliutil.EXIT_CODES`, the same for every command; errors are one
-line ``estop: error: ...``.
+environment (``ESTOP_HOST`` ...) or the configuration file (:mod:`estop.commands.settings`),
+and exits with the codes of :data:`estop.errors.EXIT_CODES`, the same for every command;
+errors are one line ``estop: error: ...``.
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib
 import sys
 from collections.abc import Sequence
 
 from estop import __version__
-from estop.cliutil import (
-    EXIT_FILE,
-    EXIT_INTERNAL,
-    EXIT_INTERRUPTED,
-    EXIT_USAGE,
-    CliError,
-    ErrorOnlyParser,
-    NotInstalled,
-    err,
-    exit_code_table,
-    resolve_settings,
+from estop.commands import (
+    dashboard,
+    demo,
+    keygen,
+    lift,
+    link,
+    monitor,
+    release,
+    remote,
+    status,
+    stop,
 )
-from estop.settings import CONFIG_ENV
+from estop.commands.configfile import CONFIG_ENV
+from estop.commands.options import ErrorOnlyParser
+from estop.commands.output import err, exit_code_table
+from estop.commands.settings import resolve_settings
+from estop.errors import EXIT_FILE, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_USAGE, CliError
 
-__all__ = ["build_parser", "main"]
+__all__ = ["COMMANDS", "build_parser", "main"]
+
+# The sub-commands in the order of ``estop --help``: each module adds its parser(s), whose
+# ``handler`` runs the command. ``estop demo`` parses its own options (see main).
+COMMANDS = (remote, stop, lift, release, status, monitor, keygen, link, dashboard, demo)
 
 _EPILOG = f"""\
 settings: command line > environment (ESTOP_HOST, ESTOP_UDP_PORT, ESTOP_TCP_PORT,
@@ -54,64 +63,17 @@ CAN: --interface/--channel/--bitrate over python-can's own configuration.
 
 exit codes (every command):
 {exit_code_table()}"""
-_SUB_EPILOG = "exit codes: as for every estop command (estop --help)"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from estop import dashboard, keyfile, link, monitor, oneshot, remote
-
     parser = ErrorOnlyParser(prog="estop", description="Tools for the estop emergency-stop "
                              "unit (wire contract: docs/PROTOCOL.md).", epilog=_EPILOG,
                              formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"estop {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-
-    p = sub.add_parser("remote", help="play the tablet (UDP control packets, TCP stop button)",
-                       description=remote.DESCRIPTION, epilog=remote.EPILOG,
-                       formatter_class=argparse.RawDescriptionHelpFormatter)
-    remote.add_arguments(p)
-    p.set_defaults(handler=remote.run)
-
-    for name, text in oneshot.COMMANDS.items():
-        p = sub.add_parser(name, help=text, description=text, epilog=_SUB_EPILOG)
-        oneshot.add_arguments(p, name)
-        p.set_defaults(handler=oneshot.run)
-
-    p = sub.add_parser("monitor", help="decode and check ESTOP_BRAKE / ESTOP_STATUS frames",
-                       description=monitor.DESCRIPTION, epilog=_SUB_EPILOG)
-    monitor.add_arguments(p)
-    p.set_defaults(handler=monitor.run)
-
-    p = sub.add_parser("keygen", help="write a fresh random key file (mode 0600)",
-                       description=keyfile.DESCRIPTION, epilog=_SUB_EPILOG)
-    keyfile.add_arguments(p)
-    p.set_defaults(handler=keyfile.run)
-    p = sub.add_parser("link", help="false stops per hour per timeout from a recording of "
-                       "the control link (estopd log, arrival times or pcap)",
-                       description=link.DESCRIPTION, epilog=f"{link.EPILOG} {_SUB_EPILOG}")
-    link.add_arguments(p)
-    p.set_defaults(handler=link.run)
-
-    p = sub.add_parser("dashboard", help="serve the live status page (state, frames, link, "
-                       "timeline)", description=dashboard.DESCRIPTION, epilog=dashboard.EPILOG)
-    dashboard.add_arguments(p)
-    p.set_defaults(handler=dashboard.run)
-
-    # `estop demo ...` is dispatched before parsing (see main); listed here for --help
-    sub.add_parser("demo", help="run estopd on loopback and play a scripted drive "
-                   "(estop demo --help)")
+    for command in COMMANDS:
+        command.add_parser(sub)
     return parser
-
-
-def _demo(args: argparse.Namespace) -> int:
-    try:
-        demo = importlib.import_module("estop.demo")
-    except ModuleNotFoundError as exc:
-        if exc.name != "estop.demo":
-            raise
-        raise NotInstalled("the demo is not installed (estop.demo is missing)") from None
-    code = demo.main(list(args.rest))
-    return int(code or 0)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -122,7 +84,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args_list[:1] == ["demo"]:
             # everything after `demo` belongs to the demo's own parser (argparse.REMAINDER
             # would not pass options such as --help through a sub-parser)
-            return _demo(argparse.Namespace(rest=args_list[1:]))
+            return int(demo.main(args_list[1:]) or 0)
         args = build_parser().parse_args(args_list)
         resolve_settings(args)
         return int(args.handler(args))

@@ -1,0 +1,190 @@
+"""``estop dashboard``: the live status page a safety driver keeps open beside the track.
+
+Inputs (:mod:`estop.dashboard.feed`): the bus from python-can (``-i socketcan -c can0``), or
+a can-utils log being written (``--can-log FILE``, followed as ``tail -f`` does; ``-`` for
+standard input), and estopd's ``--log-json`` log (``--log FILE`` or ``-``: a file being
+written, a pipe, ``journalctl -u estopd -o cat -f | estop dashboard --log - ...``). What the
+page shows is :mod:`estop.dashboard.model`; the web side :mod:`estop.dashboard.server`.
+
+It listens on 127.0.0.1:8080 unless told otherwise (``--listen``): another address shows
+the page to the network, an explicit choice. It can never release or drive the car; with
+``--allow-stop`` (and ``--host``) the page has a STOP button, which does what ``estop stop``
+does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import signal
+from typing import Any
+
+from estop.commands.options import add_time_option, parse_listen, parse_u32, port, positive_float
+from estop.commands.output import err, out
+from estop.commands.settings import add_key_arguments, key_from_args
+from estop.errors import EXIT_OK, ConnectionFailure, UsageError
+from estop.protocol import tcp, udp
+from estop.protocol.can import BRAKE_ID, STATUS_ID
+
+__all__ = ["DEFAULT_LISTEN", "DESCRIPTION", "EPILOG", "add_parser", "run"]
+
+DEFAULT_LISTEN = "127.0.0.1:8080"
+DESCRIPTION = ("Serve a live status page of the unit: its state (ARMED, SLOWING, STOPPED with "
+               "the reason, NO SIGNAL after 50 ms without a good ESTOP_BRAKE), the frames' "
+               "health, the ESTOP_STATUS fields, the link from estopd's link_histogram "
+               "events, the last state changes and the stops by reason. Inputs: a python-can "
+               "bus or a can-utils log being written (--can-log), and estopd's --log-json "
+               "log (--log). It never releases or drives the car; --allow-stop adds a STOP "
+               "button (as estop stop).")
+EPILOG = ("examples: estopd --can-log can.log --log-json 2>estopd.log & estop dashboard "
+          "--can-log can.log --log estopd.log | journalctl -u estopd -o cat -f | estop "
+          "dashboard -i socketcan -c can0 --log -. Exit codes: 0 ended (Ctrl-C), 2 usage "
+          "error, 3 the bus, a file or the listening address cannot be opened.")
+
+
+def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
+    parser = sub.add_parser("dashboard", help="serve the live status page (state, frames, "
+                            "link, timeline)", description=DESCRIPTION, epilog=EPILOG)
+    parser.set_defaults(handler=run)
+    src = parser.add_mutually_exclusive_group()
+    src.add_argument("--can-log", metavar="FILE",
+                     help="a can-utils log being written (estopd --can-log FILE, candump -L), "
+                          "followed as tail -f does; '-': standard input")
+    src.add_argument("-i", "--interface", metavar="IF",
+                     help="python-can interface (socketcan, virtual, ...)")
+    parser.add_argument("-c", "--channel", help="python-can channel (vcan0, can0, ...)")
+    parser.add_argument("--bitrate", type=int, default=None,
+                        help="python-can bitrate, where the interface sets it")
+    parser.add_argument("--log", metavar="FILE",
+                        help="estopd's --log-json log: a file being written, a pipe, or '-' "
+                             "(standard input, e.g. journalctl -u estopd -o cat -f)")
+    parser.add_argument("--listen", default=DEFAULT_LISTEN, metavar="ADDR:PORT",
+                        help=f"serve the page here (default {DEFAULT_LISTEN}: this machine "
+                             "only; another address is an explicit choice; port 0: any free)")
+    parser.add_argument("--brake-id", type=parse_u32, default=BRAKE_ID,
+                        help=f"ESTOP_BRAKE CAN ID (default {BRAKE_ID:#05x})")
+    parser.add_argument("--status-id", type=parse_u32, default=STATUS_ID,
+                        help=f"ESTOP_STATUS CAN ID (default {STATUS_ID:#05x})")
+    parser.add_argument("--rate-hz", type=positive_float, default=50.0,
+                        help="the remote's send rate, for the link fit (default 50)")
+    stop = parser.add_argument_group("the STOP button (only with --allow-stop)")
+    stop.add_argument("--allow-stop", action="store_true",
+                      help="show a STOP button that presses stop as estop stop does (stop "
+                           "datagram and TCP STOP, retried); never a release")
+    stop.add_argument("--host", help="the unit's address (with --allow-stop)")
+    stop.add_argument("--tcp-port", type=port, default=tcp.DEFAULT_PORT,
+                      help=f"TCP stop port (default {tcp.DEFAULT_PORT})")
+    stop.add_argument("--udp-port", type=port, default=udp.DEFAULT_PORT,
+                      help=f"UDP control port, for the stop datagram (default "
+                           f"{udp.DEFAULT_PORT})")
+    stop.add_argument("--stop-id", type=parse_u32, default=tcp.DEFAULT_STOP_ID,
+                      help=f"the vehicle's stop ID (default {tcp.DEFAULT_STOP_ID:#010X})")
+    add_time_option(parser, "stop-deadline", "stop_deadline", 3.0,
+                    "a press tries again until the unit answers or this time passes")
+    add_key_arguments(parser)
+
+
+def _check(args: argparse.Namespace) -> None:
+    if args.can_log is None and args.interface is None and args.log is None:
+        raise UsageError("name an input: --can-log FILE, --interface IF (python-can), "
+                         "--log FILE")
+    if args.interface is None and (args.channel is not None or args.bitrate is not None):
+        raise UsageError("--channel and --bitrate need --interface")
+    if args.can_log == "-" and args.log == "-":
+        raise UsageError("only one of --can-log and --log can read standard input")
+    if args.brake_id > 0x7FF or args.status_id > 0x7FF:
+        raise UsageError("CAN IDs must be 11-bit (0..0x7FF)")
+    if args.allow_stop and not args.host:
+        raise UsageError("--allow-stop needs --host (the unit to stop)")
+    try:
+        tcp.check_stop_id(args.stop_id)
+    except ValueError as exc:
+        raise UsageError(f"--stop-id: {exc}") from None
+
+
+def _open_bus(args: argparse.Namespace) -> Any:
+    import can  # python-can, imported only when a bus is used
+
+    kwargs: dict[str, Any] = {"interface": args.interface, "channel": args.channel}
+    if args.bitrate is not None:
+        kwargs["bitrate"] = args.bitrate
+    try:
+        return can.Bus(**kwargs)
+    except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
+        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise ConnectionFailure(f"cannot open {args.interface} bus {args.channel or ''}: "
+                                f"{why}") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    _check(args)
+    host, listen_port = parse_listen(args.listen)
+    try:
+        from estop.dashboard.model import DashboardModel
+        from estop.dashboard.server import stop_action_for
+    except ModuleNotFoundError as exc:
+        raise UsageError(f"estop dashboard needs the 'dashboard' extra (pip install "
+                         f"'estop[dashboard]'): {exc.name} is missing") from None
+    stop_action = None
+    if args.allow_stop:
+        stop_action = stop_action_for(args.host, args.tcp_port, args.udp_port,
+                                      key=key_from_args(args), remote_id=args.remote_id,
+                                      stop_id=args.stop_id, timeout=2.0,
+                                      deadline=args.stop_deadline)
+    bus = _open_bus(args) if args.interface is not None else None
+    model = DashboardModel(brake_id=args.brake_id, status_id=args.status_id,
+                           rate_hz=args.rate_hz)
+    try:
+        asyncio.run(_serve(args, model, host, listen_port, bus, stop_action))
+    except KeyboardInterrupt:
+        pass
+    return EXIT_OK
+
+
+async def _serve(args: argparse.Namespace, model: Any, host: str, listen_port: int, bus: Any,
+                 stop_action: Any) -> None:
+    from estop.dashboard.feed import BusFeed, open_line_feed
+    from estop.dashboard.server import DashboardServer
+
+    loop = asyncio.get_running_loop()
+    server = DashboardServer(model, host, listen_port, stop_action=stop_action)
+    feeds: list[Any] = []
+    try:
+        if bus is not None:
+            feeds.append(BusFeed(bus, server.frame, server.note))
+        try:
+            if args.can_log is not None:
+                feeds.append(open_line_feed(args.can_log, server.can_line, server.note))
+            if args.log is not None:
+                feeds.append(open_line_feed(args.log, server.log_line, server.note))
+        except OSError as exc:
+            raise ConnectionFailure(f"cannot read {exc.filename}: {exc.strerror}") from None
+        try:
+            await server.start()
+        except OSError as exc:
+            raise ConnectionFailure(f"cannot listen on {args.listen}: "
+                                    f"{exc.strerror or exc}") from None
+        shown = f"[{host}]" if ":" in host else host
+        default = (" (the default: this machine only; --listen ADDR:PORT for another)"
+                   if args.listen == DEFAULT_LISTEN else "")
+        out(f"estop dashboard: listening on http://{shown}:{server.port}/{default}")
+        if host not in ("127.0.0.1", "localhost", "::1"):
+            err(f"estop dashboard: the page is open to the network on {host} (--listen)")
+        for feed in feeds:
+            feed.start(loop)
+        done = asyncio.Event()
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            loop.add_signal_handler(sig, done.set)
+        try:
+            await done.wait()
+        finally:
+            # Ctrl-C is the process's own again (a caller in the same process, tests too,
+            # would otherwise find SIGINT still going to this loop's wake-up pipe)
+            for sig in (signal.SIGINT, signal.SIGTERM):
+                loop.remove_signal_handler(sig)
+    finally:
+        for feed in feeds:
+            with contextlib.suppress(Exception):
+                feed.close()
+        await server.close()

@@ -1,0 +1,36 @@
+"""PROTOCOL.md's examples, byte for byte: the test vectors of the core, the codecs, the MCU build
+and the HIL harness (one copy; docs/test_docs.py checks that PROTOCOL.md holds each)."""
+
+UDP_EXAMPLE = bytes.fromhex("9A 99 99 3E 00 00 80 BE 08 00 00 00 01 00 00 00 00 00 00 00")
+STOP_EXAMPLE = bytes.fromhex("70 E5 70 E5 01 00 00 00 00 00 00 00 DC 09 BF 43")
+RELEASE_EXAMPLE = bytes.fromhex("02 00 00 00 02 00 00 00 00 00 00 00 8D 5F CB D5")
+BRAKE_BOOT_0 = bytes.fromhex("01 64 00 01 00 00 00 9C")
+BRAKE_ARMED_7 = bytes.fromhex("00 00 01 00 00 00 07 18")
+BRAKE_TIMEOUT_14 = bytes.fromhex("01 64 00 03 00 00 0E 1D")
+BRAKE_SLOWING_5 = bytes.fromhex("02 1E 02 00 01 00 05 3E")  # L = 30, link degraded (v3)
+BRAKE_LIFT_9 = bytes.fromhex("01 64 00 05 00 00 09 27")  # v3
+LIFT_EXAMPLE = bytes.fromhex("03 00 00 00 05 00 00 00 00 00 00 00 FB 1A AB 44")  # v3
+
+# Section 5.4: key 00..1F, session 0x0123456789ABCDEF, remote id 7.
+K = bytes(range(32))
+N = 0x0123456789ABCDEF
+RID = 7
+AUTH_CONTROL_EXAMPLE = bytes.fromhex(
+    "45 53 55 32 07 00 00 00 EF CD AB 89 67 45 23 01 01 00 00 00 00 00 00 00"
+    "9A 99 99 3E 00 00 80 BE 08 00 00 00 01 00 00 00 00 00 00 00"
+    "0C EF FB 40 CD 71 1A F5 A3 87 85 67 B9 28 7C 72")
+AUTH_STATUS_EXAMPLE = bytes.fromhex(
+    "45 53 51 32 01 00 00 00 01 00 00 00 07 00 00 00 00 00 00 00 00 00 00 00"
+    "88 77 66 55 44 33 22 11 E0 5B 65 D7 00 A8 04 C4 65 2A 16 32 A0 EA DD 1E")
+AUTH_STATUS_REPLY_EXAMPLE = bytes.fromhex(
+    "45 53 52 32 80 00 00 00 01 00 00 00 00 01 00 00 EF CD AB 89 67 45 23 01"
+    "88 77 66 55 44 33 22 11 E0 3C 40 08 C7 26 9C 38 B7 4F 4C 23 9E 56 E7 0D")
+AUTH_RELEASE_EXAMPLE = bytes.fromhex(
+    "45 53 51 32 02 00 00 00 02 00 00 00 07 00 00 00 EF CD AB 89 67 45 23 01"
+    "02 00 00 00 00 00 00 00 15 42 BA 83 A0 CE 93 39 AA 34 55 A8 66 EF 4D E5")
+AUTH_STOP_EXAMPLE = bytes.fromhex(
+    "45 53 51 32 70 E5 70 E5 03 00 00 00 07 00 00 00 EF CD AB 89 67 45 23 01"
+    "03 00 00 00 00 00 00 00 2D 87 7B 42 F3 EA AC D8 BB 0A 03 26 F1 8E D5 2A")
+AUTH_LIFT_EXAMPLE = bytes.fromhex(
+    "45 53 51 32 03 00 00 00 04 00 00 00 07 00 00 00 EF CD AB 89 67 45 23 01"
+    "04 00 00 00 00 00 00 00 8E C2 15 CD 4A AB 10 ED AC 0A F7 A5 91 91 C9 6C")

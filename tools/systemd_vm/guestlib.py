@@ -246,9 +246,11 @@ class Results:
         self.phase = phase
         self.facts: dict[str, Any] = {}
 
-    def record(self, name: str, ok: bool, measured: str, detail: str = "") -> None:
+    def record(self, name: str, ok: bool, measured: str, detail: str = "",
+               took: tuple[float, float] = (0.0, 0.0)) -> None:
         line = {"system": self.system, "phase": self.phase, "check": name, "ok": ok,
-                "measured": measured, "detail": detail}
+                "measured": measured, "detail": detail, "wall_s": round(took[0], 1),
+                "cpu_s": round(took[1], 1)}
         with self.path.open("a") as f:
             f.write(json.dumps(line) + "\n")
             f.flush()
@@ -263,14 +265,24 @@ class Results:
             json.dumps(self.facts, indent=1, sort_keys=True))
 
     def run(self, name: str, fn: Callable[[], str]) -> bool:
-        """Runs one check: fn returns what it measured, or raises CheckFailed (or anything)."""
+        """Runs one check: fn returns what it measured, or raises CheckFailed (or anything).
+        Its wall time and the guest's busy CPU time during it are kept beside."""
+        t0, c0 = now(), busy_s()
         try:
             measured = fn()
         except CheckFailed as e:
-            self.record(name, False, "", str(e))
+            self.record(name, False, "", str(e), (now() - t0, busy_s() - c0))
             return False
         except Exception as e:  # a broken check is a failed check, with its reason
-            self.record(name, False, "", f"{type(e).__name__}: {e}")
+            self.record(name, False, "", f"{type(e).__name__}: {e}",
+                        (now() - t0, busy_s() - c0))
             return False
-        self.record(name, True, measured)
+        self.record(name, True, measured, took=(now() - t0, busy_s() - c0))
         return True
+
+
+def busy_s() -> float:
+    """The guest's CPU time spent busy so far (all CPUs, /proc/stat), in seconds."""
+    fields = Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]
+    user, nice, system, _idle, _iowait, irq, softirq = (int(x) for x in fields[:7])
+    return (user + nice + system + irq + softirq) / os.sysconf("SC_CLK_TCK")

@@ -26,6 +26,12 @@ def load(share: Path) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     return results, facts
 
 
+def prepared(share: Path) -> bool:
+    """The main boot's test got through: the next boot (without vcan0) is worth booting."""
+    results, _ = load(share)
+    return any(r["check"] == checklist.PREPARE_NOCAN and r["ok"] for r in results)
+
+
 def report(outdir: Path, names: list[str], timings: list[dict[str, object]], total_s: float,
            plant: str) -> int:
     passed = failed = 0
@@ -36,7 +42,8 @@ def report(outdir: Path, names: list[str], timings: list[dict[str, object]], tot
         seen = {r["check"] for r in results}
         for r in results:
             mark = "ok  " if r["ok"] else "FAIL"
-            print(f"  {mark} {r['check']}")
+            took = f" ({r['wall_s']} s, guest CPU {r['cpu_s']} s)" if "wall_s" in r else ""
+            print(f"  {mark} {r['check']}{took}")
             print(f"       {r['measured'] or r['detail']}")
             passed += r["ok"]
             failed += not r["ok"]

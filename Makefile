@@ -48,6 +48,7 @@ check: setup
 	$(MAKE) -C firmware strict
 	$(VENV)/bin/ruff check src tests hil bench pyext tools
 	$(VENV)/bin/mypy --strict src/estop
+	$(VENV)/bin/lint-imports
 	$(VPY) tools/misra.py
 
 # The whole suite but the VM tests (gamepad-vm runs those) runs once against a build of the

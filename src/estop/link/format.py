@@ -59,6 +59,14 @@ def report_json(rep: Report) -> dict[str, Any]:
         "slow_target_per_hour": rep.slow_target,
         "recommended_slow_ms": rep.recommended_slow_ms,
         "recommended_estopd_options": estopd_options(rep),
+        "react_ms": rep.react_ms,
+        # the two-stage contract: every pair S <= T with the model's rates, and the chosen one
+        "recommendation": None if rep.recommendation is None else {
+            "slow_ms": rep.recommendation[0], "timeout_ms": rep.recommendation[1]},
+        "pairs": [{"slow_ms": p.slow_ms, "timeout_ms": p.timeout_ms,
+                   "slowdowns_per_hour": p.slowdowns_per_hour,
+                   "emergency_stops_per_hour": p.emergency_stops_per_hour}
+                  for p in rep.pairs],
         "unit": _unit_json(rep.unit),
         "rows": [{
             "timeout_ms": r.timeout_ms,
@@ -200,6 +208,10 @@ def _pick(rep: Report, time_ms: int) -> str:
     return ""
 
 
+def _shortest(rep: Report) -> int | None:
+    return next((r.timeout_ms for r in rep.rows if r.lost_in_row >= 1), None)
+
+
 def _metres(ms: int) -> str:
     return f"{ms / 1000 * REFERENCE_SPEED_KMH / 3.6:.2f} m"
 
@@ -208,13 +220,22 @@ def _two_stage_lines(rep: Report) -> list[str]:
     """The slow time S, the daemon's options and what a real loss of the link costs."""
     s, t = rep.recommended_slow_ms, rep.recommended_ms
     if s is None:
+        if t is not None:
+            return [f"slow time: none within --react-ms {rep.react_ms:g} (the shortest time "
+                    f"longer than one send period is {_shortest(rep)} ms): no options for "
+                    "estopd recommended"]
         return []
     lines = []
     r = rep.row(s)
+    react = f"--react-ms {rep.react_ms:g}"
     if t is not None and s == t:
         lines.append(f"slow time: S = T = {t} ms: no slow time shorter than the timeout keeps "
                      f"slow-downs below {rep.slow_target:g} per hour (--slow-target); the link "
                      "needs no two-stage stop")
+    elif not rep.slow_target_met:
+        lines.append(f"slow time: S {s} ms, the longest within {react}: no slow time up to it "
+                     f"keeps slow-downs below {rep.slow_target:g} per hour (--slow-target); "
+                     f"model {_fmt_rate(r.model)} slow-downs per hour")
     else:
         every = f"one every {3600.0 / r.model:.3g} s" if r.model > 0 else "none"
         lines.append(f"slow time: S {s} ms (model {_fmt_rate(r.model)} slow-downs per hour, "

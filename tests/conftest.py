@@ -84,7 +84,9 @@ def estopd() -> str:
     return exe
 
 _SETTINGS_ENV = ("ESTOP_HOST", "ESTOP_UDP_PORT", "ESTOP_TCP_PORT", "ESTOP_KEY_FILE",
-                 "ESTOP_REMOTE_ID", "ESTOP_STOP_ID", "ESTOP_RATE_HZ", "ESTOP_CONFIG")
+                 "ESTOP_REMOTE_ID", "ESTOP_STOP_ID", "ESTOP_RATE_HZ", "ESTOP_CONFIG",
+                 # python-can's own configuration (the bus of estop monitor and dashboard)
+                 "CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE", "CAN_CONFIG")
 
 
 @pytest.fixture(autouse=True)

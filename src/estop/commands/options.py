@@ -110,7 +110,7 @@ def key_path(text: str) -> str:
     return os.path.expanduser(text)
 
 
-def add_time_option(parser: argparse.ArgumentParser, name: str, dest: str, default_s: float,
+def add_time_option(parser: argparse._ActionsContainer, name: str, dest: str, default_s: float,
                     help_text: str, *, ms_aliases: Sequence[str] = (),
                     s_aliases: Sequence[str] | None = None) -> None:
     """``--NAME-ms MS``, the project's vocabulary (the unit in the name), stored in seconds in

@@ -280,8 +280,7 @@ class Trials:
         was quick)."""
         link = self._link
         if self._lift is None:
-            self._lift = LiftDatagram(link.addr[0], link.addr[1], key=link.key,
-                                      remote_id=link.remote_id, session=lambda: link.session,
+            self._lift = LiftDatagram(link.addr[0], link.addr[1], identity=link.identity,
                                       transmit=self._transmit_lift)
         self._lift_sends = []
         self._lift_seq += 1

@@ -24,8 +24,8 @@ from estop.client.button import LiftDatagram, send_lift
 from estop.model.vehicle import DEFAULT_PARAMS, VehicleParams
 from estop.protocol import can, tcp, udp
 from estop.protocol.canlog import CanLogRecord
+from estop.unit.canlog import DaemonError, is_stop_frame, stamp
 from estop.unit.daemon import Daemon
-from estop.unit.log import DaemonError, is_stop_frame, stamp
 from estop.unit.looplink import Link
 from latency_result import LOST_LINES, TIMEOUT_FIRST, RunResult, Span
 from latency_roll import DEFAULT_SPEED_KMH, roll_from_record

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 
@@ -20,6 +21,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from daemon_util import locate_estopd  # noqa: E402 - needs the path above
+from net_util import UdpSink  # noqa: E402
 from tool_util import load_bench_script  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -103,6 +105,14 @@ def _no_settings_from_the_developer(monkeypatch: pytest.MonkeyPatch,
     (home / "estop").mkdir()
     (home / "estop" / "config.toml").write_text("remote_id = 1\n")
     monkeypatch.setenv("XDG_CONFIG_HOME", str(home))
+
+
+@pytest.fixture
+def sink() -> Iterator[UdpSink]:
+    """A UDP socket on loopback that records what arrives (the unit's control port)."""
+    s = UdpSink()
+    yield s
+    s.close()
 
 
 @pytest.fixture(scope="module")

@@ -24,12 +24,16 @@ from typing import Any
 
 from estop.commands.canbus import can_bus_config
 from estop.commands.configfile import config_path
-from estop.commands.options import add_can_options, add_time_option, parse_listen, parse_u32
+from estop.commands.options import (
+    add_can_options,
+    add_frame_id_options,
+    add_time_option,
+    parse_listen,
+)
 from estop.commands.output import err, out
 from estop.commands.settings import add_settings, key_from_args
 from estop.errors import EXIT_OK, ConnectionFailure, NotInstalled, UsageError
 from estop.protocol import tcp
-from estop.protocol.can import BRAKE_ID, STATUS_ID
 from estop.unit.bus import open_bus
 
 __all__ = ["DEFAULT_LISTEN", "DESCRIPTION", "EPILOG", "add_parser", "bus_config", "run"]
@@ -63,10 +67,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     parser.add_argument("--listen", default=DEFAULT_LISTEN, metavar="ADDR:PORT",
                         help=f"serve the page here (default {DEFAULT_LISTEN}: this machine "
                              "only; another address is an explicit choice; port 0: any free)")
-    parser.add_argument("--brake-id", type=parse_u32, default=BRAKE_ID,
-                        help=f"ESTOP_BRAKE CAN ID (default {BRAKE_ID:#05x})")
-    parser.add_argument("--status-id", type=parse_u32, default=STATUS_ID,
-                        help=f"ESTOP_STATUS CAN ID (default {STATUS_ID:#05x})")
+    add_frame_id_options(parser)
     add_settings(parser, "rate_hz", help={"rate_hz": "the remote's send rate, for the link fit"})
     stop = parser.add_argument_group("the STOP button (only with --allow-stop)")
     stop.add_argument("--allow-stop", action="store_true",
@@ -87,8 +88,6 @@ def _check(args: argparse.Namespace) -> None:
                                                                  args.bitrate)):
         raise UsageError("--can-log reads a file: --interface, --channel and --bitrate are for "
                          "a live bus")
-    if args.brake_id > 0x7FF or args.status_id > 0x7FF:
-        raise UsageError("CAN IDs must be 11-bit (0..0x7FF)")
     if args.allow_stop and not args.host:
         raise UsageError(f"--allow-stop needs the unit to stop: give --host, or set ESTOP_HOST "
                          f"or host in {config_path()}")

@@ -9,7 +9,7 @@ from typing import Any
 from estop.link.report import ENOUGH, Report
 from estop.link.unitcheck import FEWER, MORE, NOT_MOVING, Check, UnitCheck
 
-__all__ = ["REFERENCE_SPEED_KMH", "estopd_options", "format_report", "report_json"]
+__all__ = ["REFERENCE_SPEED_KMH", "estopd_options", "fmt_rate", "format_report", "report_json"]
 
 # the speed at which the report says how far the car rolls before it brakes
 REFERENCE_SPEED_KMH = 15.0
@@ -105,7 +105,7 @@ def _unit_json(u: UnitCheck | None) -> dict[str, Any] | None:
             "timeouts_check": _check_json(u.timeouts)}
 
 
-def _fmt_rate(x: float) -> str:
+def fmt_rate(x: float) -> str:
     if x == 0:
         return "0"
     if x >= 100:
@@ -158,15 +158,15 @@ def format_report(rep: Report) -> list[str]:
         seen = (str(r.gaps_sure) if r.gaps_sure == r.gaps_possible
                 else f"{r.gaps_sure}-{r.gaps_possible}")
         if r.empirical is not None:
-            per_h = _fmt_rate(r.empirical)
+            per_h = fmt_rate(r.empirical)
         elif r.enough:
-            per_h = f"{_fmt_rate(r.gaps_sure / r.hours)}-{_fmt_rate(r.gaps_possible / r.hours)}"
+            per_h = f"{fmt_rate(r.gaps_sure / r.hours)}-{fmt_rate(r.gaps_possible / r.hours)}"
         else:
-            per_h = "<" + _fmt_rate(r.empirical_upper95)
+            per_h = "<" + fmt_rate(r.empirical_upper95)
         mark = "!" if r.contradicted else (" " if r.lost_in_row >= f.tail_from else "^")
         lines.append(f"{r.timeout_ms:5d} ms {r.lost_in_row:4d} {seen:>6} {per_h:>8} "
-                     f"{_fmt_rate(r.model):>12}{mark}  {_fmt_rate(r.model_low)} .. "
-                     f"{_fmt_rate(r.model_high)}{_pick(rep, r.timeout_ms)}")
+                     f"{fmt_rate(r.model):>12}{mark}  {fmt_rate(r.model_low)} .. "
+                     f"{fmt_rate(r.model_high)}{_pick(rep, r.timeout_ms)}")
     if any(r.contradicted for r in rep.rows):
         lines.append("! the recording holds more such gaps than the model allows: trust the "
                      "recording there")
@@ -185,7 +185,7 @@ def format_report(rep: Report) -> list[str]:
     else:
         r = rep.row(rep.recommended_ms)
         lines.append(f"recommendation: timeout T {rep.recommended_ms} ms (model "
-                     f"{_fmt_rate(r.model)} false stops per hour, target {rep.target:g}); one "
+                     f"{fmt_rate(r.model)} false stops per hour, target {rep.target:g}); one "
                      f"per {_fmt_hours(r.model)} against {f.hours:.3g} h recorded")
         if rep.recommended_conservative_ms is None:
             lines.append("  with the model's 95 % upper bound: none up to "
@@ -235,10 +235,10 @@ def _two_stage_lines(rep: Report) -> list[str]:
     elif not rep.slow_target_met:
         lines.append(f"slow time: S {s} ms, the longest within {react}: no slow time up to it "
                      f"keeps slow-downs below {rep.slow_target:g} per hour (--slow-target); "
-                     f"model {_fmt_rate(r.model)} slow-downs per hour")
+                     f"model {fmt_rate(r.model)} slow-downs per hour")
     else:
         every = f"one every {3600.0 / r.model:.3g} s" if r.model > 0 else "none"
-        lines.append(f"slow time: S {s} ms (model {_fmt_rate(r.model)} slow-downs per hour, "
+        lines.append(f"slow time: S {s} ms (model {fmt_rate(r.model)} slow-downs per hour, "
                      f"--slow-target {rep.slow_target:g}; {every}, each ended by the link's "
                      "return)")
     if t is None:
@@ -276,14 +276,14 @@ def _unit_lines(u: UnitCheck) -> list[str]:
 
 
 def _check_line(c: Check, hours_from: str) -> str:
-    model = (f"model at {c.time_ms:g} ms: {_fmt_rate(c.model)} ({_fmt_rate(c.model_low)} .. "
-             f"{_fmt_rate(c.model_high)})")
+    model = (f"model at {c.time_ms:g} ms: {fmt_rate(c.model)} ({fmt_rate(c.model_low)} .. "
+             f"{fmt_rate(c.model_high)})")
     verdict = c.verdict
     if verdict == NOT_MOVING:
         return f"{c.recorded:6d}; the unit never moved (never ARMED): nothing to compare"
     lo, hi, per_h = c.lower95 or 0.0, c.upper95 or 0.0, c.per_hour or 0.0
-    seen = (f"{c.recorded:6d}: {_fmt_rate(per_h)}/h (95 % bounds {_fmt_rate(lo)} .. "
-            f"{_fmt_rate(hi)})")
+    seen = (f"{c.recorded:6d}: {fmt_rate(per_h)}/h (95 % bounds {fmt_rate(lo)} .. "
+            f"{fmt_rate(hi)})")
     if verdict == MORE:
         say = "! more than the model allows: trust the unit's count"
         if c.pauses:

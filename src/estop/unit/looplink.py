@@ -10,7 +10,7 @@ import time
 from estop.client.channel import ConnectionClosed, ReplyNotAuthentic, StopChannel
 from estop.client.identity import Identity
 from estop.protocol import tcp, udp
-from estop.unit.log import DaemonError
+from estop.unit.canlog import DaemonError
 
 __all__ = ["Link"]
 

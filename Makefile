@@ -81,7 +81,8 @@ prove:
 	$(PYTHON) tools/prove.py
 
 # Benchmarks (not part of `make test`): stop latency vs the asyncio baseline, memory soak,
-# instructions per input (host and Cortex-M), the dashboard's cost. Reports land in bench/out/.
+# instructions per input (host and Cortex-M), the dashboard's cost, the touch page's lift.
+# Reports land in bench/out/.
 bench: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/stop_latency.py
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/rss_soak.py
@@ -90,6 +91,7 @@ bench: setup
 	$(VPY) bench/mcu_instructions.py
 	scripts/ensure-debs browser
 	$(VPY) bench/dashboard_load.py
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/touch_lift.py
 
 # The core on Cortex-M0+ and M4 (-Os, -O2) under build/mcu/: footprint, stack per entry point,
 # instructions per call in the emulator, checked against the budget (docs/MCU.md).

@@ -119,6 +119,7 @@ int main(int argc, char **argv)
     uint64_t session = 0x0123456789ABCDEFu;
     uint32_t t = 0u;
     uint32_t i;
+    uint64_t ctr = 0u; /* the remote's one counter, for both channels (PROTOCOL.md 5) */
     size_t used;
 
     estop_config_default(&cfg);
@@ -143,10 +144,10 @@ int main(int argc, char **argv)
     /* Arm the keyed unit, so the RELEASEs measured are the authenticated "already ARMED" path. */
     for (i = 1u; i <= 5u; i++) {
         t += 20000u;
-        make_control(&mac_key, apkt, session, i);
+        make_control(&mac_key, apkt, session, ++ctr);
         (void)estop_udp_rx(&keyed, apkt, sizeof apkt, t, &out);
     }
-    make_request(&mac_key, rel, ESTOP_MSG_RELEASE, session, 1u);
+    make_request(&mac_key, rel, ESTOP_MSG_RELEASE, session, ++ctr);
     (void)estop_tcp_rx(&keyed, 1u, rel, sizeof rel, &used, t, &out);
     if (out.state != ESTOP_STATE_ARMED) {
         return 2;
@@ -157,11 +158,11 @@ int main(int argc, char **argv)
         plain_udp(&plain, pkt, t, &out);
         plain_tcp(&plain, frame, t, &out);
         (void)estop_tick(&keyed, t, &out); /* frames due go here, not into the rows below */
-        make_control(&mac_key, apkt, session, 6u + i);
+        make_control(&mac_key, apkt, session, ++ctr);
         auth_udp(&keyed, apkt, t, &out);
-        make_request(&mac_key, req, ESTOP_MSG_STATUS, session, 2u + i);
+        make_request(&mac_key, req, ESTOP_MSG_STATUS, session, ++ctr);
         request_tcp(&keyed, req, t, &out);
-        make_request(&mac_key, rel, ESTOP_MSG_RELEASE, session, 2u + i);
+        make_request(&mac_key, rel, ESTOP_MSG_RELEASE, session, ++ctr);
         release_tcp(&keyed, rel, t, &out);
         mac44(&mac_key, apkt, tag);
     }

@@ -58,6 +58,11 @@ static void setup(world_t *w, input_t *in)
         w->cfg.brake_period_us = bp;
         w->cfg.status_period_us = sp < bp ? bp : sp;
     }
+    if (flags & 8u) {
+        /* Flag 8: a tight tag-check budget (1..3 a window, so that programs of a few packets
+         * leave some unchecked), or none (0: every tag checked). */
+        w->cfg.tag_checks = (uint8_t)(fz_in_u8(in) % 4u);
+    }
     CHECK(estop_config_check(&w->cfg) == ESTOP_OK, "harness config");
     CHECK(estop_init(&w->core, &w->cfg, start) == ESTOP_OK, "init");
     w->cfg.key_len = 0u; /* the harness keeps its key in w->key; cfg is only compared */
@@ -118,16 +123,24 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
                       fz_host_time(&w, &in));
             break;
         }
-        case 4: /* an authenticated control packet */
+        case 4: /* an authenticated control packet, or a copy of one sent before */
         {
             uint8_t p[ESTOP_UDP_AUTH_LEN];
             uint8_t sel = fz_in_u8(&in);
             uint32_t remote = (uint32_t)(fz_in_u8(&in) % 10u);
+            if ((sel & 0x0Cu) == 0x0Cu && w.n_rec > 0u) {
+                /* a recorder sends one again (issue 25: unchecked ones stay refused) */
+                uint32_t n = w.n_rec < REC_MAX ? w.n_rec : REC_MAX;
+                memcpy(p, w.rec[remote % n], sizeof p);
+                fz_do_udp(&w, p, sizeof p, fz_host_time(&w, &in));
+                break;
+            }
             fz_put32(p, ESTOP_MAGIC_CONTROL);
             fz_put32(p + 4, remote);
             fz_auth_fields(&w, &in, p + 8, p + 16, remote, 0, sel);
             fz_make_body(&in, p + 24);
             fz_tag(&w, p, 44u, (sel & 0x20u) ? (sel >> 6) + 1 : 0);
+            fz_record(&w, p);
             fz_do_udp(&w, p, sizeof p, fz_host_time(&w, &in));
             break;
         }
@@ -224,6 +237,7 @@ int LLVMFuzzerTestOneInput(const uint8_t *data, size_t size)
                     fz_put64(p + 8, SESSION);
                     fz_put64(p + 16, ++w.counter[3][0]);
                     fz_tag(&w, p, 44u, 0);
+                    fz_record(&w, p);
                     fz_do_udp(&w, p, ESTOP_UDP_AUTH_LEN, due);
                 } else {
                     fz_do_udp(&w, p, ESTOP_UDP_LEN, due);

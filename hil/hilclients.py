@@ -290,7 +290,10 @@ class AuthRemote(UdpRemote):
 
     def packet(self, body: bytes) -> bytes:
         with self.lock:
-            self.udp_counter += 1
+            # one counter for all the remote's messages (PROTOCOL.md 5): a RELEASE must be
+            # above the newest control packet (issue 25)
+            self.tcp.counter += 1
+            self.udp_counter = self.tcp.counter
             pkt = auth.AuthControlPacket(self.remote_id, self.session, self.udp_counter,
                                          udp.decode(body)).encode(self.key)
             self.recorded.append((time.time(), pkt))

@@ -82,7 +82,7 @@ uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
 /*@ requires \valid(core) && \valid_read(msg + (0 .. tag_at + 15)) && \valid_read(msg + (ids_at .. ids_at + 19));
     requires 1 <= tag_at <= 64 && channel <= 1;
     assigns core->counters, core->status_auth_failed, core->remotes[0 .. 7],
-            core->tag_window_us, core->newcomer_checks;
+            core->tag_window_us, core->tag_window_open, core->newcomer_checks;
  */
 int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, size_t ids_at,
                         uint32_t channel);
@@ -91,6 +91,11 @@ int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, s
     assigns core->counters, core->status_auth_failed;
  */
 void estop__unauthenticated(estop_core_t *core);
+
+/*@ requires \valid(core);
+    assigns core->tag_window_open;
+ */
+void estop__age_tag_window(estop_core_t *core);
 
 /*@ requires \valid(core);
     assigns core->gaps[0 .. 31], core->silences, core->gap_known;

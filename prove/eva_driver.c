@@ -59,7 +59,7 @@ static void any_valid_config(estop_config_t *cfg)
     cfg->status_period_us =
         Frama_C_unsigned_int_interval(ESTOP_STATUS_PERIOD_MIN_US, ESTOP_STATUS_PERIOD_MAX_US);
     cfg->session = Frama_C_unsigned_long_long_interval(0u, 0xFFFFFFFFFFFFFFFFu);
-    cfg->tag_checks = (uint8_t)Frama_C_interval(ESTOP_TAG_CHECKS_MIN, ESTOP_TAG_CHECKS_MAX);
+    cfg->tag_checks = (uint8_t)Frama_C_interval(ESTOP_TAG_CHECKS_ALL, ESTOP_TAG_CHECKS_MAX);
     cfg->tag_window_us =
         Frama_C_unsigned_int_interval(ESTOP_TAG_WINDOW_MIN_US, ESTOP_TAG_WINDOW_MAX_US);
     cfg->key_len = (uint8_t)(DRIVER_KEYED ? ESTOP_KEY_LEN : 0u);

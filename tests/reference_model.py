@@ -13,7 +13,12 @@ Where the spec leaves a choice open, the model follows the choices the core's he
   frames (and stop datagrams) never touch the counters;
 - a control packet's body is checked before its tag, so a packet with a bad body keeps no
   counter and takes no place;
-- authentication checks tag, then session, then the remote id's place, then the counter.
+- authentication checks tag, then session, then the remote id's place, then the counter;
+- with a tag-check budget, a control packet dropped unchecked under a remote id that has a place
+  uses up its counter there as an authenticated one would (it may have been genuine); a RELEASE
+  must be above its remote's newest authenticated counter on either channel, and one that is
+  authenticated while the unit is STOPPED brings the remote's UDP counter back down to its own
+  when unchecked packets had raised it higher (docs/PROTOCOL.md 5, issue 25).
 """
 
 from __future__ import annotations
@@ -61,7 +66,8 @@ class ModelConfig:
     brake_period_us: int = 10_000
     status_period_us: int = 100_000
     tag_checks: int = 10  # tag checks of control packets per remote id (and for new ids) ...
-    tag_window_us: int = 100_000  # ... in each window (docs/PROTOCOL.md 5, bounded cost)
+    tag_window_us: int = 100_000  # ... in each window (docs/PROTOCOL.md 5, bounded cost);
+    # tag_checks 0: no budget, every tag checked
     session: int = 0x0123456789ABCDEF
     key: bytes | None = None  # None: a unit without a key
 
@@ -117,7 +123,8 @@ class Model:
         self.invalid = 0
         self.udp_stops = 0
         self.slots: dict[int, bytearray] = {}
-        # remote id -> channel -> highest counter authenticated this session (at most 8 ids)
+        # remote id -> channel -> highest counter authenticated this session (at most 8 ids):
+        # UDP: of control packets, or dropped unchecked; TCP: on either channel
         self.remotes: dict[int, dict[str, int]] = {}
         # Why messages that needed authentication failed it (for the test's statistics).
         self.auth_failures: dict[str, int] = {}
@@ -291,21 +298,29 @@ class Model:
         # A remote's own allowance serves its next counters (at most 65536 above the one
         # kept on UDP); new ids and counters far ahead share one allowance.
         near = kept is not None and UDP in kept and counter - kept[UDP] <= COUNTER_AHEAD
-        if channel == UDP and not self._take_check(remote_id if near else None):
+        if channel == UDP and self.cfg.tag_checks != 0 \
+                and not self._take_check(remote_id if near else None):
             self.unchecked += 1  # dropped unchecked: invalid, but no authentication failure
+            if kept is not None:
+                kept[UDP] = counter  # it may have been genuine: never taken later
             return False
         if not hmac.compare_digest(tag_of(self.cfg.key, signed), tag):
             return self._fail("bad tag")
         if kept is None:
             kept = self.remotes[remote_id] = {}
         kept[channel] = counter
+        if channel == UDP:
+            kept[TCP] = max(kept.get(TCP, counter), counter)  # a RELEASE must be above it
+        elif self.state == STOPPED and kept.get(UDP, -1) > counter:
+            kept[UDP] = counter  # a RELEASE of a STOPPED unit forgives what lies above it
         return True
 
     def _take_check(self, who: int | None) -> bool:
         """One tag check from the allowance of a remote id (None: the shared one) in the
-        current window; a window begins at the first check after the previous one ended, on
-        the 32-bit tick."""
-        if (self.now - self.tag_window) & 0xFFFFFFFF >= self.cfg.tag_window_us:
+        current window; a window begins at the first check after the previous one ended (a
+        window ends once it has lasted its length, however long the gap: time is unbounded
+        here)."""
+        if self.now - self.tag_window >= self.cfg.tag_window_us:
             self.tag_window = self.now
             self.tag_checks.clear()
         used = self.tag_checks.get(who, 0)

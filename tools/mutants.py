@@ -69,6 +69,7 @@ TESTS = ["tests/core/test_spec_vectors.py", "tests/core/test_core_rules.py",
          "tests/core/test_core_auth.py", "tests/core/test_core_link_stats.py",
          "tests/core/test_core_mutants.py", "tests/core/test_core_two_stage.py",
          "tests/core/test_core_counters.py", "tests/core/test_core_tag_budget.py",
+         "tests/core/test_core_unchecked_replay.py",
          "tests/core/test_core_properties.py", "tests/core/test_core_stateful.py"]
 SLOW_TESTS = ("tests/core/test_core_properties.py", "tests/core/test_core_stateful.py")
 CLASSES = ["relational", "boundary", "logical", "arithmetic", "bitwise", "shift", "constant",

@@ -1,19 +1,28 @@
 /*
  * estop_auth: authentication of control packets and RELEASE requests (PROTOCOL.md section 5):
- * the tag, the session, and the table of remote ids with the highest counter kept per channel.
+ * the tag, the session, and the table of remote ids with the counters kept for each.
  *
  * The cheap checks come first (session, a counter not above the kept one, a full table), so
  * that a replay or a message of another session costs no MAC. A MAC (one BLAKE2s block, about
- * 8,100 instructions on a Cortex-M0+) is then spent on a control packet only within a budget:
+ * 8,100 instructions on a Cortex-M0+) is then spent on a control packet only within a budget
+ * (none with cfg.tag_checks ESTOP_TAG_CHECKS_ALL: every tag checked, as estopd does):
  * cfg.tag_checks per cfg.tag_window_us from the allowance of the packet's remote when its
- * counter is one of that remote's next ones (at most COUNTER_AHEAD above the one kept), and
- * as many from one shared allowance for everything else (new remote ids, counters far
- * ahead). The rest are dropped unchecked and counted (auth_unchecked). So a flood of forged
- * packets costs a bounded share of the CPU, and cannot spend a remote's own allowance unless
- * it follows that remote's counter as it goes, which takes watching the link live (then the
- * remote is starved and the unit stops at the timeout: the car stops, it never moves).
- * RELEASE frames (TCP) have no budget: the connection slots bound them. Stop requests are
- * never authenticated, so nothing here can delay a stop.
+ * counter is one of that remote's next ones (at most COUNTER_AHEAD above the one kept), and as
+ * many from one shared allowance for everything else (new remote ids, counters far ahead).
+ * The rest are dropped unchecked and counted (auth_unchecked), so a flood of forged packets
+ * costs a bounded share of the CPU.
+ *
+ * A packet dropped unchecked may have been genuine, and its copy could be delivered again
+ * later to keep a unit alive that its remote no longer drives (issue 25). So one that names a
+ * remote id with a place raises that remote's UDP counter to its own, as an authenticated one
+ * does: it can never be authenticated later; the budget may starve the remote (the unit
+ * stops), it never prolongs motion. What a forgery costs the remote then: its packets at or
+ * below a forged counter are refused until its own counter passes it, or until its next
+ * RELEASE while the unit is STOPPED, which brings the UDP counter back down to the RELEASE's
+ * counter (the channels share the remote's one counter: what is left above it was sent after
+ * it). A RELEASE must be above the highest counter authenticated from its remote on either
+ * channel. RELEASE frames (TCP) have no budget: the connection slots bound them. Stop requests
+ * are never authenticated, so nothing here can delay a stop.
  */
 #include "estop_core.h"
 
@@ -75,15 +84,16 @@ static estop_remote_t *free_place(estop_core_t *core)
 }
 
 /* One tag check from the allowance of r (NULL: the shared one) in the current window; false
- * when that allowance is spent. A window begins at the first check after the
- * previous one ended (a tick that went backwards ends it too). */
+ * when that allowance is spent. A window begins at the first check after the previous one
+ * ended (estop__age_tag_window; a tick that went backwards ends it too). */
 static int take_check(estop_core_t *core, estop_remote_t *r)
 {
     uint8_t *used = (r != NULL) ? &r->checks : &core->newcomer_checks;
     int ok = 0;
-    if ((uint32_t)(core->now_us - core->tag_window_us) >= core->cfg.tag_window_us) {
+    if (core->tag_window_open == 0u) {
         uint32_t i;
         core->tag_window_us = core->now_us;
+        core->tag_window_open = 1u;
         core->newcomer_checks = 0u;
         /*@ loop invariant 0 <= i <= 8;
             loop assigns i, core->remotes[0 .. 7].checks;
@@ -100,6 +110,17 @@ static int take_check(estop_core_t *core, estop_remote_t *r)
     return ok;
 }
 
+/* Every call looks at the window's age, so a window ends once it has lasted its length even
+ * when no check comes for a while: a later check could find the wrapping tick back within it
+ * (a gap of a multiple of 2^32 us) and draw on stale counts. Calls are at most 2^31 us apart,
+ * so the age seen first past the length is the true one. */
+void estop__age_tag_window(estop_core_t *core)
+{
+    if ((uint32_t)(core->now_us - core->tag_window_us) >= core->cfg.tag_window_us) {
+        core->tag_window_open = 0u;
+    }
+}
+
 /* The counter is one of remote r's next UDP counters: r has a place and a UDP counter kept,
  * and this one is above it (checked before) by at most COUNTER_AHEAD. */
 static int next_of(const estop_remote_t *r, uint64_t counter)
@@ -108,11 +129,36 @@ static int next_of(const estop_remote_t *r, uint64_t counter)
            ((counter - r->counter[CHANNEL_UDP]) <= COUNTER_AHEAD);
 }
 
+/* Keeps an authenticated counter. counter[TCP] is the highest authenticated on either
+ * channel: a RELEASE must be above it (the remote raises one counter for both channels, so a
+ * RELEASE that never reached the unit, its connection closed first, is stale once anything
+ * later of that remote was taken). A RELEASE of a STOPPED unit brings the UDP counter, when
+ * packets dropped unchecked raised it above the RELEASE's, back down to the RELEASE's: they
+ * were sent after the RELEASE, or forged (a forgery of a high counter would otherwise lock
+ * the remote out for the session); it stays above every control packet authenticated. */
+static void keep(estop_core_t *core, estop_remote_t *r, uint32_t channel, uint64_t counter)
+{
+    /* (A counter not kept yet reads 0: places start zeroed and are never freed.) */
+    if (channel == CHANNEL_UDP) {
+        r->counter[CHANNEL_UDP] = counter;
+        r->seen = (uint8_t)(r->seen | (1u << CHANNEL_UDP));
+        if (r->counter[CHANNEL_TCP] < counter) {
+            r->counter[CHANNEL_TCP] = counter;
+        }
+    } else {
+        r->counter[CHANNEL_TCP] = counter;
+        if ((core->state == ESTOP_STATE_STOPPED) && (r->counter[CHANNEL_UDP] > counter)) {
+            r->counter[CHANNEL_UDP] = counter;
+        }
+    }
+    r->seen = (uint8_t)(r->seen | (1u << CHANNEL_TCP));
+}
+
 /* Section 5: msg[0 .. tag_at-1] is covered by the tag at msg[tag_at]; the remote id, session
  * and counter follow one another from msg[ids_at] (5.1 and 5.2 lay them out alike). True when
  * the message is authenticated; the new counter is then kept. A failure is counted by the
- * first check that failed; a control packet over the budget is counted as unchecked. Only
- * called on a unit with a key. */
+ * first check that failed; a control packet over the budget is counted as unchecked, and
+ * raises its remote's UDP counter. Only called on a unit with a key. */
 int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, size_t ids_at,
                         uint32_t channel)
 {
@@ -130,10 +176,16 @@ int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, s
         sat32_inc(&core->counters.auth_old_counter);
     } else if (place == NULL) {
         sat32_inc(&core->counters.auth_table_full);
-    } else if ((channel == CHANNEL_UDP) &&
+    } else if ((channel == CHANNEL_UDP) && (core->cfg.tag_checks != ESTOP_TAG_CHECKS_ALL) &&
                (take_check(core, next_of(r, counter) ? r : NULL) == 0)) {
         sat32_inc(&core->counters.auth_unchecked);
         failed = 0; /* not looked at: invalid, but no authentication failure */
+        if (r != NULL) {
+            /* It may have been genuine: its counter is used up all the same. (An id without
+             * a place gets none: forgeries would fill the table.) */
+            r->counter[CHANNEL_UDP] = counter;
+            r->seen = (uint8_t)(r->seen | (1u << CHANNEL_UDP));
+        }
     } else if ((estop_b2s_mac(&core->mac, msg, tag_at, tag) != 0) ||
                !estop_ct_equal(tag, &msg[tag_at], ESTOP_TAG_LEN)) {
         /* A MAC that cannot be made (a broken key state) authenticates nothing. */
@@ -145,8 +197,7 @@ int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, s
             place->id = id;
             place->seen = 0u;
         }
-        place->counter[channel] = counter;
-        place->seen = (uint8_t)(place->seen | bit);
+        keep(core, place, channel, counter);
         ok = 1;
         failed = 0;
     }

@@ -101,8 +101,7 @@ estop_err_t estop_config_check(const estop_config_t *cfg)
                (cfg->status_period_us > ESTOP_STATUS_PERIOD_MAX_US) ||
                (cfg->status_period_us < cfg->brake_period_us)) {
         err = ESTOP_ERR_STATUS_PERIOD;
-    } else if ((cfg->tag_checks < ESTOP_TAG_CHECKS_MIN) ||
-               (cfg->tag_checks > ESTOP_TAG_CHECKS_MAX) ||
+    } else if ((cfg->tag_checks > ESTOP_TAG_CHECKS_MAX) ||
                (cfg->tag_window_us < ESTOP_TAG_WINDOW_MIN_US) ||
                (cfg->tag_window_us > ESTOP_TAG_WINDOW_MAX_US)) {
         err = ESTOP_ERR_TAG_BUDGET;
@@ -158,6 +157,7 @@ estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t n
             core->brake_due_us = now_us; /* the boot frames are due at once */
             core->status_due_us = now_us;
             core->tag_window_us = now_us; /* the first tag-check window starts at boot */
+            core->tag_window_open = 1u;
             core->magic = CORE_MAGIC;
         }
     }
@@ -394,7 +394,8 @@ static void age_link(estop_core_t *core, uint32_t step)
             core->counters.stops[0 .. 5], core->counters.slowdowns, core->state, core->reason,
             core->slow_run, core->status_stops, core->status_slowdowns, core->gaps[0 .. 31],
             core->silences, core->gap_known, core->brake_counter, core->brake_due_us,
-            out->can[0 .. 2], out->n_can, out->state_changed, out->changed_by_clock;
+            out->can[0 .. 2], out->n_can, out->state_changed, out->changed_by_clock,
+            out->clock_state, out->clock_reason;
     ENSURES_INV(clock)
     ensures clock_now: core->now_us == now_us && out->n_can <= 1;
     ensures clock_link: core->link_fresh != 0 ==>
@@ -429,6 +430,8 @@ static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
         /* nothing is due: the state stays */
     }
     out->changed_by_clock = out->state_changed; /* every change so far came from the clock */
+    out->clock_state = core->state;
+    out->clock_reason = core->reason;
 }
 
 /* A frame is due unless its due time lies in (now, now + period]. So a due time that has been
@@ -497,6 +500,7 @@ estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out)
             err = ESTOP_ERR_NOT_INIT;
         } else {
             advance_clock(core, now_us, out); /* sets changed_by_clock */
+            estop__age_tag_window(core);
             send_due_frames(core, out);
         }
     }
@@ -555,7 +559,7 @@ static int body_valid(const uint8_t *b, int has_horn)
 /*@ requires \valid(core) && \valid_read(d + (0 .. len - 1)) &&
         \separated(core, d + (0 .. len - 1));
     assigns core->counters, core->status_auth_failed, core->remotes[0 .. 7],
-            core->tag_window_us, core->newcomer_checks;
+            core->tag_window_us, core->tag_window_open, core->newcomer_checks;
     ensures \result == \null || (\result == d && len >= 16) || (\result == d + 24 && len == 60);
     ensures body_keeps_state: core->state == \old(core->state);
  */
@@ -702,16 +706,16 @@ static uint8_t release(estop_core_t *core, int authenticated, estop_out_t *out)
             nak = (uint8_t)ESTOP_NAK_NOT_NEUTRAL;
         } else {
             arm(core, out);
+            /* Counted here, not from out->state_changed: the clock may have changed the state
+             * earlier in the same call (ARMED -> SLOWING), and an acknowledgement is not a
+             * release. */
+            sat32_inc(&core->counters.releases_accepted);
         }
     } else {
         nak = (uint8_t)ESTOP_NAK_NONE; /* ARMED or SLOWING: acknowledged, nothing changes */
     }
-    if ((nak == ESTOP_NAK_NONE) && (out->state_changed != 0u)) {
-        sat32_inc(&core->counters.releases_accepted);
-    } else if (nak != ESTOP_NAK_NONE) {
+    if (nak != ESTOP_NAK_NONE) {
         sat32_inc(&core->counters.releases_refused);
-    } else {
-        /* acknowledged while ARMED or SLOWING: neither accepted nor refused */
     }
     return nak;
 }

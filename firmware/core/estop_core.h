@@ -117,9 +117,11 @@ extern "C" {
 #define ESTOP_DEFAULT_STATUS_PERIOD_US 100000u
 /* Tag checks of authenticated control packets (PROTOCOL.md 5, "a bounded cost"): each remote
  * id with a place (for its next counters), and everything else together, get this many per
- * window. */
+ * window. ESTOP_TAG_CHECKS_ALL (0): no budget, every tag is checked (a host with the CPU for
+ * it, such as estopd). */
 #define ESTOP_DEFAULT_TAG_CHECKS 10u
 #define ESTOP_DEFAULT_TAG_WINDOW_US 100000u
+#define ESTOP_TAG_CHECKS_ALL 0u
 
 /* Accepted configuration ranges (checked by estop_init). */
 #define ESTOP_TIMEOUT_MIN_US 1000u
@@ -131,7 +133,6 @@ extern "C" {
 #define ESTOP_CAN_ID_MAX 0x7FFu
 #define ESTOP_SLOW_LEVEL_MIN 1u
 #define ESTOP_SLOW_LEVEL_MAX 99u
-#define ESTOP_TAG_CHECKS_MIN 1u
 #define ESTOP_TAG_CHECKS_MAX 100u
 #define ESTOP_TAG_WINDOW_MIN_US 1000u
 #define ESTOP_TAG_WINDOW_MAX_US 1000000u
@@ -154,7 +155,7 @@ typedef enum {
     ESTOP_ERR_SESSION = -14,       /* session is 0 */
     ESTOP_ERR_SLOW = -15,          /* slow_us not in 1 .. timeout_us */
     ESTOP_ERR_SLOW_LEVEL = -16,    /* slow_level not in 1 .. 99 */
-    ESTOP_ERR_TAG_BUDGET = -17     /* tag_checks or tag_window_us outside its range */
+    ESTOP_ERR_TAG_BUDGET = -17     /* tag_checks over 100, or tag_window_us outside its range */
 } estop_err_t;
 
 typedef struct {
@@ -178,7 +179,8 @@ typedef struct {
     uint8_t tag_checks;        /* tag checks of control packets per tag_window_us, for each
                                   remote id with a place (its next counters) and for all
                                   others together; the rest are dropped unchecked (a bounded
-                                  cost per window, PROTOCOL.md 5) */
+                                  cost per window, PROTOCOL.md 5). ESTOP_TAG_CHECKS_ALL (0):
+                                  every tag is checked */
     uint8_t key_len;           /* 0: no key; ESTOP_KEY_LEN: key holds the key */
     uint8_t key[ESTOP_KEY_LEN];
 } estop_config_t;
@@ -211,7 +213,9 @@ typedef struct {
     uint32_t auth_old_counter; /* replayed or stale: not above the highest kept */
     uint32_t auth_table_full;  /* a 9th remote id */
     /* Control packets dropped unchecked: the tag-check budget of their remote id (or of the
-     * ids without a place) was spent in this window. Counted as invalid, not as failures. */
+     * ids without a place) was spent in this window. Counted as invalid, not as failures.
+     * One that names a remote id with a place raises that remote's UDP counter to its own
+     * (PROTOCOL.md 5): it can never be authenticated later. */
     uint32_t auth_unchecked;
 } estop_counters_t;
 
@@ -229,6 +233,12 @@ typedef struct {
     uint8_t changed_by_clock;            /* ... and the change came from the clock (slow time,
                                             timeout or a tick that went backwards), not from
                                             the input */
+    uint8_t clock_state;                 /* state and reason after the clock's part of the
+                                            call, before the input. When they differ from
+                                            state and reason below, the clock changed the
+                                            state first and the input changed it again: two
+                                            changes, each with its cause */
+    uint8_t clock_reason;
     uint8_t state;                       /* state and reason after the call */
     uint8_t reason;
     uint8_t flags;
@@ -241,12 +251,15 @@ typedef struct {
     uint8_t buf[ESTOP_REQ_FRAME_LEN];
 } estop_slot_t;
 
-/* A remote id and the highest counter authenticated from it, per channel, this session. */
+/* A remote id and the counters kept for it this session (PROTOCOL.md 5). */
 typedef struct {
-    uint64_t counter[2];       /* [0] UDP, [1] TCP; meaningful where seen has the bit */
+    uint64_t counter[2];       /* [0] UDP: the highest control packet counter authenticated or
+                                  dropped unchecked under this id; [1] TCP: the highest
+                                  counter authenticated on either channel (a RELEASE must be
+                                  above it); each meaningful where seen has its bit */
     uint32_t id;
     uint8_t used;
-    uint8_t seen;              /* bit 0: a UDP counter is kept; bit 1: a TCP counter */
+    uint8_t seen;              /* bit 0: counter[0] is kept; bit 1: counter[1] */
     uint8_t checks;            /* tag checks of its control packets in the current window */
 } estop_remote_t;
 
@@ -279,6 +292,8 @@ typedef struct {
     estop_slot_t slots[ESTOP_MAX_SLOTS];
     estop_b2s_key_t mac;       /* the state after the key block (the key itself is not kept) */
     uint32_t tag_window_us;    /* tick at which the current tag-check window began */
+    uint8_t tag_window_open;   /* it has not yet lasted cfg.tag_window_us (looked at in every
+                                  call, so that no gap, 2^32 us included, brings it back) */
     uint8_t newcomer_checks;   /* tag checks this window from the shared allowance (new ids,
                                   counters far ahead) */
     estop_remote_t remotes[ESTOP_MAX_REMOTES];

@@ -145,13 +145,18 @@ uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
 
 /* msg[0 .. tag_at-1] is covered by the tag at msg[tag_at]; remote id, session and counter
  * follow one another from msg[ids_at]. True when authentic, of this session, fresh and from a
- * remote the table holds; the counter is then kept. Only called on a unit with a key. */
+ * remote the table holds; the counter is then kept. A control packet dropped unchecked by the
+ * budget raises the UDP counter of its remote id (when it has a place) all the same. Only
+ * called on a unit with a key. */
 int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, size_t ids_at,
                         uint32_t channel);
 
 /* A control packet or RELEASE that needs authentication but has no tag to check (plain form,
  * wrong magic): counted as a bad tag. */
 void estop__unauthenticated(estop_core_t *core);
+
+/* Every call, after the clock: closes the tag-check window once it has lasted its length. */
+void estop__age_tag_window(estop_core_t *core);
 
 /* ---- link statistics (estop_link.c) ------------------------------------------------------- */
 

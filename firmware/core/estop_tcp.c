@@ -138,8 +138,8 @@ static void handle_plain(estop_core_t *core, uint32_t k, estop_out_t *out)
     requires core->magic == 0x45535450 && inv(core) && times_ok(core);
     requires k < 8 && out->n_can <= 3;
     assigns core->counters, core->status_auth_failed, core->remotes[0 .. 7],
-            core->tag_window_us, core->newcomer_checks, core->valid_run, core->state,
-            core->reason, core->slow_run, core->status_stops, core->status_slowdowns,
+            core->tag_window_us, core->tag_window_open, core->newcomer_checks, core->valid_run,
+            core->state, core->reason, core->slow_run, core->status_stops, core->status_slowdowns,
             core->brake_counter, core->brake_due_us, out->can[0 .. 2], out->n_can,
             out->state_changed, out->reply[0 .. 47], out->reply_len, out->has_reply;
     ENSURES_KEPT(request)
@@ -220,8 +220,8 @@ static int take_frame(estop_slot_t *s, const uint8_t *data, size_t len, size_t *
     requires core->magic == 0x45535450 && inv(core) && times_ok(core);
     requires k < 8 && out->n_can <= 3;
     assigns core->counters, core->status_auth_failed, core->remotes[0 .. 7],
-            core->tag_window_us, core->newcomer_checks, core->valid_run, core->state,
-            core->reason, core->slow_run, core->status_stops, core->status_slowdowns,
+            core->tag_window_us, core->tag_window_open, core->newcomer_checks, core->valid_run,
+            core->state, core->reason, core->slow_run, core->status_stops, core->status_slowdowns,
             core->brake_counter, core->brake_due_us, core->slots[k].open, out->can[0 .. 2],
             out->n_can, out->state_changed, out->reply[0 .. 47], out->reply_len,
             out->has_reply, out->close_slot;

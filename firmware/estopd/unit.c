@@ -6,27 +6,28 @@
 #include "rxtime.h"
 
 /* Why the state changed (the `cause` key, docs/DESIGN.md): a stop by its reason, told apart by
- * the channel it came on; the other changes by where they lead from. */
-static const char *state_cause(uint8_t from, const estop_out_t *out, const char *call)
+ * the channel it came on; the other changes by where they lead from. by_clock: the change came
+ * from the core's clock, not from the call's input. */
+static const char *state_cause(uint8_t from, uint8_t to, uint8_t reason, int by_clock,
+                               const char *call)
 {
     int by_datagram = strcmp(call, "udp_rx") == 0;
 
-    if (out->state == ESTOP_STATE_STOPPED) {
-        switch (out->reason) {
+    if (to == ESTOP_STATE_STOPPED) {
+        switch (reason) {
         case ESTOP_REASON_TCP_STOP: return by_datagram ? "stop_datagram" : "tcp_stop";
         case ESTOP_REASON_LIFT: return by_datagram ? "lift_datagram" : "lift";
         case ESTOP_REASON_UDP_TIMEOUT: return "udp_timeout";
         case ESTOP_REASON_FAULT:
             /* Outside a reported fault, the clock's only way to a fault is a backwards tick. */
-            return (out->changed_by_clock && strcmp(call, "fault") != 0) ? "clock_backwards"
-                                                                          : "fault";
+            return (by_clock && strcmp(call, "fault") != 0) ? "clock_backwards" : "fault";
         default: return "boot";
         }
     }
     if (from == ESTOP_STATE_STOPPED) {
         return "release"; /* to ARMED, or straight to SLOWING for a link silent for S */
     }
-    return out->state == ESTOP_STATE_SLOWING ? "udp_silence" : "link_back";
+    return to == ESTOP_STATE_SLOWING ? "udp_silence" : "link_back";
 }
 
 static void fx_begin(unit_fx_t *fx, const char *call, uint64_t now, estop_out_t *out)
@@ -55,13 +56,25 @@ static void fx_end(unit_t *u, estop_err_t err, const estop_out_t *out, unit_fx_t
         fx->frames[fx->n_frames++] = *f;
     }
     if (out->state_changed) {
+        uint8_t from = u->state;
+        int by_clock = out->changed_by_clock != 0u;
+        if (by_clock && (out->clock_state != out->state || out->clock_reason != out->reason)) {
+            /* The clock changed the state, then the input again (SLOWING, then a STOP): two
+             * changes, each with its cause. */
+            fx->clock_first = 1u;
+            fx->clock_from = from;
+            fx->clock_to = out->clock_state;
+            fx->clock_reason = out->clock_reason;
+            fx->clock_cause = state_cause(from, out->clock_state, out->clock_reason, 1, fx->call);
+            from = out->clock_state;
+            by_clock = 0;
+        }
         fx->changed = 1u;
-        fx->from = u->state;
+        fx->from = from;
         fx->to = out->state;
         fx->reason = out->reason;
-        fx->by_clock = (uint8_t)(out->changed_by_clock ||
-                                 out->reason == ESTOP_REASON_UDP_TIMEOUT);
-        fx->cause = state_cause(u->state, out, fx->call);
+        fx->by_clock = (uint8_t)(by_clock || out->reason == ESTOP_REASON_UDP_TIMEOUT);
+        fx->cause = state_cause(from, out->state, out->reason, by_clock, fx->call);
         u->state = out->state;
         u->reason = out->reason;
     }

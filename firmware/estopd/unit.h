@@ -41,6 +41,12 @@ typedef struct {
     uint8_t reason;
     uint8_t by_clock;             /* the change is nobody's input (silence, a backwards tick) */
     const char *cause;            /* docs/DESIGN.md */
+    uint8_t clock_first;          /* the clock changed the state before that: clock_from ->
+                                     clock_to (clock_reason, clock_cause), logged first */
+    uint8_t clock_from;
+    uint8_t clock_to;
+    uint8_t clock_reason;
+    const char *clock_cause;
     uint8_t has_reply;            /* a reply for the input's slot */
     uint8_t reply[ESTOP_REPLY_MAX];
     size_t reply_len;

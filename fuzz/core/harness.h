@@ -20,6 +20,8 @@
 #define SESSION 0x0123456789ABCDEFull /* PROTOCOL.md 5.4, so the spec's tagged vectors pass */
 #define SLOTS_TRIED (ESTOP_MAX_SLOTS + 1u) /* one index past the end: ESTOP_ERR_SLOT */
 #define MAX_OPS 128u
+#define LEFT_MAX 64u /* control packets left unchecked under a placed id, remembered */
+#define REC_MAX 8u   /* authenticated control packets recorded for replays */
 
 #include "../fuzz_check.h"
 
@@ -57,9 +59,24 @@ typedef struct {
     int brake_counter;       /* next expected alive counter, -1 before the first frame */
     int status_counter;
     shadow_slot_t slots[SLOTS_TRIED];
-    uint64_t counter[10][2]; /* per remote id, per channel: what the harness sends next */
+    uint64_t counter[10][2]; /* per remote id: what the harness sends next ([0]: one counter
+                                for both channels, as a remote raises it, PROTOCOL.md 5) */
     estop_counters_t prev;   /* counters before the call */
     uint8_t prev_state;
+    /* shadow of the budget's rule (issue 25): ids with a place (an authenticated message),
+     * and the control packets the budget dropped unchecked under one of them: never valid
+     * later, unless a RELEASE of that id below their counter was authenticated while the unit
+     * was STOPPED (it forgives what lies above it). */
+    uint32_t placed[ESTOP_MAX_REMOTES];
+    uint32_t n_placed;
+    struct {
+        uint64_t hash;
+        uint64_t counter;
+        uint32_t id;
+    } left[LEFT_MAX];
+    uint32_t n_left;
+    uint8_t rec[REC_MAX][ESTOP_UDP_AUTH_LEN]; /* the latest authenticated packets sent */
+    uint32_t n_rec;
 } world_t;
 
 /* What the harness knows about the input of one call. */
@@ -89,6 +106,7 @@ void fz_make_request(world_t *w, input_t *in, uint8_t f[ESTOP_REQ_FRAME_LEN], ui
 uint32_t fz_pick_msg(const world_t *w, input_t *in);
 uint64_t fz_later(const world_t *w, uint32_t dt);
 uint64_t fz_host_time(const world_t *w, input_t *in);
+void fz_record(world_t *w, const uint8_t p[ESTOP_UDP_AUTH_LEN]);
 
 /* ---- codec.c: independent codecs (bitwise, not the core's table code) ------------------- */
 

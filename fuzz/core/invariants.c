@@ -9,6 +9,58 @@ static int neutral_bits(uint32_t bits)
     return ((bits & 0x80000000u) != 0u) || (bits == 0u);
 }
 
+/* ---- the shadow of the budget's rule (issue 25) --------------------------------------------- */
+
+static uint64_t fnv64(const uint8_t *d, size_t n)
+{
+    uint64_t h = 0xCBF29CE484222325ull;
+    for (size_t i = 0; i < n; i++) {
+        h = (h ^ d[i]) * 0x100000001B3ull;
+    }
+    return h;
+}
+
+static int is_placed(const world_t *w, uint32_t id)
+{
+    for (uint32_t i = 0; i < w->n_placed; i++) {
+        if (w->placed[i] == id) {
+            return 1;
+        }
+    }
+    return 0;
+}
+
+static void place(world_t *w, uint32_t id)
+{
+    if (!is_placed(w, id)) {
+        CHECK(w->n_placed < ESTOP_MAX_REMOTES, "a 9th remote id authenticated");
+        w->placed[w->n_placed++] = id;
+    }
+}
+
+static int left_unchecked(const world_t *w, uint64_t hash)
+{
+    for (uint32_t i = 0; i < w->n_left; i++) {
+        if (w->left[i].hash == hash) {
+            return 1;
+        }
+    }
+    return 0;
+}
+
+/* A RELEASE of id at counter, authenticated while the unit was STOPPED: what was left above
+ * its counter is forgiven (docs/PROTOCOL.md 5). */
+static void forgive(world_t *w, uint32_t id, uint64_t counter)
+{
+    uint32_t kept = 0;
+    for (uint32_t i = 0; i < w->n_left; i++) {
+        if (w->left[i].id != id || w->left[i].counter <= counter) {
+            w->left[kept++] = w->left[i];
+        }
+    }
+    w->n_left = kept;
+}
+
 /* Everything checked after one call. err is the call's result. */
 void fz_after_call(world_t *w, estop_err_t err, const estop_out_t *out, call_t *c,
                    uint64_t t_new)
@@ -79,6 +131,23 @@ void fz_after_call(world_t *w, estop_err_t err, const estop_out_t *out, call_t *
     }
 
     /* The input. */
+    if (w->has_key && c->kind == 1 && c->len == ESTOP_UDP_AUTH_LEN &&
+        fz_get32(c->data) == ESTOP_MAGIC_CONTROL) {
+        /* Issue 25: a control packet the budget dropped unchecked under an id with a place is
+         * never taken later (its copy would keep alive a unit its remote no longer drives). */
+        uint64_t hash = fnv64(c->data, c->len);
+        uint32_t id = fz_get32(c->data + 4);
+        if (st.counters.udp_valid != w->prev.udp_valid) {
+            CHECK(!left_unchecked(w, hash), "a control packet left unchecked was taken later");
+            place(w, id);
+        } else if (st.counters.auth_unchecked != w->prev.auth_unchecked && is_placed(w, id) &&
+                   w->n_left < LEFT_MAX) {
+            w->left[w->n_left].hash = hash;
+            w->left[w->n_left].counter = fz_get64(c->data + 16);
+            w->left[w->n_left].id = id;
+            w->n_left++;
+        }
+    }
     if (c->kind == 1 && st.counters.udp_valid != w->prev.udp_valid) {
         const uint8_t *body = c->len == ESTOP_UDP_AUTH_LEN ? c->data + 24 : c->data;
         CHECK(st.counters.udp_valid == w->prev.udp_valid + 1u, "one valid packet a datagram");
@@ -115,6 +184,14 @@ void fz_after_call(world_t *w, estop_err_t err, const estop_out_t *out, call_t *
         if (out->has_reply) {
             fz_check_reply(w, out, c);
         }
+        if (w->has_key && c->frame_done && good && c->frame_len == ESTOP_REQ_FRAME_LEN &&
+            msg == ESTOP_MSG_RELEASE && out->has_reply && out->reply[15] != ESTOP_NAK_NOT_AUTHENTICATED) {
+            uint32_t id = fz_get32(c->frame + 12);
+            place(w, id);
+            if (out->clock_state == ESTOP_STATE_STOPPED) {
+                forgive(w, id, fz_get64(c->frame + 24));
+            }
+        }
         if (c->frame_done && good && (msg == cfg->stop_id || msg == ESTOP_MSG_LIFT)) {
             stop_request = 1;
         }
@@ -128,6 +205,20 @@ void fz_after_call(world_t *w, estop_err_t err, const estop_out_t *out, call_t *
     if (backwards) {
         CHECK(st.state == ESTOP_STATE_STOPPED, "a clock going backwards stops the unit");
     }
+
+    /* The clock's part of the call (issue 25, item 5): the state after it, before the input. A
+     * change by the clock leads away from the state before the call; an input that changed the
+     * state again leaves it elsewhere. */
+    if (out->changed_by_clock) {
+        CHECK(out->clock_state != w->prev_state, "a change by the clock to the same state");
+    } else {
+        CHECK(out->clock_state == w->prev_state, "clock_state moved without a change");
+    }
+    CHECK(out->clock_state == st.state || out->state_changed, "two states, no change");
+    /* A release is counted exactly when it takes the unit out of STOPPED. */
+    CHECK((st.counters.releases_accepted != w->prev.releases_accepted) ==
+              (w->prev_state == ESTOP_STATE_STOPPED && st.state != ESTOP_STATE_STOPPED),
+          "release counted without leaving STOPPED (or not counted)");
 
     /* SLOWING -> ARMED: only a valid packet, the third since SLOWING began. */
     if (st.state == ESTOP_STATE_ARMED && w->prev_state == ESTOP_STATE_SLOWING) {

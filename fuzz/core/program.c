@@ -69,7 +69,8 @@ void fz_tag(const world_t *w, uint8_t *msg, size_t covered, int corrupt)
 void fz_auth_fields(world_t *w, input_t *in, uint8_t *session_at, uint8_t *counter_at,
                     uint32_t remote, int channel, uint8_t sel)
 {
-    uint64_t *next = &w->counter[remote % 10u][channel];
+    uint64_t *next = &w->counter[remote % 10u][0]; /* one for both channels */
+    (void)channel;
     fz_put64(session_at, (sel & 0x10u) ? fz_in_u64(in) : SESSION);
     switch (sel & 3u) {
     case 0:
@@ -129,3 +130,10 @@ uint64_t fz_host_time(const world_t *w, input_t *in)
     return w->t + until + (uint32_t)(s - 200u) * 97u;
 }
 
+
+/* Keeps a copy of an authenticated control packet for a later replay (a ring of REC_MAX). */
+void fz_record(world_t *w, const uint8_t p[ESTOP_UDP_AUTH_LEN])
+{
+    memcpy(w->rec[w->n_rec % REC_MAX], p, ESTOP_UDP_AUTH_LEN);
+    w->n_rec++;
+}

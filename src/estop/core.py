@@ -115,6 +115,10 @@ class Step:
     reason: int
     flags: int
     next_call_us: int
+    # State and reason after the clock's part of the last call, before its input: when they
+    # differ from state and reason, the clock changed the state and then the input did.
+    clock_state: int = 0
+    clock_reason: int = 0
 
 
 @dataclass(frozen=True)
@@ -237,6 +241,8 @@ class Watchdog:
             reason=out.reason,
             flags=out.flags,
             next_call_us=next_call,
+            clock_state=out.clock_state,
+            clock_reason=out.clock_reason,
         )
 
     # -- inputs ---------------------------------------------------------------------------

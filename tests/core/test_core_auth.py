@@ -38,19 +38,19 @@ NAK_NOT_AUTH = 4
 
 
 class Keyed(Unit):
-    """A unit with the key K and session N, and a remote that counts its messages."""
+    """A unit with the key K and session N, and a remote that counts its messages: one counter
+    for both channels (section 5), as the unit expects of a RELEASE (issue 25, item 2)."""
 
     def __init__(self, key: bytes | None = K, session: int = N) -> None:
         super().__init__(Config(key=key, session=session))
         self.key = key
-        self.udp_counter = 0
-        self.tcp_counter = 0
+        self.counter = 0
 
     def heartbeat(self, gas: float = 0.0, *, rid: int = RID, key: bytes | None = K,
                   session: int = N, counter: int | None = None) -> bytes:
         if counter is None:
-            self.udp_counter += 1
-            counter = self.udp_counter
+            self.counter += 1
+            counter = self.counter
         body = ControlPacket(gas_brake=gas, gear=Gear.NEUTRAL)
         return auth.AuthControlPacket(rid, session, counter, body).encode(key)
 
@@ -62,8 +62,8 @@ class Keyed(Unit):
     def frame(self, msg_id: int, seq: int = 1, *, rid: int = RID, key: bytes | None = K,
               session: int = N, counter: int | None = None) -> bytes:
         if counter is None:
-            self.tcp_counter += 1
-            counter = self.tcp_counter
+            self.counter += 1
+            counter = self.counter
         return auth.AuthRequest(msg_id, seq, rid, session, counter).encode(key)
 
     def ask_frame(self, frame: bytes) -> auth.AuthReply:
@@ -82,13 +82,17 @@ def test_vector_status_reply_from_a_freshly_booted_unit() -> None:
 
 
 def test_vectors_control_packet_release_and_stop() -> None:
+    """The vectors are one remote's messages in order (counters 1, 2, 3): its control packet,
+    then RELEASE. The live link a RELEASE needs comes from a second remote (id 8), whose
+    packets leave remote 7's counters alone."""
     u = Keyed()
     u.wait(20 * MS)
     u.udp(V_CONTROL)  # counter 1, drive with gas 0.3: valid, but not neutral
     assert u.wd.status().counters.udp_valid == 1
-    u.udp_counter = 1
-    u.drive_auth(5)  # counters 2..6, neutral
-    reply = u.ask_frame(V_RELEASE)  # TCP counter 2: the first on that channel
+    for i in range(5):  # neutral packets of remote 8
+        u.wait(20 * MS)
+        u.udp(u.heartbeat(rid=8, counter=1 + i))
+    reply = u.ask_frame(V_RELEASE)  # counter 2: above remote 7's control packet
     assert (reply.ack, reply.state, reply.session, reply.counter) == (True, ARMED, N, 2)
     reply = u.ask_frame(V_STOP)
     assert (reply.ack, reply.state, reply.reason, reply.counter) == (True, STOPPED, TCP_STOP, 3)
@@ -167,9 +171,32 @@ def test_counters_are_kept_per_remote_id_and_per_channel() -> None:
         u.udp(u.heartbeat(rid=1, counter=100 + i))
         u.udp(u.heartbeat(rid=2, counter=1 + i))  # another remote, its own counter
     assert u.wd.status().counters.udp_valid == 10
-    # The TCP channel keeps its own counter: 1 is fine on TCP although UDP is at 104.
-    assert u.ask_frame(u.frame(RELEASE, rid=1, counter=1)).state == ARMED
-    assert u.ask_frame(u.frame(RELEASE, rid=1, counter=1)).nak_code == NAK_NOT_AUTH
+    # Remote 2's counter (5) does not bind remote 1: a RELEASE of remote 1 at 105 is fresh.
+    assert u.ask_frame(u.frame(RELEASE, rid=1, counter=105)).state == ARMED
+    assert u.ask_frame(u.frame(RELEASE, rid=1, counter=105)).nak_code == NAK_NOT_AUTH
+    # The TCP channel keeps its own counter for control packets: 106 is still fresh on UDP
+    # after a RELEASE at 200 (section 5 keeps one per channel; only RELEASE looks at both).
+    assert u.ask_frame(u.frame(RELEASE, rid=1, counter=200)).ack
+    before = u.wd.status().counters.udp_valid
+    u.udp(u.heartbeat(rid=1, counter=106))
+    assert u.wd.status().counters.udp_valid == before + 1
+
+
+def test_a_release_not_above_the_newest_control_packet_is_stale() -> None:
+    """Issue 25, item 2: a RELEASE that never reached the unit (its connection was closed
+    first) used to stay valid until the remote's next accepted RELEASE, as the unit kept the
+    channels apart while the remote raises one counter for both. Now a RELEASE whose counter
+    is not above the newest counter authenticated from its remote on either channel is
+    refused (NAK 4, an old counter). Failed before: the RELEASE at counter 3 armed the unit."""
+    u = Keyed()
+    u.drive_auth(2)  # counters 1, 2
+    undelivered = u.frame(RELEASE)  # counter 3: sent, its connection evicted unread
+    u.drive_auth(5)  # counters 4..8: the link live, the remote neutral
+    before = u.wd.status().counters.auth_old_counter
+    reply = u.ask_frame(undelivered)
+    assert (reply.ack, reply.nak_code, reply.state) == (False, NAK_NOT_AUTH, STOPPED)
+    assert u.wd.status().counters.auth_old_counter == before + 1
+    assert u.ask_frame(u.frame(RELEASE)).state == ARMED  # counter 9: fresh
 
 
 def test_a_ninth_remote_id_is_not_authenticated() -> None:
@@ -236,15 +263,16 @@ def test_plain_release_on_a_keyed_unit_gets_nak_4_even_with_a_live_link() -> Non
 def test_forged_or_replayed_release_gets_nak_4(forgery: str) -> None:
     u = Keyed()
     u.drive_auth(5)
-    first = u.frame(RELEASE, counter=5)
+    first = u.frame(RELEASE, counter=50)
     assert u.ask_frame(first).state == ARMED
-    u.ask_frame(u.frame(STOP_ID, counter=6))
-    u.drive_auth(5)
+    u.ask_frame(u.frame(STOP_ID, counter=51))
+    u.counter = 9
+    u.drive_auth(5)  # 10..14: below the RELEASE, so the TCP counter alone judges it
     frame = {
-        "key": u.frame(RELEASE, key=bytes(32), counter=50),
-        "session": u.frame(RELEASE, session=0, counter=50),
+        "key": u.frame(RELEASE, key=bytes(32), counter=500),
+        "session": u.frame(RELEASE, session=0, counter=500),
         "replay": first,
-        "equal_counter": u.frame(RELEASE, counter=5),
+        "equal_counter": u.frame(RELEASE, counter=50),
     }[forgery]
     steps = u.send(frame)
     raw = steps[-1].reply

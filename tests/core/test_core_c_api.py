@@ -63,7 +63,6 @@ BAD_CONFIGS = [
     ({"slow_level": 0}, "bad_slow_level"),
     ({"slow_level": 100}, "bad_slow_level"),
     ({"slow_level": 255}, "bad_slow_level"),
-    ({"tag_checks": 0}, "bad_tag_budget"),
     ({"tag_checks": 101}, "bad_tag_budget"),
     ({"tag_window_us": 999}, "bad_tag_budget"),
     ({"tag_window_us": 1_000_001}, "bad_tag_budget"),
@@ -122,6 +121,7 @@ def test_boundary_configurations_are_accepted() -> None:
                 Config(timeout_us=1000, slow_us=1, warn_us=1),  # the smallest times
                 Config(timeout_us=60_000_000, slow_us=60_000_000, warn_us=60_000_000),
                 Config(slow_level=1), Config(slow_level=99),
+                Config(tag_checks=0),  # ESTOP_TAG_CHECKS_ALL: every tag checked
                 Config(tag_checks=1, tag_window_us=1000),
                 Config(tag_checks=100, tag_window_us=1_000_000),
                 Config(brake_period_us=1000, status_period_us=10_000),

@@ -144,14 +144,17 @@ class CoreVsModel(RuleBasedStateMachine):
     @initialize(start=st.integers(0, 2**32 - 1), keyed=st.booleans(),
                 key=st.binary(min_size=32, max_size=32), session=st.integers(1, U64),
                 wrong_key=st.binary(min_size=32, max_size=32), operator_first=st.booleans(),
-                timing=st.sampled_from(TIMINGS), slow_level=st.integers(1, 99))
+                timing=st.sampled_from(TIMINGS), slow_level=st.integers(1, 99),
+                tag_checks=st.sampled_from([10, 10, 2, 0]))
     def boot(self, start: int, keyed: bool, key: bytes, session: int, wrong_key: bytes,
-             operator_first: bool, timing: tuple[int, int, int], slow_level: int) -> None:
+             operator_first: bool, timing: tuple[int, int, int], slow_level: int,
+             tag_checks: int) -> None:
         """Power on; maybe the operator arms the unit first (initialize rules are never switched
         off by hypothesis' swarm testing, so ARMED is reached in well over half the examples)."""
         timeout, slow, warn = timing
+        # tag_checks: the default budget, a tight one (packets dropped unchecked often), or none
         self.cfg = dataclasses.replace(CFG, timeout_us=timeout, slow_us=slow, warn_us=warn,
-                                       slow_level=slow_level)
+                                       slow_level=slow_level, tag_checks=tag_checks)
         self.slowing_seen = False
         self.now = start
         self.keyed = keyed
@@ -161,11 +164,16 @@ class CoreVsModel(RuleBasedStateMachine):
         self.seq = 0
         self.sessions = {session}
         self.known_session = 0  # the remotes learn it from a reply (STATUS with session 0)
-        self.counters: dict[tuple[int, str], int] = {}  # (remote id, channel) -> last used
+        # remote id -> last counter used: one counter for all a remote's messages (section 5)
+        self.counters: dict[int, int] = {}
         self.new_rid = 0x100
         self.last_tcp_rid = REMOTE_IDS[0]  # the remote id of the latest request frame
         self.recording: list[tuple[str, bytes]] = []  # genuine traffic, for replays
         self.accepted: set[bytes] = set()  # datagrams the unit counted valid
+        # Datagrams the budget dropped unchecked while their remote id had a place: never valid
+        # later (issue 25), unless a RELEASE older than them came late (a stale one).
+        self.unchecked_placed: set[bytes] = set()
+        self.stale_release_sent = False
         self.last_brake: tuple[int, bytes] | None = None
         self.armed_seen = False
         self.reboots = 0
@@ -182,7 +190,8 @@ class CoreVsModel(RuleBasedStateMachine):
         cfg = self.cfg
         self.core = Watchdog(Config(key=self.key, session=session, timeout_us=cfg.timeout_us,
                                     slow_us=cfg.slow_us, warn_us=cfg.warn_us,
-                                    slow_level=cfg.slow_level), now_us=self.now)
+                                    slow_level=cfg.slow_level, tag_checks=cfg.tag_checks),
+                             now_us=self.now)
         self.model = Model(dataclasses.replace(cfg, key=self.key, session=session), self.now)
         self.open_slots: set[int] = set()
         self.prev_state = STOPPED
@@ -305,10 +314,12 @@ class CoreVsModel(RuleBasedStateMachine):
 
     # -- the remotes -----------------------------------------------------------------------
     def _counter(self, rid: int, channel: str, use: bool = True) -> int:
-        """The next counter of (remote id, channel); `use` False leaves it for the next one."""
-        nxt = min(self.counters.get((rid, channel), 0) + 1, U64)
+        """The next counter of a remote id (one for both channels: `channel` says which one it
+        is for); `use` False leaves it for the next one."""
+        del channel
+        nxt = min(self.counters.get(rid, 0) + 1, U64)
         if use:
-            self.counters[(rid, channel)] = nxt
+            self.counters[rid] = nxt
         return nxt
 
     def _genuine(self, body: ControlPacket, rid: int) -> bytes:
@@ -321,10 +332,15 @@ class CoreVsModel(RuleBasedStateMachine):
     def _udp(self, data: bytes, *, forged: bool = False) -> None:
         """One datagram; on a keyed unit a forged or replayed one is never counted valid."""
         before = self.core.status().counters.udp_valid if forged and self.keyed else None
-        valid = self.model.valid
+        valid, unchecked = self.model.valid, self.model.unchecked
+        placed = len(data) == 60 and struct.unpack_from("<I", data, 4)[0] in self.model.remotes
         self._compare(self.core.udp(data, self.now), self.model.udp(data, self.now))
         if self.model.valid > valid:
             self.accepted.add(data)
+        if self.model.unchecked > unchecked:
+            event(f"keyed unit: dropped unchecked, {'a placed' if placed else 'a new'} id")
+            if placed:
+                self.unchecked_placed.add(data)
         if before is not None:
             assert self.core.status().counters.udp_valid == before, "a forgery kept it alive"
 
@@ -459,12 +475,12 @@ class CoreVsModel(RuleBasedStateMachine):
         rid = REMOTE_IDS[who]
         self.run_host_until(self.now + dt)
         key, session = self.remote_key, self.known_session
-        last = self.counters.get((rid, "udp"), 0)
+        last = self.counters.get(rid, 0)
         forged = kind not in ("genuine", "jump", "stale", "equal")
         if kind == "jump":
             counter = data.draw(st.one_of(st.integers(last + 1, last + 2**40), st.just(U64)))
             counter = min(counter, U64)
-            self.counters[(rid, "udp")] = counter
+            self.counters[rid] = counter
         elif kind in ("stale", "equal"):
             counter = last if kind == "equal" else data.draw(st.integers(0, max(last - 1, 0)))
         elif kind == "genuine":
@@ -518,10 +534,11 @@ class CoreVsModel(RuleBasedStateMachine):
         channel, raw = self.recording[data.draw(st.integers(0, len(self.recording) - 1))]
         self.run_host_until(self.now + dt)
         if channel == "udp":
-            # One the unit took once is refused again. One it never took (dropped unchecked
-            # over the tag-check budget) may be taken late: a delay, which section 5 does not
-            # promise to stop; the model says what happens.
-            self._udp(raw, forged=raw in self.accepted)
+            # One the unit took once is refused again, and so is one the budget dropped
+            # unchecked while its remote id had a place (issue 25). One of an id without a
+            # place may be taken late (a place is given only with a right tag); the model says.
+            self._udp(raw, forged=raw in self.accepted or (
+                raw in self.unchecked_placed and not self.stale_release_sent))
             return
         msg_id = struct.unpack_from("<I", raw, 4)[0]
         # A keyed unit refuses a replayed RELEASE; a keyless one refuses any request frame's.
@@ -569,10 +586,12 @@ class CoreVsModel(RuleBasedStateMachine):
         if kind == "f_release" and self.keyed:
             return self._release(rid)
         if kind == "f_release_stale" and self.keyed:
-            # The key holder reuses its last counter, or an older one: refused unless nothing
-            # authenticated on TCP has kept that counter yet (a STATUS or STOP keeps none).
+            # The key holder reuses its last counter, or an older one (a RELEASE sent earlier,
+            # delivered late): refused unless nothing authenticated from it on either channel
+            # has kept that counter yet (a STATUS or STOP keeps none).
+            self.stale_release_sent = True
             rid = self.last_tcp_rid
-            last = self.counters.get((rid, "tcp"), 0)
+            last = self.counters.get(rid, 0)
             counter = last if data.draw(st.booleans()) else data.draw(st.integers(0, last))
             frame = self._frame(RELEASE_ID, rid, key=self.remote_key,
                                 session=self.known_session, counter=counter)

@@ -25,6 +25,7 @@ from core_util import (
     UDP_TIMEOUT,
     Unit,
     packet,
+    request,
 )
 from estop.core import Config, Watchdog, default_warn_us
 from estop.protocol import auth
@@ -74,7 +75,7 @@ def test_lift_datagram_stops_whatever_its_tag(tail: bytes, key: bytes | None) ->
             u.wait(20 * MS)
             u.udp(auth.AuthControlPacket(7, u.wd.config.session, counter,
                                          ControlPacket()).encode(key))
-        u.send(auth.AuthRequest(RELEASE, 1, 7, u.wd.config.session, 1).encode(key))
+        u.send(auth.AuthRequest(RELEASE, 1, 7, u.wd.config.session, 6).encode(key))
         assert u.state == ARMED
     step = u.udp(lift_datagram(tail))
     assert step.state_changed and step.reply is None
@@ -215,7 +216,7 @@ def test_invalid_and_forged_packets_do_not_end_slowing() -> None:
     for counter in range(1, 6):
         u.wait(20 * MS)
         u.udp(auth.AuthControlPacket(7, session, counter, ControlPacket()).encode(key))
-    u.send(auth.AuthRequest(RELEASE, 1, 7, session, 1).encode(key))
+    u.send(auth.AuthRequest(RELEASE, 1, 7, session, 6).encode(key))
     assert u.state == ARMED
     u.wait(S)
     forged = [packet(), b"junk", auth.AuthControlPacket(7, session, 99, ControlPacket())
@@ -227,7 +228,7 @@ def test_invalid_and_forged_packets_do_not_end_slowing() -> None:
     assert u.state == SLOWING
     # The forgeries spent remote 7's tag checks for their window (docs/PROTOCOL.md 5, bounded
     # cost): the remote's own packets, at its rate, are checked from the next window on.
-    for counter in range(6, 9):
+    for counter in range(7, 10):
         u.wait(20 * MS)
         u.udp(auth.AuthControlPacket(7, session, counter, ControlPacket()).encode(key))
     assert u.state == ARMED
@@ -318,6 +319,33 @@ def test_release_while_slowing_is_acked_and_changes_nothing() -> None:
     assert (msg, state, reason, flags, nak) == (ACK, SLOWING, NONE, 1, 0)
     assert u.state == SLOWING
     assert u.wd.status().counters.releases_accepted == 1  # only the one that armed it
+
+
+def test_a_stop_in_the_call_that_slows_the_unit_reports_both_changes() -> None:
+    """Issue 25, item 5: a stop datagram whose call is the first past S: the clock moves the
+    unit ARMED -> SLOWING, then the datagram SLOWING -> STOPPED. The core tells both (the state
+    after the clock's part, then the state after the input), so that a host logs two changes,
+    each with its cause, and sends both brake frames."""
+    u = armed()
+    u.t += S + 5 * MS  # no tick in between
+    step = u.udp(auth.stop_datagram(1, 0, key=None))
+    assert step.changed_by_clock and (step.clock_state, step.clock_reason) == (SLOWING, NONE)
+    assert (step.state, step.reason) == (STOPPED, TCP_STOP)
+    assert [f.data[2] for f in step.frames if f.can_id == BRAKE_ID] == [SLOWING, STOPPED]
+    step = u.udp(auth.stop_datagram(1, 0, key=None))  # nothing changes: the clock's is the end
+    assert (step.clock_state, step.clock_reason) == (step.state, step.reason) == (STOPPED, TCP_STOP)
+
+
+def test_a_release_in_the_call_that_slows_the_unit_is_not_counted_as_accepted() -> None:
+    """Issue 25, item 5: the RELEASE's own call moves the clock past S (ARMED -> SLOWING, a
+    change from the clock), then the RELEASE finds the unit SLOWING: acknowledged, nothing
+    more changes. It was counted as accepted (the state had changed in that call)."""
+    u = armed()
+    u.t += S + 5 * MS  # no tick in between: the RELEASE's call is the first past S
+    steps = u.send(request(RELEASE))
+    assert steps[-1].changed_by_clock and steps[-1].state == SLOWING
+    c = u.wd.status().counters
+    assert (c.releases_accepted, c.releases_refused, c.slowdowns) == (1, 0, 1)
 
 
 def test_status_reports_state_2_with_the_degraded_flag() -> None:

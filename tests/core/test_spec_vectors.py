@@ -239,9 +239,12 @@ def test_auth_control_release_and_stop_examples_through_core() -> None:
     u.wait(20 * MS)
     u.udp(AUTH_CONTROL_EXAMPLE)  # counter 1: valid (gas 0.3, so not neutral)
     assert u.wd.status().counters.udp_valid == 1
-    for counter in range(2, 7):  # counters 2..6, neutral
+    # The examples are one remote's messages in order (counters 1, 2, 3): the live link the
+    # RELEASE needs comes from a second remote (id 8), which leaves remote 7's counters alone
+    # (a RELEASE must be above its remote's newest counter on either channel).
+    for counter in range(1, 6):
         u.wait(20 * MS)
-        u.udp(auth.AuthControlPacket(RID, N, counter, ControlPacket()).encode(K))
+        u.udp(auth.AuthControlPacket(RID + 1, N, counter, ControlPacket()).encode(K))
     assert u.wd.status().counters.udp_valid == 6
     rep = auth.AuthReply.decode(only_reply(u, AUTH_RELEASE_EXAMPLE), K,
                                 auth.request_tag(AUTH_RELEASE_EXAMPLE))
@@ -259,7 +262,7 @@ def test_auth_stop_example_as_a_stop_datagram_through_core() -> None:
     for counter in range(1, 6):
         u.wait(20 * MS)
         u.udp(auth.AuthControlPacket(RID, N, counter, ControlPacket()).encode(K))
-    assert only_reply(u, auth.AuthRequest(2, 9, RID, N, 1).encode(K))[12] == ARMED
+    assert only_reply(u, auth.AuthRequest(2, 9, RID, N, 6).encode(K))[12] == ARMED
     u.udp(AUTH_STOP_EXAMPLE)
     assert (u.state, u.reason) == (STOPPED, TCP_STOP)
     assert u.wd.status().counters.udp_stops == 1
@@ -271,9 +274,9 @@ def test_auth_lift_example_through_core(channel: str) -> None:
     datagram on UDP (no reply): either stops an armed unit with reason lift, and changes no
     counter."""
     u = keyed_unit()
-    for counter in range(1, 6):
+    for counter in range(1, 6):  # the link from remote 8: remote 7 sends only requests
         u.wait(20 * MS)
-        u.udp(auth.AuthControlPacket(RID, N, counter, ControlPacket()).encode(K))
+        u.udp(auth.AuthControlPacket(RID + 1, N, counter, ControlPacket()).encode(K))
     assert only_reply(u, auth.AuthRequest(2, 9, RID, N, 1).encode(K))[12] == ARMED
     if channel == "tcp":
         rep = auth.AuthReply.decode(only_reply(u, AUTH_LIFT_EXAMPLE), K,
@@ -283,8 +286,9 @@ def test_auth_lift_example_through_core(channel: str) -> None:
         u.udp(AUTH_LIFT_EXAMPLE)
         assert u.wd.status().counters.udp_stops == 1
     assert (u.state, u.reason) == (STOPPED, LIFT)
-    # No counter moved: a RELEASE with counter 2 (above the 1 kept) is still authenticated.
+    # No counter moved: a RELEASE with counter 2 (above the 1 kept, below the LIFT's 4) is
+    # still authenticated.
     for counter in range(6, 11):
         u.wait(20 * MS)
-        u.udp(auth.AuthControlPacket(RID, N, counter, ControlPacket()).encode(K))
+        u.udp(auth.AuthControlPacket(RID + 1, N, counter, ControlPacket()).encode(K))
     assert only_reply(u, auth.AuthRequest(2, 10, RID, N, 2).encode(K))[12] == ARMED

@@ -67,9 +67,10 @@ class Remote:
             self.d.send_udp(p)
 
     def request(self, msg_id: int, key: bytes | None = None) -> auth.AuthReply:
-        self.tcp_counter += 1
+        self.tcp_counter += 1  # the request's seq
+        self.udp_counter += 1  # the remote's one counter, for both channels (PROTOCOL.md 5)
         frame = auth.AuthRequest(msg_id, self.tcp_counter, self.rid, self.session,
-                                 self.tcp_counter).encode(key or self.key)
+                                 self.udp_counter).encode(key or self.key)
         with self.d.connect() as s:
             s.sendall(frame)
             raw = recv_exact(s, 48)

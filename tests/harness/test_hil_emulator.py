@@ -4,10 +4,10 @@ alive counters, silences, the candump cross-check, the summary, and graded braki
 from __future__ import annotations
 
 import pytest
+from hil_util import ARMED7, BOOT, SLOWING5, TIMEOUT14, armed, bus_frames, slowing, stopped
 
 import hilcheck
 from estop.protocol.can import BrakeFrame, StatusFrame
-from hil_util import ARMED7, BOOT, SLOWING5, TIMEOUT14, armed, bus_frames, slowing, stopped
 from hilcheck import BrakeController, Frame, crosscheck, read_candump, replay, summary
 
 

@@ -4,9 +4,9 @@ packet (two stages, dead man), disagreements, the speed after a burst."""
 from __future__ import annotations
 
 import pytest
+from hil_util import bus_frames
 
 import hilcheck
-from hil_util import bus_frames
 
 # --------------------------------------------------------------------------- distances (v3)
 

@@ -4,10 +4,10 @@ bus, sequences, the log's changes and causes, drops, rolls and state lines."""
 from __future__ import annotations
 
 import pytest
+from hil_util import bus_frames, stopped
 
 import hilcheck
 from estop.protocol.can import StatusFrame
-from hil_util import bus_frames, stopped
 from hilcheck import Frame
 
 # --------------------------------------------------------------------------- states and logs (v3)

@@ -8,12 +8,22 @@ next_call_us is reached (deadlines first) and otherwise hands the oldest queued 
 estop_udp_rx. Each call takes its instructions times CPI cycles at F_CPU.
 
 The scenario: a unit with a key armed by its remote (remote id 7, 50 Hz, RELEASE over TCP),
-then `seconds` of flood at `rate` forged 60-byte packets a second (new remote ids, the right
-session, fresh counters, a tag under a wrong key: every one reaches the tag check unless the
-budget stops it) while the remote keeps sending, then the remote falls silent (the finger
-lifts, its lift datagram lost) and the flood goes on: the unit must stop by timeout at its
-deadline. Reported: CPU share, the remote's packets that got through, the longest gap between
-ESTOP_BRAKE frames and how late the timeout stop came.
+then `seconds` of flood at `rate` forged 60-byte packets a second (the right session, a tag
+under a wrong key: every one reaches the tag check unless the budget stops it) while the remote
+keeps sending, then the remote falls silent (the finger lifts, its lift datagram lost) and the
+flood goes on: the unit must stop by timeout at its deadline. Reported: CPU share, the remote's
+packets that got through, the longest gap between ESTOP_BRAKE frames and how late the timeout
+stop came.
+
+Two attacks (`attack`):
+- "new_ids": the forgeries carry new remote ids and fresh counters far ahead (an attacker who
+  has never seen the link);
+- "sniffer" (issue 25): an attacker who reads the link. The forgeries carry the remote's id and
+  its next counters, and at the start of every 100 ms window it sends back, once, the oldest
+  genuine packet of the remote that the unit has not taken (left unchecked by the budget, or
+  dropped from the full receive queue), as long as it has one. Then the remote's last packet
+  that reached the unit must still end the motion at T: reported are the control packets taken
+  after the remote fell silent and the stop's time after the remote's last packet.
 """
 
 from __future__ import annotations
@@ -55,6 +65,9 @@ class FloodResult:
     max_tick_late_us: int      # longest delay of a tick past the time the core asked for
     armed_throughout: bool     # ARMED from the flood's start until the remote fell silent
     stop_late_us: int | None   # the timeout stop after its deadline (None: it never came)
+    attack: str = "new_ids"
+    taken_after_silence: int = 0       # control packets valid after the remote fell silent
+    stop_after_last_us: int | None = None  # the stop, after the remote's last packet arrived
 
 
 class _Out:
@@ -81,8 +94,11 @@ def _config(ffi: Any, lib: Any, budget: dict[str, int] | None) -> bytes:
 
 
 def run(v: Variant, ffi: Any, lib: Any, rate: int, seconds: float = 0.5,
-        budget: dict[str, int] | None = None, cpi: float = CPI) -> FloodResult:
+        budget: dict[str, int] | None = None, cpi: float = CPI,
+        attack: str = "new_ids") -> FloodResult:
     """One flood at `rate` forged datagrams a second; budget None: the core's defaults."""
+    if attack not in ("new_ids", "sniffer"):
+        raise ValueError(f"unknown attack {attack!r}")
     from estop.protocol import auth
     from estop.protocol.udp import ControlPacket
 
@@ -131,6 +147,9 @@ def run(v: Variant, ffi: Any, lib: Any, rate: int, seconds: float = 0.5,
     def forged() -> bytes:
         counters["forged"] += 1
         n = counters["forged"]
+        if attack == "sniffer":  # the remote's id and its next counters, read off the link
+            return auth.AuthControlPacket(RID, SESSION, counters["genuine"] + 1 + n % 12,
+                                          body).encode(WRONG_KEY)
         return auth.AuthControlPacket(1000 + n, SESSION, 10**6 + n, body).encode(WRONG_KEY)
 
     call("estop_init", 0, False, cfg=_config(ffi, lib, budget))
@@ -141,7 +160,8 @@ def run(v: Variant, ffi: Any, lib: Any, rate: int, seconds: float = 0.5,
         now += REMOTE_PERIOD_US
         call("estop_udp_rx", now, False, data=genuine())
     call("estop_tcp_open", now, False, slot=0)
-    req = auth.AuthRequest(RELEASE, 1, RID, SESSION, 1).encode(KEY)
+    counters["genuine"] += 1  # the remote's one counter, for both channels (PROTOCOL.md 5)
+    req = auth.AuthRequest(RELEASE, 1, RID, SESSION, counters["genuine"]).encode(KEY)
     call("estop_tcp_rx", now, False, slot=0, data=req)
     if state["state"] != 1:
         raise AssertionError("the unit did not arm")
@@ -157,11 +177,20 @@ def run(v: Variant, ffi: Any, lib: Any, rate: int, seconds: float = 0.5,
         seq += 1
         t += 1e6 / rate
     t = float(t0 + REMOTE_PERIOD_US // 2)
+    t_last_genuine = t
     while t < t_silent:
         heapq.heappush(arrivals, (t, seq, "genuine"))
+        t_last_genuine = t
         seq += 1
         t += REMOTE_PERIOD_US
-    queue: list[tuple[float, str]] = []
+    if attack == "sniffer":  # a recorded packet fed back at the start of every window
+        t = float(t0)
+        while t < t_end:
+            heapq.heappush(arrivals, (t, -1, "replay"))
+            t += 100_000
+    recorded: list[bytes] = []  # the remote's packets the unit did not take
+    taken_after = 0
+    queue: list[tuple[float, str, bytes]] = []
     dropped = 0
     sent_genuine = 0
     t_cpu = float(t0)
@@ -175,10 +204,17 @@ def run(v: Variant, ffi: Any, lib: Any, rate: int, seconds: float = 0.5,
         while arrivals and arrivals[0][0] <= t_cpu:
             at, _, kind = heapq.heappop(arrivals)
             sent_genuine += kind == "genuine"
+            if kind == "replay" and not recorded:
+                continue
+            # the bytes as sent, in the order sent (the remote's counter rises with each)
+            data = (genuine() if kind == "genuine" else forged() if kind == "forged"
+                    else recorded.pop(0))
             if len(queue) < RX_QUEUE:
-                queue.append((at, kind))
+                queue.append((at, kind, data))
             else:
                 dropped += 1
+                if kind == "genuine" and attack == "sniffer":
+                    recorded.append(data)  # lost in the queue, but on the air
         due = state["next_call"]
         if due <= t_cpu or (not queue and (not arrivals or due <= arrivals[0][0])):
             if due > t_end:
@@ -187,15 +223,18 @@ def run(v: Variant, ffi: Any, lib: Any, rate: int, seconds: float = 0.5,
             late["tick"] = max(late["tick"], start - due)
             call("estop_tick", int(start), start < t_silent)
         elif queue:
-            at, kind = queue.pop(0)
+            at, kind, data = queue.pop(0)
             start = max(t_cpu, at)
-            call("estop_udp_rx", int(start), start < t_silent,
-                 data=genuine() if kind == "genuine" else forged())
-            if kind == "genuine":
+            call("estop_udp_rx", int(start), start < t_silent, data=data)
+            if kind != "forged":
                 st = arm.call("estop_get_status", {}).objects["estop_status_t"]
                 valid = out.get("estop_status_t", st, "counters.udp_valid")
                 if valid > status_before and state["stop_at"] is None:
                     last_valid_us = start  # the latest valid packet before the stop
+                if valid > status_before and at > t_last_genuine:
+                    taken_after += 1
+                if valid == status_before and kind == "genuine" and attack == "sniffer":
+                    recorded.append(data)  # left unchecked (or refused): the attacker keeps it
                 status_before = valid
         else:
             t_cpu = arrivals[0][0]
@@ -206,6 +245,8 @@ def run(v: Variant, ffi: Any, lib: Any, rate: int, seconds: float = 0.5,
     if state["stop_at"] is not None and state["reason"] == 3:
         stop_late = int(state["stop_at"] - (last_valid_us + timeout_us))
     flood_us = t_silent - t0
+    stop_after = (None if state["stop_at"] is None
+                  else int(state["stop_at"] - t_last_genuine))
     return FloodResult(
         rate=rate,
         budget="none" if budget == UNBOUNDED else "default",
@@ -220,22 +261,29 @@ def run(v: Variant, ffi: Any, lib: Any, rate: int, seconds: float = 0.5,
         max_tick_late_us=int(late["tick"]),
         armed_throughout=not state["left_armed"],
         stop_late_us=stop_late,
+        attack=attack,
+        taken_after_silence=taken_after,
+        stop_after_last_us=stop_after,
     )
 
 
 def table(results: list[FloodResult]) -> list[str]:
     lines = [f"Cortex-M0+ -Os at {F_CPU // 1_000_000} MHz ({CPI} cycles an instruction), "
              f"receive queue of {RX_QUEUE}, remote at 50 Hz",
-             "| forged/s | budget | CPU | remote's packets valid | tag checks (forged) | "
+             "| attack | forged/s | budget | CPU | remote's packets valid | tag checks (forged) | "
              "unchecked | queue drops | longest ESTOP_BRAKE gap | tick late | ARMED | "
-             "timeout stop late |",
-             "| ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: |"]
+             "timeout stop late | taken after the remote fell silent | "
+             "stop after its last packet |",
+             "| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: | ---: | --- | ---: | "
+             "---: | ---: |"]
     for r in results:
         stop = "never" if r.stop_late_us is None else f"{r.stop_late_us / 1000:.2f} ms"
+        after = ("never" if r.stop_after_last_us is None
+                 else f"{r.stop_after_last_us / 1000:.1f} ms")
         lines.append(
-            f"| {r.rate} | {r.budget} | {100 * r.cpu_share:.1f} % | "
+            f"| {r.attack} | {r.rate} | {r.budget} | {100 * r.cpu_share:.1f} % | "
             f"{r.genuine_valid}/{r.genuine_sent} | {r.forged_checked} | {r.forged_unchecked} | "
             f"{r.rx_dropped} | {r.max_brake_gap_us / 1000:.2f} ms | "
             f"{r.max_tick_late_us / 1000:.2f} ms | {'yes' if r.armed_throughout else 'no'} | "
-            f"{stop} |")
+            f"{stop} | {r.taken_after_silence} | {after} |")
     return lines

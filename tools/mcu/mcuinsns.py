@@ -64,20 +64,20 @@ def scenario(v: Variant, ffi: Any, lib: Any, keyed: bool = False,
 
     arm = ArmCore(v, ffi, count=count)
     counts: list[Count] = []
-    counter = {"udp": 0, "tcp": 0}
+    counter = {"n": 0}  # the remote's one counter, for both channels (PROTOCOL.md 5)
     kind = "authenticated " if keyed else ""
 
     def packet() -> bytes:
         if not keyed:
             return NEUTRAL
-        counter["udp"] += 1
-        return auth.AuthControlPacket(RID, SESSION, counter["udp"], ControlPacket()).encode(KEY)
+        counter["n"] += 1
+        return auth.AuthControlPacket(RID, SESSION, counter["n"], ControlPacket()).encode(KEY)
 
     def req(msg_id: int, seq: int) -> bytes:
         if not keyed:
             return request(msg_id, seq)
-        counter["tcp"] += 1
-        return auth.AuthRequest(msg_id, seq, RID, SESSION, counter["tcp"]).encode(KEY)
+        counter["n"] += 1
+        return auth.AuthRequest(msg_id, seq, RID, SESSION, counter["n"]).encode(KEY)
 
     def call(label: str | None, fn: str, frames: int | None = None, **values: Any) -> None:
         res = arm.call(fn, values, measure_stack=label is not None)
@@ -97,7 +97,7 @@ def scenario(v: Variant, ffi: Any, lib: Any, keyed: bool = False,
         cfg.key_len = len(KEY)
         ffi.memmove(cfg.key, KEY, len(KEY))
     size = len(req(STATUS, 0))
-    counter["tcp"] = 0
+    counter["n"] = 0
     call(f"init ({'with a key' if keyed else 'no key'})", "estop_init",
          cfg=bytes(ffi.buffer(cfg)), now_us=0)
     call("tick, brake + status frames due", "estop_tick", 2, now_us=0)

@@ -284,7 +284,9 @@ static void drive(const uint8_t *packet, uint32_t n)
     }
 }
 
-/* An authenticated neutral heartbeat with this counter, tagged on the device (PROTOCOL.md 5.1). */
+/* An authenticated neutral heartbeat with this counter, tagged on the device (PROTOCOL.md 5.1),
+ * from remote id 8: the vectors are remote 7's messages in order (control packet 1, RELEASE 2),
+ * and a RELEASE must be above its remote's newest control packet (issue 25). */
 static void auth_beat(const uint8_t *key, uint8_t counter)
 {
     uint8_t p[ESTOP_UDP_AUTH_LEN];
@@ -292,6 +294,7 @@ static void auth_beat(const uint8_t *key, uint8_t counter)
     for (i = 0u; i < 24u; i++) {
         p[i] = v_control[i];
     }
+    p[4] = 8u;
     p[16] = counter;
     for (i = 0u; i < ESTOP_UDP_LEN; i++) {
         p[24u + i] = neutral[i];
@@ -368,7 +371,7 @@ int main(void)
     wait_ms(20u);
     udp(v_control, sizeof(v_control));
     check(udp_valid() == 1u, "5.4 control packet authenticated");
-    for (i = 2u; i <= 6u; i++) {
+    for (i = 1u; i <= 5u; i++) {
         auth_beat(key, (uint8_t)i);
     }
     check(udp_valid() == 6u, "heartbeats tagged on the device authenticated");

@@ -117,8 +117,11 @@ class Remote:
                  stop_id: int = tcp.DEFAULT_STOP_ID, tcp_timeout: float = 2.0,
                  stop_deadline: float = DEFAULT_STOP_DEADLINE, legacy: bool = False,
                  on_packet: PacketHook | None = None, key: bytes | None = None,
-                 remote_id: int = DEFAULT_REMOTE_ID) -> None:
+                 remote_id: int = DEFAULT_REMOTE_ID, paced: bool = True) -> None:
         self._period = 1.0 / check_rate(rate_hz)
+        # paced: the sender thread sends one packet each period while held; not paced: the
+        # caller's own clock does, one packet per pulse() (the touch page's fresh frames)
+        self.paced = paced
         if not stop_deadline > 0 or not math.isfinite(stop_deadline):
             raise ValueError(f"stop deadline must be > 0 s, got {stop_deadline!r}")
         self.stop_deadline = stop_deadline
@@ -238,6 +241,15 @@ class Remote:
             self._cond.notify_all()
             return LIFT_SENDS
 
+    def pulse(self) -> bool:
+        """One control packet now, while held (for ``paced=False``: the caller's clock sets
+        the rate); False when not held, and nothing is sent."""
+        with self._cond:
+            if not self._held:
+                return False
+            self._send_one(time.monotonic())
+            return True
+
     @property
     def lift_sent(self) -> int:
         """Lift datagrams of the latest lift handed to the link so far (0..LIFT_SENDS)."""
@@ -333,13 +345,13 @@ class Remote:
                 if self._lift_left and self._lift_due <= now:
                     self._send_lift()
                     self._cond.notify_all()  # wait_lift_sent() may be waiting
-                if self._held and self._next_send <= now:
+                if self._held and self.paced and self._next_send <= now:
                     self._send_one(now)
                     self._next_send += self._period
                     if self._next_send < now:  # fell behind (paused): no burst, restart
                         self._next_send = now + self._period
                 wake = math.inf
-                if self._held:
+                if self._held and self.paced:
                     wake = self._next_send
                 if self._lift_left:
                     wake = min(wake, self._lift_due)

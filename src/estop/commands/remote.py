@@ -8,16 +8,21 @@ The parts, one job each:
 - :mod:`estop.remote.keys` -- the interactive terminal (keys, status line);
 - :mod:`estop.remote.gamepad` -- a game controller with a real dead-man (``--gamepad``; the
   mapping of its events in :mod:`estop.remote.gamepadmap`);
+- :mod:`estop.remote.touch` -- a touch page served to a phone or tablet, with a real dead-man
+  (``--touch``: the page's hop, its server and its messages);
 - this module -- the command line: options, the link model from them, the run and its summary.
 
 The keyboard is NOT a dead-man switch: a terminal sees a key pressed but never released, so the
 space bar toggles the hold, and the packets go on while nobody touches anything. A real
-dead-man (held trigger, released: lift at once) is ``estop remote --gamepad``.
+dead-man (held trigger, released: lift at once) is ``estop remote --gamepad``, or a finger
+on the page of ``estop remote --touch``.
 
 Exit code (the table of every command: :data:`estop.errors.EXIT_CODES`): 0 done, 1 an
 ``expect`` failed, 2 usage error or bad script, 3 the stop channel failed (connection refused
-or closed, timeout, malformed reply) or the game controller was not found or went away, 4 the
-script or key file cannot be read, 5 a needed extra (evdev for --gamepad) is not installed.
+or closed, timeout, malformed reply), the game controller was not found or went away, or
+(--touch) the unit did not answer at the start or the address cannot be listened on, 4 the
+script or key file cannot be read, 5 a needed extra (evdev for --gamepad, aiohttp and segno
+for --touch) is not installed.
 """
 
 from __future__ import annotations
@@ -29,8 +34,13 @@ from collections.abc import Callable
 from estop.client.button import DEFAULT_STOP_DEADLINE
 from estop.client.channel import StopChannelError
 from estop.client.sender import MAX_RATE_HZ, MIN_RATE_HZ, Remote, check_rate, lift_line
-from estop.commands.options import add_time_option, non_negative_float, positive_float
-from estop.commands.output import out
+from estop.commands.options import (
+    add_time_option,
+    non_negative_float,
+    parse_listen,
+    positive_float,
+)
+from estop.commands.output import err, out
 from estop.commands.settings import add_settings, key_from_args
 from estop.errors import EXIT_OK, EXIT_REFUSED, ConnectionFailure, FileFailure, UsageError
 from estop.model.wifi import IDEAL, WIFI, LinkConfig
@@ -38,6 +48,8 @@ from estop.protocol import tcp
 from estop.remote.gamepad import run_gamepad
 from estop.remote.keys import run_interactive
 from estop.remote.script import ExpectFailed, ScriptError, ScriptRunner, Step, parse_script
+from estop.remote.touch.run import DEFAULT_LISTEN as TOUCH_LISTEN
+from estop.remote.touch.run import run_touch
 
 __all__ = ["DESCRIPTION", "EPILOG", "add_parser", "link_config", "rate_arg", "run"]
 
@@ -78,6 +90,12 @@ with reason lift without waiting for its timeout
 gamepad (--gamepad): hold the dead-man (left trigger) to send, let go: lift at once;
 left stick steering, right stick gas (up) / brake (down), B stop, START release,
 SELECT status, Y next gear, X horn, D-pad turn signal; a pad unplugged lifts (exit 3)
+
+touch (--touch [--listen ADDR:PORT]): serve a page; a finger on its drive area is the
+dead-man (steering across, gas up / brake down, neutral in the middle), STOP, RELEASE,
+gear; the last finger leaving, the page hidden or its connection closing lifts at once;
+a page that stops sending goes silent (the unit slows at S, stops at T). The address is
+printed first, with a pairing token the page needs to drive (docs/REMOTE.md)
 
 keys (terminal): space hold/lift, s stop, r release, t status, arrows gas/steering,
 n neutral, g next gear, h horn, 0-3 turn signal, q quit
@@ -142,6 +160,15 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                         help="a game controller is the remote, with a real dead-man (hold "
                              "the left trigger to drive; needs the gamepad extra): "
                              "/dev/input/eventN, or the first one found")
+    script.add_argument("--touch", action="store_true",
+                        help="serve a touch page and drive from a phone, tablet or touch "
+                             "laptop, with a real dead-man (a finger on the page; needs the "
+                             "touch extra); the address (with its pairing token) is printed "
+                             "first")
+    parser.add_argument("--listen", metavar="ADDR:PORT", default=None,
+                        help=f"--touch: serve the page here (default {TOUCH_LISTEN}: this "
+                             "machine only; another address serves the network, an explicit "
+                             "choice, with a QR code of the address; port 0: any free)")
     parser.add_argument("--deadman", metavar="CONTROL", default=None,
                         help="--gamepad: the dead-man control, e.g. BTN_TL (default: the "
                              "first of ABS_Z, BTN_TL2, BTN_TL the pad has)")
@@ -192,10 +219,13 @@ def run(args: argparse.Namespace) -> int:
             steps = parse_script(text)
         except ScriptError as exc:
             raise UsageError(f"script: {exc}") from None
-    elif args.gamepad is None and not sys.stdin.isatty():
+    elif args.gamepad is None and not args.touch and not sys.stdin.isatty():
         raise UsageError("interactive mode needs a terminal; use --script or --script-file")
     if args.deadman is not None and args.gamepad is None:
         raise UsageError("--deadman: only with --gamepad")
+    if args.listen is not None and not args.touch:
+        raise UsageError("--listen: only with --touch")
+    listen = parse_listen(args.listen or TOUCH_LISTEN) if args.touch else None
     key = key_from_args(args)
     if key is not None and args.legacy:
         raise UsageError("--legacy: with --key-file the remote sends 60-byte packets")
@@ -203,7 +233,7 @@ def run(args: argparse.Namespace) -> int:
         remote = Remote(args.host, args.udp_port, args.tcp_port, rate_hz=args.rate_hz, link=cfg,
                         seed=args.seed, stop_id=args.stop_id, tcp_timeout=args.timeout,
                         stop_deadline=args.stop_deadline, legacy=args.legacy, key=key,
-                        remote_id=args.remote_id)
+                        remote_id=args.remote_id, paced=not args.touch)
     except OSError as exc:
         raise ConnectionFailure(f"cannot open a UDP socket: {exc}") from None
     code = EXIT_OK
@@ -217,6 +247,8 @@ def run(args: argparse.Namespace) -> int:
         try:
             if args.gamepad is not None:
                 code = run_gamepad(remote, args.gamepad or None, args.deadman, log)
+            elif listen is not None:
+                code = run_touch(remote, *listen, log=log, say=out, warn=err)
             elif steps is None:
                 run_interactive(remote, out)
             else:

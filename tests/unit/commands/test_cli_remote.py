@@ -12,6 +12,7 @@ import time
 from pathlib import Path
 
 import pytest
+from fake_unit import FakeUnit, free_port
 
 from cli_util import one_error_line, run_cli
 from estop.client.sender import Remote
@@ -21,7 +22,6 @@ from estop.protocol.tcp import Request
 from estop.protocol.udp import ControlPacket, Gear
 from estop.remote import keys as remoteterm
 from estop.remote.script import ScriptError, parse_script
-from fake_unit import FakeUnit, free_port
 from net_util import LOCAL, wait_until
 
 pytestmark = pytest.mark.timeout(60)

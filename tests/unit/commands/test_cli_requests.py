@@ -12,12 +12,12 @@ import sys
 import time
 
 import pytest
+from fake_unit import FakeUnit, free_port
 
 from cli_util import one_error_line, run_cli
 from estop import cli
 from estop.protocol import tcp
 from estop.protocol.tcp import Request
-from fake_unit import FakeUnit, free_port
 from net_util import LOCAL, wait_until
 from repo import ROOT
 

@@ -1,0 +1,5 @@
+"""``estop remote --touch``: a touch page as the remote's dead-man. :mod:`~.run` serves it
+and prints its address; :mod:`~.server` is the web side (the page's WebSocket driving the
+:class:`~estop.client.sender.Remote`); :mod:`~.hold` the dead-man across the page's hop
+(which frames make a packet); :mod:`~.wire` the messages and their pairing MACs; ``static/``
+the page itself (HTML, CSS, JavaScript, no CDN)."""

@@ -36,6 +36,8 @@ __all__ = [
 # short-monotonic ...): anything, then `identifier[pid]: ` right before the message
 _PREFIX = re.compile(r"^.*?\S\[\d+\]: (?=[{\w])")
 _TEXT = re.compile(r"^(?P<name>\S+)\s+(?P<t>\d+(?:\.\d+)?)\s+(?P<kind>[a-z_]+)\b(?P<rest>.*)$")
+# a stand-in's line without the name and time (``start udp=... tcp=...``): fields required
+_BARE = re.compile(r"^(?P<kind>[a-z_]+)(?P<rest>(?:\s+\S+=\S*)+)\s*$")
 
 
 @dataclass(frozen=True, slots=True)
@@ -119,10 +121,11 @@ def parse(line: str) -> Event | None:
 
 
 def _parse_text(text: str) -> Event | None:
-    m = _TEXT.match(text)
+    m = _TEXT.match(text) or _BARE.match(text)
     if m is None:
         return None
-    fields: dict[str, Any] = {"event": m["kind"], "t_mono": m["t"]}
+    t_mono = m["t"] if "t" in m.groupdict() else None
+    fields: dict[str, Any] = {"event": m["kind"], "t_mono": t_mono}
     args: list[str] = []
     for word in m["rest"].split():
         key, eq, value = word.partition("=")
@@ -131,7 +134,7 @@ def _parse_text(text: str) -> Event | None:
         else:
             args.append(word)
     fields["args"] = args
-    return Event(m["kind"], float(m["t"]), fields, False)
+    return Event(m["kind"], None if t_mono is None else float(t_mono), fields, False)
 
 
 # ------------------------------------------------------------------------------- state

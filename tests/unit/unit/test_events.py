@@ -60,7 +60,8 @@ def test_the_start_gives_the_ports_and_the_session() -> None:
              '"session": "0x0123456789abcdef"}', (40000, 40001, 0x0123456789ABCDEF)),
             ('{"t_mono": 1.5, "event": "start", "udp_port": 40000, "tcp_port": 40001}',
              (40000, 40001, 0)),  # a peer's (the asyncio baseline)
-            ("estopd 1.0 start udp_port=1 tcp_port=2", (1, 2, 0))]:
+            ("estopd 1.0 start udp_port=1 tcp_port=2", (1, 2, 0)),
+            ("start udp=53100 tcp=34747 auth=--no-auth", (53100, 34747, 0))]:  # a stand-in's
         s = start(parse(line))
         assert s is not None and (s.udp_port, s.tcp_port, s.session) == want, line
     assert start(parse("estopd 1.0 start udp=127.0.0.1:1")) is None  # no TCP port

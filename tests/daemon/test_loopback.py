@@ -17,14 +17,9 @@ from types import ModuleType
 import pytest
 
 from estop.protocol import auth, can, canlog, tcp, udp
-from estop.unit.canlog import (
-    DROP_REPORT_REACH_S,
-    CanLogLoss,
-    DaemonError,
-    OutputDropped,
-    drop_windows,
-)
+from estop.unit.canlog import DROP_REPORT_REACH_S, CanLogLoss, DaemonError, drop_windows
 from estop.unit.daemon import Daemon
+from estop.unit.events import OutputDropped
 from estop.unit.looplink import Link
 
 

@@ -19,6 +19,7 @@ import queue
 import socket
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 from estop.protocol import tcp
@@ -98,6 +99,60 @@ def plot(samples: list[dict[str, float]], path: Path) -> None:
     plt.close(fig)
 
 
+@dataclass
+class Soak:
+    """What one soak measured: a sample a second, and the growth after the warm-up."""
+
+    samples: list[dict[str, float]]
+    cycles: int
+    state_changes: int
+    warmup: float
+
+    @property
+    def settled(self) -> list[dict[str, float]]:
+        return [s for s in self.samples if s["t"] >= self.warmup]
+
+    @property
+    def rss_growth_kib(self) -> float:
+        return self.settled[-1]["VmRSS"] - self.settled[0]["VmRSS"]
+
+    @property
+    def fd_growth(self) -> float:
+        return self.settled[-1]["fds"] - self.settled[0]["fds"]
+
+
+def soak(exe: str, seconds: float, warmup: float) -> Soak:
+    """Runs estopd for `seconds` of mixed traffic, sampling once a second. Raises DaemonError
+    or OSError, or ValueError when the run is too short for the warm-up."""
+    samples: list[dict[str, float]] = []
+    cycles = 0
+    with Daemon([exe]) as daemon:
+        assert daemon.pid is not None
+        link = Link(daemon.udp_port, daemon.tcp_port)
+        junk = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        start = time.monotonic()
+        next_sample = start
+        while time.monotonic() - start < seconds:
+            one_cycle(link, daemon, junk)
+            cycles += 1
+            drain(daemon.frames)  # type: ignore[arg-type]
+            now = time.monotonic()
+            if now >= next_sample:
+                samples.append({"t": round(now - start, 2), **proc_sample(daemon.pid)})
+                next_sample = now + 1.0
+        link.close()
+        junk.close()
+        # The last sample once the traffic has stopped: a client closed at the end of the
+        # last cycle may still hold its descriptor until the daemon reads its end of file.
+        time.sleep(0.5)
+        samples.append({"t": round(time.monotonic() - start, 2), **proc_sample(daemon.pid)})
+        state_changes = sum(" state " in line for line in daemon.log_lines)
+    result = Soak(samples, cycles, state_changes, warmup)
+    if len(result.settled) < 2:
+        raise ValueError("run too short for the warm-up; raise --seconds")
+    return result
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description="estopd memory soak")
     parser.add_argument("--seconds", type=float, default=120.0)
@@ -108,42 +163,19 @@ def main() -> int:
         print("rss_soak: error: estopd not found (run make setup)", file=sys.stderr)
         return 1
     OUT.mkdir(exist_ok=True)
-    samples: list[dict[str, float]] = []
-    cycles = 0
-    state_changes = 0
     try:
-        with Daemon([exe]) as daemon:
-            assert daemon.pid is not None
-            link = Link(daemon.udp_port, daemon.tcp_port)
-            junk = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            start = time.monotonic()
-            next_sample = start
-            while time.monotonic() - start < args.seconds:
-                one_cycle(link, daemon, junk)
-                cycles += 1
-                drain(daemon.frames)  # type: ignore[arg-type]
-                now = time.monotonic()
-                if now >= next_sample:
-                    samples.append({"t": round(now - start, 2), **proc_sample(daemon.pid)})
-                    next_sample = now + 1.0
-            link.close()
-            junk.close()
-            state_changes = sum(" state " in line for line in daemon.log_lines)
-    except (DaemonError, OSError) as exc:
+        run = soak(exe, args.seconds, args.warmup)
+    except (DaemonError, OSError, ValueError) as exc:
         print(f"rss_soak: error: {exc}", file=sys.stderr)
         return 1
-    settled = [s for s in samples if s["t"] >= args.warmup]
-    if len(settled) < 2:
-        print("rss_soak: error: run too short for the warm-up; raise --seconds", file=sys.stderr)
-        return 1
-    growth = settled[-1]["VmRSS"] - settled[0]["VmRSS"]
-    fd_growth = settled[-1]["fds"] - settled[0]["fds"]
+    samples, settled = run.samples, run.settled
+    growth, fd_growth = run.rss_growth_kib, run.fd_growth
     ok = growth <= PAGE_KIB and fd_growth <= 0
     lines = [
         "# estopd memory soak",
         "",
         f"{time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}; {args.seconds:.0f} s, "
-        f"{cycles} traffic cycles ({state_changes} state changes logged), "
+        f"{run.cycles} traffic cycles ({run.state_changes} state changes logged), "
         f"{len(samples)} samples",
         "",
         "| sample | t (s) | VmRSS KiB | VmHWM KiB | VmSize KiB | fds |",
@@ -152,13 +184,13 @@ def main() -> int:
     for name, s in (("first", samples[0]), ("after warm-up", settled[0]), ("last", settled[-1])):
         lines.append(f"| {name} | {s['t']} | {s['VmRSS']} | {s['VmHWM']} | {s['VmSize']} | "
                      f"{s['fds']} |")
-    lines += ["", f"RSS growth after warm-up: {growth:+d} KiB (goal <= {PAGE_KIB} KiB, one page); "
-              f"descriptor growth {fd_growth:+d}: {'PASS' if ok else 'FAIL'}"]
+    lines += ["", f"RSS growth after warm-up: {growth:+.0f} KiB (goal <= {PAGE_KIB} KiB, one "
+              f"page); descriptor growth {fd_growth:+.0f}: {'PASS' if ok else 'FAIL'}"]
     text = "\n".join(lines) + "\n"
     print(text)
     (OUT / "rss_soak.md").write_text(text)
-    (OUT / "rss_soak.json").write_text(json.dumps({"samples": samples, "cycles": cycles,
-                                                   "state_changes": state_changes,
+    (OUT / "rss_soak.json").write_text(json.dumps({"samples": samples, "cycles": run.cycles,
+                                                   "state_changes": run.state_changes,
                                                    "rss_growth_kib": growth, "ok": ok}))
     plot(samples, OUT / "rss_soak.png")
     return 0 if ok else 1

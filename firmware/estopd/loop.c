@@ -24,6 +24,31 @@ static int broken(const daemon_t *d)
     return d->fatal || d->unit.fatal;
 }
 
+/* Silence that has passed by host time t0 while datagrams still wait behind the read budget:
+ * acted on at its own time, with what has been read (the car stops rather than waits for the
+ * rest). The core's clock goes no further, so the datagrams still queued go in at their own
+ * receive times. Returns the core's time after it. */
+static uint64_t silence_first(daemon_t *d, uint64_t t0)
+{
+    uint64_t due = unit_silence_due(&d->unit);
+    /* ARMED -> SLOWING -> STOPPED: two deadlines at most, each a tick at its own time. */
+    while (!d->unit.fatal && due <= t0) {
+        unit_fx_t fx;
+        apply_catch_up(&d->apply, &d->unit, due);
+        if (d->unit.fatal) {
+            break;
+        }
+        if (unit_tick_due(&d->unit, due, &fx)) {
+            apply_fx(&d->apply, &fx, NULL);
+        }
+        if (unit_silence_due(&d->unit) <= due) {
+            break; /* the core did not act on it (it cannot happen): never spin */
+        }
+        due = unit_silence_due(&d->unit);
+    }
+    return d->unit.last_call_us;
+}
+
 /* One round's work before any input or deadline: reads the clock, drains the control port
  * (every datagram received so far goes to the unit at its receive time), catches the unit up
  * and runs every wake-up source (the unit's due tick first). Returns the host time for the
@@ -40,10 +65,16 @@ static uint64_t prepare(daemon_t *d)
     if (t0 < d->unit.last_call_us) {
         t0 = d->unit.last_call_us; /* time handed to the core never goes backwards */
     }
-    /* Drain first: a drain cut short by its budget leaves the rest unread; the deadline is
-     * not delayed for packets not yet looked at (the car stops rather than waits). */
-    udp_drain(&d->udp, &d->unit, &d->apply, t0);
-    now = t0 > d->unit.last_call_us ? t0 : d->unit.last_call_us;
+    if (udp_drain(&d->udp, &d->unit, &d->apply, t0)) {
+        now = t0 > d->unit.last_call_us ? t0 : d->unit.last_call_us;
+    } else {
+        /* Cut short by the round's budget: datagrams received before t0 are still queued. A
+         * core call at t0 would hand them over later than they arrived and so stretch the
+         * deadline by the backlog's age; the core's clock stays at the latest datagram read,
+         * and only a silence that has passed moves it (to its own time). The periodic frames
+         * follow the clock: late by the time the backlog takes to read, a few ms. */
+        now = silence_first(d, t0);
+    }
     apply_catch_up(&d->apply, &d->unit, now);
     if (!d->unit.fatal && clock_bad && !d->clock_fault) {
         apply_fault(&d->apply, &d->unit, now, "clock");
@@ -117,13 +148,15 @@ int loop_init(daemon_t *d, char *err, size_t errlen)
     d->tcp.epfd = d->epfd;
     d->tcp.listen_tag = TAG_TCP;
     d->tcp.client_tag0 = TAG_CLIENT0;
-    d->tcp.unit = &d->unit;
-    d->tcp.apply = &d->apply;
-    d->tcp.prepare = prepare_hook;
-    d->tcp.prepare_ctx = d;
+    d->tcp.rx.unit = &d->unit;
+    d->tcp.rx.apply = &d->apply;
+    d->tcp.rx.prepare = prepare_hook;
+    d->tcp.rx.prepare_ctx = d;
     d->stats_src.core = &d->unit.core;
     d->stats_src.cfg = &d->opt.cfg;
     d->stats_src.udp_drops = &d->udp.drops;
+    d->stats_src.udp_max_round = &d->udp.max_round;
+    d->stats_src.udp_budget = UDP_ROUND_MAX;
     /* In this order every round: the unit's due tick, the stop port, the log, CAN. */
     if (wake_add(&d->wake, unit_next, unit_service, d) != 0 ||
         wake_add(&d->wake, tcp_next, tcp_service_src, &d->tcp) != 0 ||
@@ -254,7 +287,7 @@ static int finish(daemon_t *d)
     notify_send(&d->notify, "STOPPING=1");
     udp_round(&d->udp);
     if (!broken(d)) {
-        tcp_accept(&d->tcp); /* connections still in the backlog may hold a STOP too */
+        /* connections still in the backlog may hold a STOP too: accepted there */
         tcp_drain_all(&d->tcp, EXIT_DRAIN_US);
     }
     last_frame(d);
@@ -290,6 +323,7 @@ int loop_run(daemon_t *d)
         int i;
 
         udp_round(&d->udp);
+        tcp_round(&d->tcp);
         now = prepare(d); /* deadline work first, every round */
         if (broken(d)) {
             break;

@@ -179,12 +179,19 @@ static int setup_rt_prio(int prio, char *err, size_t n)
     return -1;
 }
 
-/* --rt-prio and --mlock, for hosts without systemd's CPUSchedulingPolicy= and friends. */
-static int setup_realtime(daemon_t *d, char *err, size_t n)
+/* --mlock: every page locked before the key is read, so that neither the key on its way (a
+ * stack buffer) nor the MAC state is ever in a page the kernel could have swapped out. */
+static int setup_mlock(const daemon_t *d, char *err, size_t n)
 {
     if (d->opt.mlock && mlockall(MCL_CURRENT | MCL_FUTURE) != 0) {
         return fail("--mlock: mlockall (needs CAP_IPC_LOCK or a high RLIMIT_MEMLOCK)", err, n);
     }
+    return 0;
+}
+
+/* --rt-prio, for hosts without systemd's CPUSchedulingPolicy= and friends. */
+static int setup_realtime(daemon_t *d, char *err, size_t n)
+{
     return d->opt.rt_prio > 0 ? setup_rt_prio(d->opt.rt_prio, err, n) : 0;
 }
 
@@ -270,12 +277,13 @@ int setup(daemon_t *d, char *err, size_t errlen)
      * the loop's signalfd. */
     d->notify.fd = -1;
     if (setup_signals(d, err, errlen) != 0 || log_start(d->opt.log_json, err, errlen) != 0 ||
-        notify_open(&d->notify, err, errlen) != 0 ||
+        notify_open(&d->notify, err, errlen) != 0 || setup_mlock(d, err, errlen) != 0 ||
         setup_auth(d, err, errlen) != 0 || setup_realtime(d, err, errlen) != 0 ||
         setup_fds(d, err, errlen) != 0 || setup_can(d, err, errlen) != 0 ||
         loop_init(d, err, errlen) != 0) {
         return -1;
     }
+    tcp_spare_open(&d->tcp); /* last: every descriptor the daemon needs comes first */
     /* The ports go out before the first frame: tests and supervisors read them here. */
     log_start_line(d);
     rc = loop_boot(d);

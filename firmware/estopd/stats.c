@@ -99,6 +99,22 @@ static void report_drops(stats_t *s, uint32_t drops, uint64_t now)
     }
 }
 
+/* udp_reads: the most datagrams the loop read in one round so far, beside the budget that
+ * bounds it (a backlog is read a budget per round, so TCP stops and deadlines never wait
+ * behind more). Written when it grew. */
+static void report_reads(stats_t *s, const stats_src_t *src, uint64_t now)
+{
+    uint32_t max_round = *src->udp_max_round;
+    if (max_round != s->max_round_reported) {
+        log_kv_t kv[] = {
+            KV_NUM("max_round", max_round),
+            KV_NUM("budget", src->udp_budget),
+        };
+        s->max_round_reported = max_round;
+        log_event(now, "udp_reads", NULL, kv, 2u);
+    }
+}
+
 static void report(stats_t *s, const stats_src_t *src, uint64_t now)
 {
     estop_status_t st;
@@ -108,6 +124,7 @@ static void report(stats_t *s, const stats_src_t *src, uint64_t now)
         report_link(s, src, now, &st.counters);
     }
     report_drops(s, *src->udp_drops, now);
+    report_reads(s, src, now);
 }
 
 void stats_tick(stats_t *s, const stats_src_t *src, uint64_t now_us)

@@ -14,6 +14,8 @@ typedef struct {
     const estop_core_t *core;
     const estop_config_t *cfg;
     const uint32_t *udp_drops;    /* the kernel's drop count (udp.h) */
+    const uint32_t *udp_max_round; /* the most datagrams read in one loop round (udp.h) */
+    uint32_t udp_budget;          /* ... and the most a round may read (UDP_ROUND_MAX) */
 } stats_src_t;
 
 /* What has been reported so far. */
@@ -24,6 +26,7 @@ typedef struct {
     uint32_t slowdowns_reported;  /* ... and slow-downs and timeouts */
     uint32_t timeouts_reported;
     uint32_t drops_reported;      /* udp_drops in the latest udp_drops event */
+    uint32_t max_round_reported;  /* max_round in the latest udp_reads event */
 } stats_t;
 
 /* Call from the loop; cheap until the period has passed. */

@@ -56,6 +56,8 @@ int udp_setup(udp_t *u, char *err, size_t errlen)
     u->rcvbuf_wanted = 2 * UDP_RCVBUF;
     /* With every datagram, the kernel's count so far of those it dropped for want of room. */
     (void)setsockopt(u->fd, SOL_SOCKET, SO_RXQ_OVFL, &one, sizeof one);
+    /* Every page of the batch now, not under the first flood (memory flat from the start). */
+    memset(&batch, 0, sizeof batch);
     udp_round(u);
     return 0;
 }
@@ -63,6 +65,7 @@ int udp_setup(udp_t *u, char *err, size_t errlen)
 void udp_round(udp_t *u)
 {
     u->budget = UDP_ROUND_MAX;
+    u->round_read = 0u;
 }
 
 static void batch_reset(uint32_t vlen)
@@ -118,7 +121,7 @@ static void feed(unit_t *unit, const apply_t *a, const uint8_t *data, size_t len
     apply_fx(a, &fx, src);
 }
 
-void udp_drain(udp_t *u, unit_t *unit, const apply_t *a, uint64_t t0)
+int udp_drain(udp_t *u, unit_t *unit, const apply_t *a, uint64_t t0)
 {
     while (u->budget > 0u && !unit->fatal) {
         uint32_t vlen = u->budget < UDP_BATCH ? u->budget : UDP_BATCH;
@@ -139,10 +142,14 @@ void udp_drain(udp_t *u, unit_t *unit, const apply_t *a, uint64_t t0)
                 log_kv_t kv[] = { KV_STR("err", log_errno_name(errno, ebuf, sizeof ebuf)) };
                 log_limited(LOG_CLASS_NET, unit->last_call_us, "udp_error", kv, 1u);
             }
-            return;
+            return 1;
         }
         clock_pair(&read_us, &real_now);
         u->budget -= (uint32_t)n;
+        u->round_read += (uint32_t)n;
+        if (u->round_read > u->max_round) {
+            u->max_round = u->round_read;
+        }
         for (i = 0; i < n; i++) {
             struct timespec stamp;
             size_t len = batch.msg[i].msg_len < UDP_BUF ? batch.msg[i].msg_len : UDP_BUF;
@@ -156,7 +163,8 @@ void udp_drain(udp_t *u, unit_t *unit, const apply_t *a, uint64_t t0)
         }
         /* Fewer than asked for: recvmmsg met an empty socket. */
         if (reached || (uint32_t)n < vlen) {
-            return;
+            return 1;
         }
     }
+    return unit->fatal ? 1 : 0; /* the budget is spent: what is still queued waits a round */
 }

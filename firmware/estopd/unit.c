@@ -79,11 +79,15 @@ static void fx_end(unit_t *u, estop_err_t err, const estop_out_t *out, unit_fx_t
         u->reason = out->reason;
     }
     fx->err = err;
+    /* Even a call that failed may have moved the core's clock (the core checks some input
+     * only after its clock step): the next call must not look like a tick backwards. */
+    if (fx->now > u->last_call_us) {
+        u->last_call_us = fx->now;
+    }
     if (err != ESTOP_OK) {
         u->deadline_us = fx->now; /* next_call_us may be unset: let a tick tell */
         return;
     }
-    u->last_call_us = fx->now;
     if (out->has_reply && out->reply_len <= sizeof fx->reply) {
         fx->has_reply = 1u;
         fx->reply_len = out->reply_len;
@@ -116,6 +120,8 @@ int unit_boot(unit_t *u, const estop_config_t *cfg, uint64_t now, unit_fx_t *fx)
 
     u->brake_can_id = cfg->brake_can_id;
     u->brake_data_id = cfg->brake_data_id;
+    u->slow_us = cfg->slow_us;
+    u->timeout_us = cfg->timeout_us;
     fx_begin(fx, "init", now, &out);
     fx->err = estop_init(&u->core, cfg, (uint32_t)now);
     if (fx->err != ESTOP_OK) {
@@ -227,4 +233,19 @@ int unit_last_frame(unit_t *u, uint64_t t, int core_ok, unit_fx_t *fx)
 uint64_t unit_next_wakeup(const unit_t *u)
 {
     return u->deadline_us;
+}
+
+uint64_t unit_silence_due(const unit_t *u)
+{
+    estop_status_t st;
+    uint32_t limit;
+
+    if (u->fatal || u->state == ESTOP_STATE_STOPPED ||
+        estop_get_status(&u->core, &st) != ESTOP_OK) {
+        return UINT64_MAX;
+    }
+    /* The link's age is the core's, at its latest call (last_call_us). */
+    limit = u->state == ESTOP_STATE_ARMED ? u->slow_us : u->timeout_us;
+    return st.link_age_us >= limit ? u->last_call_us
+                                   : u->last_call_us + (uint64_t)(limit - st.link_age_us);
 }

@@ -15,7 +15,7 @@
 
 typedef struct {
     estop_core_t core;
-    uint64_t last_call_us;        /* host time of the latest successful core call */
+    uint64_t last_call_us;        /* host time of the latest core call (the core's clock) */
     uint64_t deadline_us;         /* host time the core asked to be called back */
     uint8_t state;
     uint8_t reason;
@@ -26,6 +26,8 @@ typedef struct {
     uint32_t frames_out;          /* frames handed out so far */
     uint32_t brake_can_id;
     uint16_t brake_data_id;
+    uint32_t slow_us;             /* S and T, for the silence deadline (unit_silence_due) */
+    uint32_t timeout_us;
 } unit_t;
 
 /* What one core call asks of the host. */
@@ -79,5 +81,9 @@ void unit_fault(unit_t *u, uint64_t t, unit_fx_t *fx);
 int unit_last_frame(unit_t *u, uint64_t t, int core_ok, unit_fx_t *fx);
 /* Host time at which the core must be called next. */
 uint64_t unit_next_wakeup(const unit_t *u);
+/* Host time at which silence changes the state (ARMED -> SLOWING at S, SLOWING -> STOPPED at
+ * T after the latest valid packet), UINT64_MAX when none is due (STOPPED, or a broken core).
+ * Unlike unit_next_wakeup it leaves out the periodic frames. */
+uint64_t unit_silence_due(const unit_t *u);
 
 #endif

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
+from test_estopd_auth import Remote, key_file
 
 from daemon_util import (
     ARMED,
@@ -27,6 +28,9 @@ from daemon_util import (
     check_frames,
     udp_packet,
 )
+from estop.protocol import auth
+from estop.protocol.udp import ControlPacket
+from stall_probe import StallProbe
 
 pytestmark = pytest.mark.timeout(60)
 
@@ -166,3 +170,112 @@ def test_a_packet_received_before_the_deadline_counts_when_read_after_it(
     """The daemon reads P2 only after P1's deadline has passed, but P2 arrived before it: the
     unit must look at what it has received before it acts on the deadline, and stay ARMED."""
     attempt(late_read_run, tmp_path)
+
+
+JUNK = b"\x01" * 7  # invalid: the core reads it and it keeps nothing alive
+BACKLOG = 4000  # more than one round's read budget (UDP_ROUND_MAX, 2048)
+
+
+def long_backlog_run(tmp_path: Path) -> None:
+    with Daemon(tmp_path) as d:
+        assert d.proc is not None
+        try:
+            with StallProbe(d.proc.pid) as probe:
+                with Finger(d.udp_port):
+                    d.arm()
+                    time.sleep(0.06)
+                    pause(d)
+                t_paused = time.time()
+                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+                    for _ in range(BACKLOG):
+                        s.sendto(JUNK, ("127.0.0.1", d.udp_port))
+                d.send_udp(udp_packet())
+                t_last = time.time()  # the last valid packet: the stop is due at t_last + T
+                sleep_until(t_paused + 0.15)
+                t_resume = resume(d)
+                stop = d.wait_frame(lambda f: f.is_brake() and f.reason == R_UDP_TIMEOUT,
+                                    timeout=3)
+            frames = d.frames()
+        finally:
+            if d.proc is not None and d.proc.poll() is None:
+                os.kill(d.proc.pid, signal.SIGCONT)
+    if t_resume - t_paused > 0.17 or t_last - t_paused > 0.14:
+        raise Mistimed
+    check_frames(frames)
+    # Never before the last packet's own deadline (it was read, and counted) ...
+    assert stop.t >= t_last + T - 0.003, stop.t - t_last
+    # ... and not after it: the datagrams still queued behind the budget, and the last packet
+    # among them, go to the core at their receive times, not when they were read. Allowed on
+    # top: the timer's own lateness (a 1 ms sleeper's, and the daemon's run-queue wait, in
+    # the same interval).
+    assert stop.t <= t_last + T + 0.01 + probe.stall_s(t_resume, stop.t), \
+        (f"stopped {(stop.t - t_last) * 1e3:.1f} ms after the last valid packet "
+         f"(T = {T * 1e3:.0f} ms): {probe.explain(t_resume, stop.t)}")
+
+
+def test_a_backlog_longer_than_the_read_budget_cannot_stretch_the_deadline(
+        tmp_path: Path) -> None:
+    """Issue 25 item 3. The daemon is stopped for 150 ms while 4,000 invalid datagrams and
+    then the last valid packet queue up: more than one round's read budget. Before, the round
+    that ran out of budget ticked the core at the read time, so the last packet, read the next
+    round, went in at that time instead of its receive time: the stop came 317 ms after it
+    (T = 200 ms). Now a round cut short by its budget moves the core's clock no further than
+    the datagrams it read, or a deadline that passed: the stop comes at the last packet's
+    receive time + T."""
+    attempt(long_backlog_run, tmp_path)
+
+
+FORGED = 8000  # forged authenticated packets: about four budgets, within the receive buffer
+
+
+def overdue_run(tmp_path: Path) -> None:
+    with Daemon(tmp_path, "--key-file", str(key_file(tmp_path))) as d:
+        assert d.proc is not None
+        remote = Remote(d)
+        remote.request(MSG_STATUS)  # the session, for the forger
+        forger = Remote(d, key=bytes(32))
+        forger.session, forger.udp_counter = remote.session, 100_000
+        forged = []
+        for _ in range(FORGED):  # made beforehand: only sending them fits the pause
+            forger.udp_counter += 1
+            forged.append(auth.AuthControlPacket(forger.rid, forger.session,
+                                                 forger.udp_counter,
+                                                 ControlPacket()).encode(forger.key))
+        remote.arm()
+        try:
+            with StallProbe(d.proc.pid) as probe:
+                n0 = len(d.frames())
+                remote.heartbeat(1)
+                t_last = time.time()  # the last valid packet came before this
+                pause(d)
+                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+                    for p in forged:
+                        s.sendto(p, ("127.0.0.1", d.udp_port))
+                sleep_until(t_last + 0.3)
+                t_resume = resume(d)
+                stop = d.wait_frame(lambda f: f.is_brake() and f.reason == R_UDP_TIMEOUT,
+                                    timeout=3, after=n0)
+                time.sleep(0.2)  # the rest of the backlog read meanwhile
+        finally:
+            if d.proc is not None and d.proc.poll() is None:
+                os.kill(d.proc.pid, signal.SIGCONT)
+    if t_resume - t_last > 0.33 or stop.t < t_resume:
+        raise Mistimed  # (a stop before the resume: this process stalled past T before)
+    before_stop = probe.ran_s(t_resume, stop.t)
+    backlog = probe.ran_s(t_resume, t_resume + 0.2)
+    assert backlog >= 0.004, f"the backlog took only {backlog * 1e3:.1f} ms to read"
+    assert before_stop <= 0.5 * backlog, \
+        (f"{before_stop * 1e3:.1f} ms of the {backlog * 1e3:.1f} ms the backlog took were "
+         f"spent before the stop: {probe.explain(t_resume, stop.t)}")
+
+
+def test_a_deadline_passed_during_a_stall_is_not_held_back_by_the_backlog(
+        tmp_path: Path) -> None:
+    """The other side of item 3 of issue 25. The daemon is stopped past the last valid
+    packet's deadline while 8,000 forged authenticated packets queue (each one's tag checked,
+    about four read budgets). The stop is due at once when it runs again: it must come after
+    the first budget, not after the whole backlog has been read. (Without the silence deadline
+    taken before the rest of the backlog, the stop waited for all of it: 6.8 of the 7.3 ms of
+    reading before it, against about 2 ms now.) Judged on the daemon's own CPU time (the
+    stall probe's), not on the clock."""
+    attempt(overdue_run, tmp_path)

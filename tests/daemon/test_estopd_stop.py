@@ -3,11 +3,13 @@ event log."""
 
 from __future__ import annotations
 
+import socket
 import threading
 import time
 from pathlib import Path
 
 import pytest
+from test_estopd_rxtime import pause, resume
 
 from daemon_util import (
     ACK,
@@ -185,43 +187,75 @@ def test_old_16_byte_packets_keep_it_alive(tmp_path: Path) -> None:
         assert d.request(MSG_STATUS, 1).state == ARMED
 
 
+UDP_ROUND_MAX = 2048  # datagrams estopd reads in one loop round at most (firmware/estopd/udp.h)
+
+
+def udp_reads(lines: list[str]) -> dict[str, int]:
+    """The latest udp_reads line's numbers: max_round (the most datagrams read in one loop
+    round) and budget."""
+    found = [s for s in lines if " udp_reads " in s]
+    return {k: int(v) for k, v in (f.split("=") for f in found[-1].split()[3:])} if found else {}
+
+
 def test_udp_flood_cannot_delay_the_timeout_stop(tmp_path: Path) -> None:
-    """A flood of invalid datagrams must not hold back the deadline stop or the brake frames.
+    """A flood of invalid datagrams must not hold back the deadline stop or the brake frames,
+    and the loop reads no more than its budget of them in one round, however many wait.
+
+    The daemon is stopped for a while during the flood, so that more than two budgets queue
+    up; estopd's udp_reads line at exit says the most it read in one round (issue 25 item 8):
+    exactly the budget. Before, nothing counted it, and the test passed with the budget
+    removed (the flood was read as fast as it came).
 
     The bounds are the daemon's own time: the machine's stall in the same interval (the
     daemon's run-queue wait and a sleeper's worst oversleep, tests/stall_probe.py) is allowed
-    on top of them. Time spent
-    reading the flood is not run-queue wait, so a flood that held the loop back still fails."""
+    on top of them, and so is the time it was stopped. Time spent reading the flood is not
+    run-queue wait, so a flood that held the loop back still fails."""
     with Daemon(tmp_path) as d:
         assert d.proc is not None
         with StallProbe(d.proc.pid) as probe:
             d.arm()
             armed_at = time.time()
             stop_flood = threading.Event()
+            sent = [0]
 
             def flood() -> None:
                 junk = b"\x01" * 7
-                import socket
                 with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
                     while not stop_flood.is_set():
                         for _ in range(200):
                             s.sendto(junk, ("127.0.0.1", d.udp_port))
+                        sent[0] += 200
 
             th = threading.Thread(target=flood, daemon=True)
             th.start()
             try:
+                time.sleep(0.02)
+                paused_at = time.time()  # before the signal: the daemon stops at once
+                pause(d)
+                before = sent[0]
+                # More than two budgets queue up; resumed well before the deadline.
+                while sent[0] - before < 3 * UDP_ROUND_MAX and time.time() < armed_at + 0.12:
+                    time.sleep(0.002)
+                queued = sent[0] - before
+                resumed_at = resume(d)
                 stop = d.wait_frame(lambda f: f.is_brake() and f.reason == R_UDP_TIMEOUT,
                                     timeout=3)
             finally:
                 stop_flood.set()
                 th.join(timeout=5)
+        assert d.signal() == 0
         frames = d.frames()
+        reads = udp_reads(d.log())
+    assert queued > 2 * UDP_ROUND_MAX, f"only {queued} datagrams queued: the flood was too slow"
+    assert reads == {"max_round": UDP_ROUND_MAX, "budget": UDP_ROUND_MAX}, \
+        f"{reads}: {queued} datagrams queued while the daemon was stopped"
     assert stop.t - armed_at < 0.3 + probe.stall_s(armed_at, stop.t), \
         f"the timeout stop came late: {probe.explain(armed_at, stop.t)}"
     check_frames(frames)
     brake_t = [f.t for f in frames if f.is_brake()]
     for a, b in zip(brake_t, brake_t[1:], strict=False):
-        assert b - a < 0.045 + probe.stall_s(a, b), \
+        stopped = max(0.0, min(b, resumed_at) - max(a, paused_at))  # SIGSTOP, not the daemon
+        assert b - a < 0.045 + stopped + probe.stall_s(a, b), \
             f"brake frames more than 45 ms + the daemon's stall apart: {probe.explain(a, b)}"
 
 

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import pytest
+from test_estopd_auth import Remote, key_file
 
 from daemon_util import (
     ARMED,
@@ -27,6 +28,8 @@ from daemon_util import (
     check_frames,
     udp_packet,
 )
+from estop.protocol import auth
+from estop.protocol.udp import ControlPacket
 from stall_probe import StallProbe
 
 pytestmark = pytest.mark.timeout(60)
@@ -220,3 +223,59 @@ def test_a_backlog_longer_than_the_read_budget_cannot_stretch_the_deadline(
     the datagrams it read, or a deadline that passed: the stop comes at the last packet's
     receive time + T."""
     attempt(long_backlog_run, tmp_path)
+
+
+FORGED = 8000  # forged authenticated packets: about four budgets, within the receive buffer
+
+
+def overdue_run(tmp_path: Path) -> None:
+    with Daemon(tmp_path, "--key-file", str(key_file(tmp_path))) as d:
+        assert d.proc is not None
+        remote = Remote(d)
+        remote.request(MSG_STATUS)  # the session, for the forger
+        forger = Remote(d, key=bytes(32))
+        forger.session, forger.udp_counter = remote.session, 100_000
+        forged = []
+        for _ in range(FORGED):  # made beforehand: only sending them fits the pause
+            forger.udp_counter += 1
+            forged.append(auth.AuthControlPacket(forger.rid, forger.session,
+                                                 forger.udp_counter,
+                                                 ControlPacket()).encode(forger.key))
+        remote.arm()
+        try:
+            with StallProbe(d.proc.pid) as probe:
+                n0 = len(d.frames())
+                remote.heartbeat(1)
+                t_last = time.time()  # the last valid packet came before this
+                pause(d)
+                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+                    for p in forged:
+                        s.sendto(p, ("127.0.0.1", d.udp_port))
+                sleep_until(t_last + 0.3)
+                t_resume = resume(d)
+                stop = d.wait_frame(lambda f: f.is_brake() and f.reason == R_UDP_TIMEOUT,
+                                    timeout=3, after=n0)
+                time.sleep(0.2)  # the rest of the backlog read meanwhile
+        finally:
+            if d.proc is not None and d.proc.poll() is None:
+                os.kill(d.proc.pid, signal.SIGCONT)
+    if t_resume - t_last > 0.33 or stop.t < t_resume:
+        raise Mistimed  # (a stop before the resume: this process stalled past T before)
+    before_stop = probe.ran_s(t_resume, stop.t)
+    backlog = probe.ran_s(t_resume, t_resume + 0.2)
+    assert backlog >= 0.004, f"the backlog took only {backlog * 1e3:.1f} ms to read"
+    assert before_stop <= 0.5 * backlog, \
+        (f"{before_stop * 1e3:.1f} ms of the {backlog * 1e3:.1f} ms the backlog took were "
+         f"spent before the stop: {probe.explain(t_resume, stop.t)}")
+
+
+def test_a_deadline_passed_during_a_stall_is_not_held_back_by_the_backlog(
+        tmp_path: Path) -> None:
+    """The other side of item 3 of issue 25. The daemon is stopped past the last valid
+    packet's deadline while 8,000 forged authenticated packets queue (each one's tag checked,
+    about four read budgets). The stop is due at once when it runs again: it must come after
+    the first budget, not after the whole backlog has been read. (Without the silence deadline
+    taken before the rest of the backlog, the stop waited for all of it: 6.8 of the 7.3 ms of
+    reading before it, against about 2 ms now.) Judged on the daemon's own CPU time (the
+    stall probe's), not on the clock."""
+    attempt(overdue_run, tmp_path)

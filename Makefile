@@ -79,12 +79,13 @@ prove:
 	scripts/ensure-debs prove
 	$(PYTHON) tools/prove.py
 
-# Benchmarks (not part of `make test`): stop latency vs the asyncio baseline, memory soak,
-# instructions per input (host and Cortex-M), the dashboard's cost, the touch page's lift.
-# Reports land in bench/out/.
+# Benchmarks (not part of `make test`): stop latency vs the asyncio baseline, memory soak, the
+# stop port under connection churn, instructions per input (host and Cortex-M), the dashboard's
+# cost, the touch page's lift. Reports land in bench/out/.
 bench: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/stop_latency.py
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/rss_soak.py
+	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" $(VPY) bench/tcp_churn.py
 	$(VPY) bench/core_instructions.py
 	scripts/ensure-debs mcu
 	$(VPY) bench/mcu_instructions.py

@@ -38,17 +38,19 @@ test: setup
 
 # What needs no daemon, browser, VM or MCU toolchain (the tests' kinds: tests/conftest.py), in
 # under a minute: the Python package (tests/unit), the core through cffi (tests/core), the
-# harness's and the bench's own code, the docs. $ESTOPD points nowhere, so a test that needs
-# estopd without saying so (the estopd fixture marks it daemon) fails here.
+# harness's and the bench's own code, the docs; not the slow ones (the core against its model,
+# about 40 s; make test runs them). $ESTOPD points nowhere, so a test that needs estopd
+# without saying so (the estopd fixture marks it daemon) fails here.
 test-fast: $(STAMP)
 	ESTOPD=/nonexistent/estopd-not-in-test-fast $(VPY) -m pytest -q \
-	  -m "not daemon and not browser and not vm and not mcu"
+	  -m "not daemon and not browser and not vm and not mcu and not slow"
 
 check: setup
 	scripts/ensure-debs check
 	$(MAKE) -C firmware strict
 	$(VENV)/bin/ruff check src tests hil bench pyext tools tools/systemd-vm
 	$(VENV)/bin/mypy --strict src/estop
+	$(VENV)/bin/lint-imports
 	$(VPY) tools/misra.py
 
 # The whole suite but the VM tests (gamepad-vm runs those) runs once against a build of the

@@ -180,7 +180,7 @@ class TouchServer:
             self.log(f"page {page.id}: control ignored: {exc}")
             return
         if not remote.held:
-            if remote.key is not None and not remote.channel.session:
+            if remote.identity.keyed and not remote.identity.session:
                 self.deadman.end(page.id)  # no session yet: a packet would keep nothing alive
                 return
             remote.hold()  # the session is known: no network here

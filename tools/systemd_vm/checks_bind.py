@@ -24,6 +24,7 @@ from guestlib import (
     now,
     sh,
     show,
+    timing_failed,
     wait_for,
 )
 
@@ -69,10 +70,10 @@ def check_del_add(res: Results) -> None:
         if any("Scheduled restart job" in m for m in messages(journal(since_mono=t0))):
             raise CheckFailed("restarted by Restart= (BindsTo= stops and starts it)")
         if t_off - t0 > FOLLOW_S or starting - t1 > FOLLOW_S:
-            raise CheckFailed(f"stopped {t_off - t0:.2f} s after del, start began "
+            raise timing_failed(t0, f"stopped {t_off - t0:.2f} s after del, start began "
                               f"{starting - t1:.2f} s after add (within {FOLLOW_S:.0f} s)")
         if t_on - starting > STARTUP_MAX:
-            raise CheckFailed(f"the start took {t_on - starting:.2f} s")
+            raise timing_failed(t0, f"the start took {t_on - starting:.2f} s")
         boot_frame(first)
         return (f"ip link del: stopped after {t_off - t0:.2f} s, no start in {WATCH_S:.0f} s; "
                 f"ip link add: start began +{starting - t1:.2f} s, PID {new} READY=1 "

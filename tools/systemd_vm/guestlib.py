@@ -35,6 +35,30 @@ class CheckFailed(Exception):
     """A check's expectation did not hold; the message says what was measured."""
 
 
+class HostStalled(CheckFailed):
+    """A time bound failed while the host froze the whole guest (a busy machine: the guest's
+    kernel saw its clock jump): the measurement says nothing of systemd; tried once more."""
+
+
+def host_stall_s(since: float) -> float:
+    """The longest freeze of the whole guest from since on, by its kernel's clocksource
+    watchdog ('Long readout interval ... cs_nsec: N'), in seconds; 0 when none."""
+    longest = 0.0
+    for e in journal(unit=None, since_mono=since, grep="Long readout interval"):
+        m = re.search(r"cs_nsec: (\d+)", str(e["MESSAGE"]))
+        if m:
+            longest = max(longest, int(m[1]) / 1e9)
+    return longest
+
+
+def timing_failed(since: float, message: str) -> CheckFailed:
+    """The failure of a time bound: HostStalled where the guest was frozen meanwhile."""
+    stall = host_stall_s(since)
+    if stall > 0.2:
+        return HostStalled(f"{message}; the host froze the guest {stall:.2f} s meanwhile")
+    return CheckFailed(message)
+
+
 def sh(argv: list[str] | str, timeout: float = 60.0, check: bool = True,
        env: dict[str, str] | None = None) -> subprocess.CompletedProcess[str]:
     """Runs a command (a list, or a string for sh -c), output captured as text."""
@@ -269,7 +293,10 @@ class Results:
         Its wall time and the guest's busy CPU time during it are kept beside."""
         t0, c0 = now(), busy_s()
         try:
-            measured = fn()
+            try:
+                measured = fn()
+            except HostStalled as e:
+                measured = fn() + f" (tried twice: {e})"
         except CheckFailed as e:
             self.record(name, False, "", str(e), (now() - t0, busy_s() - c0))
             return False

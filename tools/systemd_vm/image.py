@@ -46,7 +46,16 @@ BOOT_MASKED = ["systemd-firstboot.service", "getty@tty1.service", "serial-getty@
                "systemd-binfmt.service", "proc-sys-fs-binfmt_misc.automount",
                "dpkg-db-backup.timer", "fstrim.timer", "e2scrub_all.timer",
                "e2scrub_reap.service", "systemd-tmpfiles-clean.timer",
-               "systemd-update-utmp.service", "systemd-update-utmp-runlevel.service"]
+               "systemd-update-utmp.service", "systemd-update-utmp-runlevel.service",
+               "systemd-pstore.service"]
+# Generators with nothing to generate here, run at every boot and every daemon-reload. Kept:
+# systemd-debug-generator (systemd.wants= on the kernel command line) and the fstab one.
+GENERATORS_MASKED = ["systemd-cryptsetup-generator", "systemd-getty-generator",
+                     "systemd-gpt-auto-generator", "systemd-hibernate-resume-generator",
+                     "systemd-integritysetup-generator", "systemd-rc-local-generator",
+                     "systemd-run-generator", "systemd-ssh-generator",
+                     "systemd-system-update-generator", "systemd-sysv-generator",
+                     "systemd-tpm2-generator", "systemd-veritysetup-generator"]
 # The unit the kernel command line asks for (systemd.wants=); it runs the test from the share.
 TEST_UNIT = "estop-vmtest.service"
 TEST_UNIT_TEXT = """[Unit]
@@ -217,6 +226,10 @@ def customize(system: System, root: Path) -> None:
         link = root / "etc/systemd/system" / masked
         link.unlink(missing_ok=True)
         link.symlink_to("/dev/null")
+    generators = root / "etc/systemd/system-generators"
+    generators.mkdir(parents=True, exist_ok=True)
+    for masked in GENERATORS_MASKED:
+        (generators / masked).symlink_to("/dev/null")
     unit = root / "etc/systemd/system" / TEST_UNIT
     unit.write_text(TEST_UNIT_TEXT)
     script = root / "usr/local/sbin/estop-vmtest"

@@ -22,6 +22,23 @@ def drop_lines(prefix: str) -> None:
     UNIT_FILE.write_text("\n".join(line for line in lines if not line.startswith(prefix)) + "\n")
 
 
+def set_args(old: str, new: str) -> None:
+    conf = Path("/etc/estop/estopd.conf")
+    conf.write_text(conf.read_text().replace(old, new))
+
+
+def other_key() -> None:
+    Path("/etc/estop/other-key").write_text("11" * 32 + "\n")
+    Path("/etc/estop/other-key").chmod(0o600)
+    dropin("LoadCredential=\nLoadCredential=key:/etc/estop/other-key")
+
+
+def wanted_by_boot() -> None:
+    text = UNIT_FILE.read_text()
+    UNIT_FILE.write_text(text.replace("\nWantedBy=", "\nWantedBy=multi-user.target "))
+    sh(["systemctl", "reenable", "estopd"], timeout=120)
+
+
 # name: (what it does, the checks it must break, how)
 PLANTS = {
     "type-simple": ("a unit without Type=notify (Type=simple)", "systemctl start",
@@ -41,10 +58,21 @@ PLANTS = {
                           lambda: drop_lines("ExecCondition=")),
     "no-fifo": ("no real-time scheduling (CPUSchedulingPolicy=other)", "the process",
                 lambda: dropin("CPUSchedulingPolicy=other")),
-    "no-sandbox": ("capabilities kept (CapabilityBoundingSet=~, AmbientCapabilities=CAP_NET_ADMIN)",
+    "no-sandbox": ("capabilities kept (CapabilityBoundingSet, AmbientCapabilities=CAP_NET_ADMIN)",
                    "the process, systemd-analyze security",
                    lambda: dropin("CapabilityBoundingSet=CAP_NET_ADMIN CAP_SYS_NICE\n"
                                   "AmbientCapabilities=CAP_NET_ADMIN")),
+    "no-can": ("estopd without --can vcan0 in estopd.conf (frames to its can-log)", "frames",
+               lambda: set_args("--can vcan0 ", "")),
+    "other-key": ("the service loads another key than the one the team holds",
+                  "estop release and estop stop", other_key),
+    "no-log-json": ("ExecStart without --log-json", "journal",
+                    lambda: dropin("ExecStart=\nExecStart=/usr/local/bin/estopd --key-file "
+                                   "${CREDENTIALS_DIRECTORY}/key --mlock $ESTOPD_ARGS")),
+    "no-network-file": ("the .network file removed (networkd leaves vcan0 down)", "networkd",
+                        lambda: Path("/etc/systemd/network/80-estop-can.network").unlink()),
+    "wanted-by-boot": ("the unit wanted by multi-user.target again (as before)",
+                       "a boot without vcan0", wanted_by_boot),
     "no-sysctl": ("the sysctl file not applied (net.core.rmem_max back to 212992)",
                   "systemctl start (udp_rcvbuf)",
                   lambda: sh(["sysctl", "-w", "net.core.rmem_max=212992"]) and None),

@@ -7,7 +7,7 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 COVDIR := build/cov
 
-.PHONY: setup demo test test-fast check coverage hil gamepad-vm bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install prove
+.PHONY: setup demo test test-fast check coverage hil gamepad-vm systemd-vm bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install prove
 setup: $(STAMP) $(VENV)/bin/estopd
 
 $(STAMP): pyproject.toml setup.py pyext/build_core.py pyext/estop_build_backend.py deps/debian-packages.txt $(wildcard firmware/core/*)
@@ -34,20 +34,23 @@ test: setup
 	$(MAKE) coverage
 	$(MAKE) hil
 	$(MAKE) gamepad-vm
+	$(MAKE) systemd-vm
 
 # What needs no daemon, browser, VM or MCU toolchain (the tests' kinds: tests/conftest.py), in
 # under a minute: the Python package (tests/unit), the core through cffi (tests/core), the
-# harness's and the bench's own code, the docs. $ESTOPD points nowhere, so a test that needs
-# estopd without saying so (the estopd fixture marks it daemon) fails here.
+# harness's and the bench's own code, the docs; not the slow ones (the core against its model,
+# about 40 s; make test runs them). $ESTOPD points nowhere, so a test that needs estopd
+# without saying so (the estopd fixture marks it daemon) fails here.
 test-fast: $(STAMP)
 	ESTOPD=/nonexistent/estopd-not-in-test-fast $(VPY) -m pytest -q \
-	  -m "not daemon and not browser and not vm and not mcu"
+	  -m "not daemon and not browser and not vm and not mcu and not slow"
 
 check: setup
 	scripts/ensure-debs check
 	$(MAKE) -C firmware strict
-	$(VENV)/bin/ruff check src tests hil bench pyext tools
+	$(VENV)/bin/ruff check src tests hil bench pyext tools tools/systemd-vm
 	$(VENV)/bin/mypy --strict src/estop
+	$(VENV)/bin/lint-imports
 	$(VPY) tools/misra.py
 
 # The whole suite but the VM tests (gamepad-vm runs those) runs once against a build of the
@@ -72,6 +75,14 @@ hil: setup
 # by their marker). Prints the lift latency it measured.
 gamepad-vm: setup
 	PATH="$(CURDIR)/$(VENV)/bin:$$PATH" tools/vm-pytest -m vm
+
+# estopd installed as docs/DEPLOY.md says and run under a real systemd, in qemu VMs (TCG):
+# Debian 12 (systemd 252, this machine's kernel) and Debian 13 (systemd 257, its own kernel).
+# Each image is built once with mmdebstrap and kept in ~/.cache/estop/systemd-vm (keyed on
+# what goes into it); both boot at once. Skips with the reason where it cannot run, except
+# under CI. Prints each check with what it measured (tools/systemd-vm --help).
+systemd-vm: setup
+	tools/systemd-vm
 
 # The core under Frama-C (docs/PROOF.md): Eva over the whole API (0 alarms, every function
 # reached), WP on the ACSL contracts (every goal proved), and a self-test on planted faults.

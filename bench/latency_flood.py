@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import json
 import random
-import re
 import select
 import signal
 import socket
@@ -20,6 +19,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from estop.protocol import auth, udp
+from estop.unit import events
+from estop.unit.udpsocket import udp_socket
 
 FLOOD_PAYLOADS = (
     b"\x00" * 7,                                        # wrong length
@@ -112,40 +113,29 @@ def flood_child(ports: list[int], rate: float, max_s: float,
 
 def udp_drops(port: int) -> int | None:
     """Kernel receive drops of the loopback UDP socket bound to ``port`` (/proc/net/udp)."""
-    try:
-        lines = Path("/proc/net/udp").read_text().splitlines()[1:]
-    except OSError:
-        return None
-    for line in lines:
-        f = line.split()
-        if len(f) >= 13 and int(f[1].split(":")[1], 16) == port:
-            return int(f[-1])
-    return None
-
-
-_RCVBUF_RE = re.compile(r'\budp_rcvbuf"?\s*[=:]\s*"?(\d+)')
-_DROPS_RE = re.compile(r'\budp_drops\b.*?\btotal"?\s*[=:]\s*"?(\d+)')
+    sock = udp_socket(port)
+    return None if sock is None else sock.drops
 
 
 def start_rcvbuf(log_lines: Sequence[str]) -> int | None:
-    """The UDP receive buffer a daemon's start line reports (``udp_rcvbuf=N``, text or JSON;
+    """The UDP receive buffer a daemon's start line reports (``udp_rcvbuf``, text or JSON;
     estopd since version 3); None when it reports none (the kernel's default then)."""
     for line in log_lines:
-        if re.search(r"\bstart\b", line):
-            m = _RCVBUF_RE.search(line)
-            return int(m.group(1)) if m else None
+        ev = events.parse(line)
+        if ev is not None and ev.kind == "start":
+            return ev.integer("udp_rcvbuf")
     return None
 
 
 def reported_udp_drops(log_lines: Sequence[str]) -> int | None:
     """The kernel drops a daemon reported itself (the ``total`` of its last ``udp_drops``
-    line); 0 when it reports its buffer but no drop, None when it reports neither (a daemon
+    event); 0 when it reports its buffer but no drop, None when it reports neither (a daemon
     that does not count them)."""
     total: int | None = 0 if start_rcvbuf(log_lines) is not None else None
     for line in log_lines:
-        m = _DROPS_RE.search(line)
-        if m:
-            total = int(m.group(1))
+        ev = events.parse(line)
+        if ev is not None and ev.kind == "udp_drops" and ev.integer("total") is not None:
+            total = ev.integer("total")
     return total
 
 

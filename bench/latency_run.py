@@ -5,17 +5,17 @@ from __future__ import annotations
 
 import argparse
 import gc
-import os
 import queue
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from estop.client.keyfile import write_key_file
 from estop.model.vehicle import VehicleParams
-from estop.protocol import auth, tcp
+from estop.protocol import tcp
+from estop.unit.canlog import DaemonError
 from estop.unit.daemon import Daemon
-from estop.unit.log import DaemonError
 from estop.unit.looplink import Link
 from latency_flood import Flood, reported_udp_drops, start_rcvbuf
 from latency_machine import CpuMeter, timer_floor
@@ -150,10 +150,7 @@ def run_load(load: str, daemons: list[DaemonSpec], args: argparse.Namespace, n: 
 
 
 def make_key_file(directory: Path) -> tuple[bytes, str]:
-    """A fresh key in ``directory``/estopd.key, mode 0600 from the start."""
-    key = os.urandom(auth.KEY_SIZE)
+    """A fresh key in ``directory``/estopd.key, mode 0600 from the start (the package's key
+    file writer, as ``estop keygen``)."""
     path = directory / "estopd.key"
-    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
-    with os.fdopen(fd, "wb") as f:
-        f.write(auth.format_key(key))
-    return key, str(path)
+    return write_key_file(path), str(path)

@@ -24,8 +24,8 @@ from estop.client.button import LiftDatagram, send_lift
 from estop.model.vehicle import DEFAULT_PARAMS, VehicleParams
 from estop.protocol import can, tcp, udp
 from estop.protocol.canlog import CanLogRecord
+from estop.unit.canlog import DaemonError, is_stop_frame, stamp
 from estop.unit.daemon import Daemon
-from estop.unit.log import DaemonError, is_stop_frame, stamp
 from estop.unit.looplink import Link
 from latency_result import LOST_LINES, TIMEOUT_FIRST, RunResult, Span
 from latency_roll import DEFAULT_SPEED_KMH, roll_from_record
@@ -280,8 +280,7 @@ class Trials:
         was quick)."""
         link = self._link
         if self._lift is None:
-            self._lift = LiftDatagram(link.addr[0], link.addr[1], key=link.key,
-                                      remote_id=link.remote_id, session=lambda: link.session,
+            self._lift = LiftDatagram(link.addr[0], link.addr[1], identity=link.identity,
                                       transmit=self._transmit_lift)
         self._lift_sends = []
         self._lift_seq += 1

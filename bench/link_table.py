@@ -20,7 +20,15 @@ from pathlib import Path
 import numpy as np
 
 from estop.link.fit import false_stops_per_hour, lost_in_row
-from estop.link.gaps import Gaps, Histogram, gaps_from_histogram, gaps_from_times
+from estop.link.format import fmt_rate
+from estop.link.gaps import (
+    DAEMON_EDGES_US,
+    Gaps,
+    Histogram,
+    daemon_bins,
+    gaps_from_histogram,
+    gaps_from_times,
+)
 from estop.link.report import report
 from estop.model.wifi import LinkConfig, LinkModel
 
@@ -39,27 +47,12 @@ def trace(burst: float, hours: float, seed: int) -> np.ndarray:
 
 
 def binned(times: np.ndarray) -> Gaps:
-    """The daemon's histogram of the gaps (its bin function, written again here)."""
+    """The daemon's histogram of the gaps (estop.link.gaps.daemon_bins: the core's bins)."""
     g = np.diff(np.rint(times * 1e6).astype(np.int64))
-    e = np.frexp(g.astype(np.float64))[1].astype(np.int64) - 1
-    b = np.where(g < 1024, 0, np.minimum(1 + 2 * (e - 10) + ((g >> np.maximum(e - 1, 0)) & 1),
-                                         31))
-    edges = [0] + [(1 << (10 + (k - 1) // 2)) + ((k - 1) % 2) * (1 << (9 + (k - 1) // 2))
-                   for k in range(1, 32)]
-    counts = np.bincount(b, minlength=32)
-    h = Histogram(tuple(edges), tuple(int(c) for c in counts), times.size, 0, 0, 100_000, 1,
-                    False)
+    counts = np.bincount(daemon_bins(g), minlength=32)
+    h = Histogram(DAEMON_EDGES_US, tuple(int(c) for c in counts), times.size, 0, 0, 100_000, 1,
+                  False)
     return gaps_from_histogram(h, RATE)
-
-
-def fmt(x: float) -> str:
-    if x == 0:
-        return "0"
-    if x >= 100:
-        return f"{x:.0f}"
-    if x >= 0.1:
-        return f"{x:.3g}"
-    return f"{x:.2g}"
 
 
 def main() -> None:
@@ -101,10 +94,11 @@ def main() -> None:
             row = rep.rows[j]
             closed = false_stops_per_hour(LOSS, burst, n, RATE)
             if row.gaps_sure == row.gaps_possible:
-                seen = fmt(row.gaps_sure / row.hours)
+                seen = fmt_rate(row.gaps_sure / row.hours)
             else:
-                seen = f"{fmt(row.gaps_sure / row.hours)}-{fmt(row.gaps_possible / row.hours)}"
-            cells += [fmt(row.model), fmt(closed), seen]
+                seen = (f"{fmt_rate(row.gaps_sure / row.hours)}-"
+                        f"{fmt_rate(row.gaps_possible / row.hours)}")
+            cells += [fmt_rate(row.model), fmt_rate(closed), seen]
         print("| " + " | ".join(cells) + " |")
     print()
     print(f"({time.perf_counter() - t0:.1f} s)")

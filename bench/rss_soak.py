@@ -23,8 +23,8 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from estop.protocol import tcp
+from estop.unit.canlog import DaemonError
 from estop.unit.daemon import Daemon, find_estopd
-from estop.unit.log import DaemonError
 from estop.unit.looplink import Link
 
 OUT = Path(__file__).resolve().parent / "out"

@@ -32,8 +32,8 @@ import time
 from pathlib import Path
 
 from estop.protocol import tcp
+from estop.unit.canlog import DaemonError
 from estop.unit.daemon import Daemon, find_estopd
-from estop.unit.log import DaemonError
 from latency_machine import timer_floor
 from latency_stats import summarize
 

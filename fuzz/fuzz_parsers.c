@@ -202,7 +202,10 @@ static void fuzz_opts(const uint8_t *data, size_t size)
     } else if (r == OPTS_RUN) {
         estop_config_t cfg = o.cfg;
         cfg.session = 1u;
-        CHECK((o.key_file != NULL) != (o.no_auth != 0), "opts: exactly one of key or no key");
+        /* --check alone may name neither (it checks no key then) */
+        CHECK((o.key_file != NULL) != (o.no_auth != 0) ||
+              (o.check && o.key_file == NULL && o.no_auth == 0),
+              "opts: exactly one of key or no key");
         CHECK(estop_config_check(&cfg) == ESTOP_OK, "opts: a configuration the core accepts");
         CHECK(o.cfg.session == 0u && o.cfg.key_len == 0u, "opts: no session or key from argv");
         CHECK(in_args(o.can_iface, args, n) && in_args(o.can_log, args, n) &&

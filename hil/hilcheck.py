@@ -53,7 +53,6 @@ from hilstats import (
     sent_between,
     status_windows,
     summary,
-    udp_socket_drops,
 )
 
 __all__ = [
@@ -63,5 +62,5 @@ __all__ = [
     "frame_commands", "frame_gaps", "in_windows", "judge_drops", "judge_latencies", "late",
     "merge", "merge_more", "overlap", "percentile", "periods", "read_candump", "read_stalls",
     "replay", "sent_between", "share_at", "shares_between", "status_windows", "summary",
-    "udp_socket_drops", "upper_median",
+    "upper_median",
 ]

@@ -11,6 +11,7 @@ import threading
 import time
 from dataclasses import dataclass
 
+from estop.client.channel import StopChannel, StopChannelError
 from estop.protocol import auth, tcp, udp
 from hilrig import RigError
 
@@ -123,25 +124,25 @@ def read_reply(sock: socket.socket, asm: tcp.FrameAssembler, timeout: float,
 
 
 class StopClient:
-    """One TCP connection of the stop channel."""
+    """One TCP connection of the stop channel: the package's client
+    (:class:`estop.client.channel.StopChannel`, plain 16-byte frames), each exchange timed.
+    :meth:`request_frame` probes the 48-byte form on a connection of its own."""
 
     def __init__(self, port: int, timeout: float = 2.0) -> None:
-        self.sock = socket.create_connection(("127.0.0.1", port), timeout=timeout)
-        self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        self.asm = tcp.FrameAssembler()
+        self.port = port
         self.timeout = timeout
+        self.channel = StopChannel("127.0.0.1", port, timeout=timeout)
+        self.channel.connect()
+        self._framed: socket.socket | None = None
         self.seq = 0
 
     def request(self, msg_id: int) -> Exchange:
-        self.seq += 1
-        req = tcp.Request(msg_id, self.seq)
-        t0 = time.time()
-        self.sock.sendall(req.encode())
-        raw, t1 = read_reply(self.sock, self.asm, self.timeout, f"msg_id {msg_id:#x}")
-        rep = tcp.Reply.decode(raw)
-        if rep.seq != self.seq:
-            raise RigError(f"reply seq {rep.seq}, request seq {self.seq}")
-        return Exchange(rep, t0, t1)
+        try:
+            seq, t0 = self.channel.send(msg_id)
+            rep = self.channel.receive(seq)
+        except StopChannelError as exc:
+            raise RigError(f"msg_id {msg_id:#x}: {exc}") from None
+        return Exchange(rep, t0, time.time())
 
     def stop(self, stop_id: int = tcp.DEFAULT_STOP_ID) -> Exchange:
         return self.request(stop_id)
@@ -150,15 +151,18 @@ class StopClient:
         return self.request(tcp.LIFT)
 
     def request_frame(self, msg_id: int, remote_id: int = 0, counter: int = 1) -> Exchange:
-        """A 48-byte request frame (spec section 5.2, tag 16 zero bytes, session 0) on this
-        connection, whose first 4 bytes tell the unit its form, and its 48-byte reply:
-        ``tag_ok`` says whether the reply has the zero tag of a unit without a key and echoes
-        the seq and counter."""
+        """A 48-byte request frame (spec section 5.2, tag 16 zero bytes, session 0) and its
+        48-byte reply: ``tag_ok`` says whether the reply has the zero tag of a unit without a
+        key and echoes the seq and counter."""
+        if self._framed is None:
+            self._framed = socket.create_connection(("127.0.0.1", self.port),
+                                                    timeout=self.timeout)
+            self._framed.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         self.seq += 1
         frame = auth.AuthRequest(msg_id, self.seq, remote_id, 0, counter).encode(None)
         t0 = time.time()
-        self.sock.sendall(frame)
-        raw, t1 = read_reply(self.sock, tcp.FrameAssembler(auth.REPLY_SIZE), self.timeout,
+        self._framed.sendall(frame)
+        raw, t1 = read_reply(self._framed, tcp.FrameAssembler(auth.REPLY_SIZE), self.timeout,
                              "a request frame")
         try:
             rep = auth.AuthReply.decode(raw, None)
@@ -174,7 +178,10 @@ class StopClient:
         return self.request(tcp.RELEASE)
 
     def close(self) -> None:
-        self.sock.close()
+        self.channel.close()
+        if self._framed is not None:
+            self._framed.close()
+            self._framed = None
 
 
 class AuthClient:

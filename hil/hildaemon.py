@@ -4,7 +4,6 @@ by a thread, and the scheduling the kernel gives its threads (``--rt-prio``, as 
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import threading
@@ -12,6 +11,8 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+
+from estop.unit import events
 
 
 @dataclass
@@ -48,12 +49,8 @@ class Daemon:
         for raw in self.proc.stderr:
             t = time.time()
             line = raw.rstrip("\n")
-            try:
-                rec = json.loads(line)
-                if not isinstance(rec, dict):
-                    rec = None
-            except ValueError:
-                rec = None
+            ev = events.parse(line)  # the package's reader of estopd's log
+            rec = dict(ev.fields) if ev is not None and ev.json else None
             with self.lock:
                 self.lines.append(LogLine(t, line, rec))
             self._log.write(f"{t:.6f} {line}\n")

@@ -20,8 +20,8 @@ import threading
 import time
 from pathlib import Path
 
+from estop.unit.udpsocket import udp_socket
 from hilrig import RigError
-from hilstats import udp_socket_drops
 
 
 class Helper:
@@ -244,11 +244,9 @@ class QueueWatch:
 
 def udp_drops(port: int) -> tuple[int, int] | None:
     """(rx_queue bytes, kernel drops) of the daemon's UDP socket, from /proc/net/udp (this
-    network namespace)."""
-    try:
-        return udp_socket_drops(Path("/proc/net/udp").read_text(), port)
-    except OSError:
-        return None
+    network namespace; estop.unit.udpsocket)."""
+    sock = udp_socket(port)
+    return None if sock is None else (sock.rx_queue, sock.drops)
 
 
 # --------------------------------------------------------------------------- loopback tap

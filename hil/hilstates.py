@@ -14,6 +14,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 from estop.protocol.can import BRAKE_ID, BrakeFrame, reason_name, state_name
+from estop.unit import events
 from hilemu import Frame
 
 # The cause each kind of change may carry (firmware/estopd/README.md, "Events"): into STOPPED
@@ -106,11 +107,10 @@ class LogChange:
 
 
 def log_changes(records: Iterable[dict]) -> list[LogChange]:
-    """The ``state`` lines among the log records, in order."""
-    return [LogChange(str(r.get("from")), str(r.get("to")), str(r.get("reason")),
-                      None if r.get("cause") is None else str(r.get("cause")),
-                      None if r.get("src") is None else str(r.get("src")))
-            for r in records if r.get("event") == "state"]
+    """The ``state`` lines among the log records, in order (read by estop.unit.events, as
+    every reader of estopd's log reads them)."""
+    changes = (events.state_change(events.Event.of(r)) for r in records)
+    return [LogChange(c.frm, c.to, c.reason, c.cause, c.src) for c in changes if c is not None]
 
 
 def log_problem(changes: Sequence[LogChange], want: Sequence[tuple[str, str, str, str]],

@@ -57,25 +57,6 @@ def in_windows(t: float, windows: Iterable[tuple[float, float]]) -> bool:
 
 # --------------------------------------------------------------------------- UDP flood figures
 
-def udp_socket_drops(proc_net_udp: str, port: int) -> tuple[int, int] | None:
-    """(rx_queue bytes, drops) of the unconnected UDP socket bound to ``port``, from the text
-    of ``/proc/net/udp``; None when there is no such socket."""
-    for line in proc_net_udp.splitlines()[1:]:
-        f = line.split()
-        if len(f) < 13 or ":" not in f[1] or ":" not in f[4]:
-            continue
-        try:
-            lport = int(f[1].rsplit(":", 1)[1], 16)
-            rport = int(f[2].rsplit(":", 1)[1], 16)
-            rxq = int(f[4].split(":")[1], 16)
-            drops = int(f[-1])
-        except ValueError:
-            continue
-        if lport == port and rport == 0:
-            return rxq, drops
-    return None
-
-
 @dataclass(frozen=True, slots=True)
 class StatusWindow:
     """What one ESTOP_STATUS frame counted: the packets of ``(start, end]``, where ``start``

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import os
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from types import ModuleType
 
@@ -20,6 +21,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from daemon_util import locate_estopd  # noqa: E402 - needs the path above
+from net_util import UdpSink  # noqa: E402
 from tool_util import load_bench_script  # noqa: E402
 
 HERE = Path(__file__).resolve().parent
@@ -84,7 +86,9 @@ def estopd() -> str:
     return exe
 
 _SETTINGS_ENV = ("ESTOP_HOST", "ESTOP_UDP_PORT", "ESTOP_TCP_PORT", "ESTOP_KEY_FILE",
-                 "ESTOP_REMOTE_ID", "ESTOP_STOP_ID", "ESTOP_RATE_HZ", "ESTOP_CONFIG")
+                 "ESTOP_REMOTE_ID", "ESTOP_STOP_ID", "ESTOP_RATE_HZ", "ESTOP_CONFIG",
+                 # python-can's own configuration (the bus of estop monitor and dashboard)
+                 "CAN_INTERFACE", "CAN_CHANNEL", "CAN_BITRATE", "CAN_CONFIG")
 
 
 @pytest.fixture(autouse=True)
@@ -101,6 +105,14 @@ def _no_settings_from_the_developer(monkeypatch: pytest.MonkeyPatch,
     (home / "estop").mkdir()
     (home / "estop" / "config.toml").write_text("remote_id = 1\n")
     monkeypatch.setenv("XDG_CONFIG_HOME", str(home))
+
+
+@pytest.fixture
+def sink() -> Iterator[UdpSink]:
+    """A UDP socket on loopback that records what arrives (the unit's control port)."""
+    s = UdpSink()
+    yield s
+    s.close()
 
 
 @pytest.fixture(scope="module")

@@ -9,6 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from estop.link.gaps import DAEMON_EDGES_US, daemon_bins
+
 RATE = 50.0
 PERIOD_US = 20_000
 HOURS10 = 10 * 3600 * 50  # packets sent in 10 hours at 50 Hz: 1.8 M
@@ -53,25 +55,7 @@ def arrivals_us(lost: np.ndarray) -> np.ndarray:
     return np.flatnonzero(~lost).astype(np.int64) * PERIOD_US
 
 
-def daemon_bin(g_us: np.ndarray) -> np.ndarray:
-    """The daemon's bin of a gap, written here from the event's definition: 0 below 1024 us;
-    else e = floor(log2 g), h = bit e-1 of g, bin 1 + 2 (e - 10) + h, at most 31."""
-    g = np.asarray(g_us, dtype=np.int64)
-    e = np.frexp(g.astype(np.float64))[1].astype(np.int64) - 1  # floor(log2 g), exact < 2^53
-    h = (g >> np.maximum(e - 1, 0)) & 1
-    return np.where(g < 1024, 0, np.minimum(1 + 2 * (e - 10) + h, 31))
-
-
-def daemon_bin_one(g: int) -> int:
-    """The same, one gap at a time with Python integers (a check on the vectorised one)."""
-    if g < 1024:
-        return 0
-    e = g.bit_length() - 1
-    return min(1 + 2 * (e - 10) + ((g >> (e - 1)) & 1), 31)
-
-
-EDGES_US = [0] + [(1 << (10 + (b - 1) // 2)) + ((b - 1) % 2) * (1 << (9 + (b - 1) // 2))
-                  for b in range(1, 32)]
+EDGES_US = list(DAEMON_EDGES_US)
 
 
 def histogram_log(runs: list[np.ndarray], every_s: float = 10.0, warn_us: int = 100_000,
@@ -83,7 +67,7 @@ def histogram_log(runs: list[np.ndarray], every_s: float = 10.0, warn_us: int = 
     for t_us in runs:
         lines.append(json.dumps({"t_mono": t0, "event": "start", "udp_port": 5700}))
         g = np.diff(t_us)
-        bins = daemon_bin(g)
+        bins = daemon_bins(g)
         window = ((t_us[1:] - t_us[0]) // int(every_s * 1e6)).astype(np.int64)
         nwin = int(window[-1]) + 1
         per = np.zeros((nwin, 32), dtype=np.int64)
@@ -195,7 +179,7 @@ def unit_log(runs: list[tuple[np.ndarray, UnitRun]], every_s: float = 60.0,
                                                 "from": frm, "to": to, "reason": why,
                                                 "src": "-"})))
         g = np.diff(t_us)
-        bins = daemon_bin(g)
+        bins = daemon_bins(g)
         step = int(every_s * 1e6)
         ends = [*range(int(t_us[0]) + step, int(t_us[-1]), step), int(t_us[-1])]
         slow = np.asarray(unit.slowdowns_us, dtype=np.int64)

@@ -47,6 +47,13 @@ int main(int argc, char **argv)
     default:
         break;
     }
+    if (daemon_state.opt.check) {
+        if (setup_check(&daemon_state, err, sizeof err) != 0) {
+            (void)fprintf(stderr, "estopd: error: %s\n", err);
+            return 1;
+        }
+        return 0;
+    }
     if (setup(&daemon_state, err, sizeof err) != 0) {
         (void)fprintf(stderr, "estopd: error: %s\n", err);
         return 1;

@@ -23,7 +23,8 @@ enum {
     OPT_KEY_FILE,
     OPT_NO_AUTH,
     OPT_RT_PRIO,
-    OPT_MLOCK
+    OPT_MLOCK,
+    OPT_CHECK
 };
 
 static const struct option long_opts[] = {
@@ -43,6 +44,7 @@ static const struct option long_opts[] = {
     { "no-auth", no_argument, NULL, OPT_NO_AUTH },
     { "rt-prio", required_argument, NULL, OPT_RT_PRIO },
     { "mlock", no_argument, NULL, OPT_MLOCK },
+    { "check", no_argument, NULL, OPT_CHECK },
     { "help", no_argument, NULL, 'h' },
     { "version", no_argument, NULL, 'V' },
     { NULL, 0, NULL, 0 }
@@ -55,7 +57,7 @@ static void usage(void)
         "              [--udp-port 5700] [--tcp-port 5701] [--bind 0.0.0.0]\n"
         "              [--timeout-ms 200] [--slow-ms T] [--slow-level 30] [--warn-ms S/2]\n"
         "              [--stop-id 0xE570E570]\n"
-        "              [--rt-prio 1..99] [--mlock] [--log-json] [--help] [--version]\n"
+        "              [--rt-prio 1..99] [--mlock] [--log-json] [--check] [--help] [--version]\n"
         "\n"
         "Emergency-stop unit: watches UDP control packets and TCP stop frames and commands\n"
         "the brake on CAN (docs/PROTOCOL.md). No valid control packet for --slow-ms starts a\n"
@@ -67,7 +69,10 @@ static void usage(void)
         "Without --channel (a SocketCAN interface), frames go to the can-log (stdout).\n"
         "Port 0 picks a free port; the start event on stderr shows the ports.\n"
         "--rt-prio: SCHED_FIFO for the watchdog loop; --mlock: mlockall, no paging stalls,\n"
-        "and the core's MAC state (as good as the key) is never written to swap.\n");
+        "and the core's MAC state (as good as the key) is never written to swap.\n"
+        "--check: check what a start would refuse and no restart mends (the options, the key\n"
+        "file, --rt-prio, --mlock, the CAN interface), opening no socket; exit as a start\n"
+        "would, silently when all is well (the service's ExecCondition=).\n");
 }
 
 /* Strict unsigned number: digits only (no sign, no spaces), optional 0x prefix when
@@ -199,6 +204,9 @@ static int set_one(int c, const char *arg, opts_t *o, given_t *given, char *err,
     case OPT_MLOCK:
         o->mlock = 1;
         return 0;
+    case OPT_CHECK:
+        o->check = 1;
+        return 0;
     default:
         (void)snprintf(err, n, "internal: unhandled option %d", c);
         return -1;
@@ -276,7 +284,8 @@ opts_result_t opts_parse(int argc, char **argv, opts_t *o, char *err, size_t err
         (void)snprintf(err, errlen, "unexpected argument '%s'", argv[optind]);
         return OPTS_ERROR;
     }
-    if ((o->key_file != NULL) == (o->no_auth != 0)) {
+    /* --check may leave both out: there is no key to check then. */
+    if ((o->key_file != NULL) == (o->no_auth != 0) && !(o->check && o->key_file == NULL)) {
         (void)snprintf(err, errlen, "%s", o->no_auth ? "--key-file and --no-auth exclude each other"
                                                       : "--key-file PATH or --no-auth is required"
                                                         " (a unit with a key, or one without)");

@@ -20,6 +20,7 @@ typedef struct {
     int no_auth;            /* --no-auth: the unit has none; exactly one of the two is given */
     int rt_prio;            /* --rt-prio N: SCHED_FIFO priority of the loop, 0: unchanged */
     int mlock;              /* --mlock: lock all memory (mlockall) */
+    int check;              /* --check: check the set-up as a start would, then exit */
     estop_config_t cfg;     /* session and key are filled in at start-up, not here */
 } opts_t;
 

@@ -1,6 +1,7 @@
 #include "setup.h"
 
 #include <errno.h>
+#include <net/if.h>
 #include <signal.h>
 #include <stdio.h>
 #include <string.h>
@@ -193,6 +194,30 @@ static int setup_mlock(const daemon_t *d, char *err, size_t n)
 static int setup_realtime(daemon_t *d, char *err, size_t n)
 {
     return d->opt.rt_prio > 0 ? setup_rt_prio(d->opt.rt_prio, err, n) : 0;
+}
+
+int setup_check(daemon_t *d, char *err, size_t errlen)
+{
+    uint8_t key[ESTOP_KEY_LEN];
+    int rc = 0;
+
+    /* As at start: no core dump of a process that holds the key. */
+    if (prctl(PR_SET_DUMPABLE, 0L, 0L, 0L, 0L) != 0) {
+        return fail("prctl(PR_SET_DUMPABLE)", err, errlen);
+    }
+    if (d->opt.key_file != NULL) {
+        rc = keyfile_load(d->opt.key_file, key, err, errlen);
+        explicit_bzero(key, sizeof key);
+    }
+    if (rc == 0) {
+        rc = setup_realtime(d, err, errlen);
+    }
+    if (rc == 0 && d->opt.can_iface != NULL && if_nametoindex(d->opt.can_iface) == 0u) {
+        (void)snprintf(err, errlen, "no CAN interface '%s': %s", d->opt.can_iface,
+                       strerror(errno));
+        rc = -1;
+    }
+    return rc;
 }
 
 /* The real-time priority the loop (this thread) runs at, whoever set it: --rt-prio, or

@@ -671,5 +671,5 @@ CoreVsModel.TestCase.settings = settings(
 test_core_matches_model = CoreVsModel.TestCase
 # A pass takes well under a minute, but a failure is shrunk for up to five minutes (hypothesis'
 # own limit): the bound sits above that, so a failure is reported as its counterexample rather
-# than as a timeout.
-test_core_matches_model.pytestmark = [pytest.mark.timeout(600)]
+# than as a timeout. Slow: make test-fast leaves it to make test.
+test_core_matches_model.pytestmark = [pytest.mark.timeout(600), pytest.mark.slow]

@@ -75,6 +75,26 @@ def test_unit_is_bound_to_the_can_interface_it_was_installed_for(can1: Path) -> 
     assert re.search(r"^ESTOPD_ARGS=.*--can can1\b", conf, re.M), conf
 
 
+def test_unit_waits_for_its_interface_without_holding_the_boot(can1: Path) -> None:
+    """Started by its interface only (issue 26): wanted by multi-user.target too, a boot
+    without the interface held multi-user.target "starting" until the device's 90 s timeout
+    (seen in the Debian 12 and 13 VMs of make systemd-vm)."""
+    unit = _sections((can1 / UNIT).read_text())
+    assert unit["Install"]["WantedBy"] == ["sys-subsystem-net-devices-can1.device"]
+
+
+def test_unit_checks_the_set_up_before_each_start(can1: Path) -> None:
+    """Set-ups that no restart mends end the start with estopd's own line, no restart loop
+    (issue 26): as root the key file as installed, then as the service the options, the
+    priority and the memory lock (`estopd --check`, tests/test_estopd_systemd.py)."""
+    unit = _sections((can1 / UNIT).read_text())
+    conds = unit["Service"]["ExecCondition"]
+    exe = f"{can1}/usr/bin/estopd"
+    assert conds == [f"+{exe} --check --key-file {can1}/etc/estop/key $ESTOPD_ARGS",
+                     f"{exe} --check --mlock $ESTOPD_ARGS"], conds
+    assert unit["Service"]["ExecStart"][0].startswith(f"{exe} --key-file ")
+
+
 def test_restart_never_spins_and_never_gives_up(can1: Path) -> None:
     unit = _sections((can1 / UNIT).read_text())
     assert unit["Service"]["Restart"] == ["always"]

@@ -107,3 +107,19 @@ def test_a_priority_it_may_not_have_is_refused_naming_the_cause() -> None:
     for what in ("--rt-prio 60", "CAP_SYS_NICE", "RLIMIT_RTPRIO >= 60 (it is 0)",
                  "CPUSchedulingPriority"):
         assert what in lines[0], lines[0]
+
+
+def test_check_as_the_service_refuses_a_priority_above_its_own() -> None:
+    """The service's second ExecCondition= runs `estopd --check --mlock $ESTOPD_ARGS` as the
+    service (SCHED_FIFO 50, no capability): --rt-prio 60 in the options is one line naming the
+    cause and exit 1 there, so the start is skipped instead of failing every second; --rt-prio
+    50 passes."""
+    base = [find_estopd(), "--check", "--channel", "lo"]
+    for prio, code in ((60, 1), (50, 0)):
+        res = subprocess.run(as_service(50, [*base, "--rt-prio", str(prio)], rtprio_limit=0),
+                             capture_output=True, text=True, timeout=30, check=False,
+                             stdin=subprocess.DEVNULL)
+        assert res.returncode == code, res
+        if code:
+            assert "CPUSchedulingPriority=60" in res.stderr and len(
+                res.stderr.splitlines()) == 1, res.stderr

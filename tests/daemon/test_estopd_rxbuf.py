@@ -24,6 +24,7 @@ import pytest
 from daemon_util import ACK, MSG_STATUS, Daemon
 from estop.protocol import auth
 from estop.protocol.udp import ControlPacket
+from estop.unit.udpsocket import udp_socket
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -124,8 +125,8 @@ def tag_failures_and_drops(d: Daemon) -> tuple[int, int | None]:
 
 def rx_queued(port: int) -> int:
     """Bytes waiting in the receive queue of the UDP socket bound to port (/proc/net/udp)."""
-    rows = [line.split() for line in Path("/proc/net/udp").read_text().splitlines()[1:]]
-    return sum(int(r[4].split(":")[1], 16) for r in rows if r[1].endswith(f":{port:04X}"))
+    sock = udp_socket(port)
+    return 0 if sock is None else sock.rx_queue
 
 
 def test_the_buffer_absorbs_50_ms_of_an_80000_per_second_flood(tmp_path: Path) -> None:

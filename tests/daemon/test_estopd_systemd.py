@@ -282,3 +282,50 @@ def test_rt_prio_is_for_the_loop_only_and_mlock_locks(tmp_path: Path) -> None:
 def test_rt_prio_out_of_range_is_a_usage_error(value: str) -> None:
     res = run_estopd(["--rt-prio", value])
     assert res.returncode == 2 and len(res.stderr.splitlines()) == 1, res
+
+
+# -- --check: the service's ExecCondition= (issue 26) ------------------------------------------
+def test_check_says_what_a_start_would_refuse_in_one_line(tmp_path: Path) -> None:
+    """Under systemd a refused start was restarted every second for ever, the reason lost in the
+    storm (a missing key file: only systemd's 'Failed to set up credentials: Protocol error').
+    `estopd --check` runs first, as ExecCondition=: one line and exit 1 (2 for a bad option)
+    for what no restart mends, exit 0 and nothing said otherwise."""
+    key = tmp_path / "key"
+    key.write_text("00" * 32 + "\n")
+    key.chmod(0o600)
+    cases = [
+        ([], 0, ""),
+        (["--key-file", str(key), "--channel", "lo"], 0, ""),
+        (["--key-file", str(tmp_path / "nope")], 1, "No such file or directory"),
+        (["--channel", "nosuch0"], 1, "no CAN interface 'nosuch0'"),
+        (["--timeout-ms", "0"], 2, "--timeout-ms"),
+        (["--no-auth", "--key-file", str(key)], 2, "exclude each other"),
+    ]
+    key.with_name("open").write_text("00" * 32 + "\n")
+    key.with_name("open").chmod(0o644)
+    cases.append((["--key-file", str(key.with_name("open"))], 1, "group or others have access"))
+    for args, code, why in cases:
+        res = run_estopd(["--check", *args], auth=False)
+        assert res.returncode == code, (args, res)
+        assert res.stdout == "", (args, res)
+        if code:
+            lines = res.stderr.splitlines()
+            assert len(lines) == 1 and why in lines[0], (args, res.stderr)
+        else:
+            assert res.stderr == "", (args, res)
+
+
+def test_check_opens_no_socket() -> None:
+    """--check is not a start: with the ports taken it still says all is well (a port in use
+    is a start-up failure that a restart may mend, for systemd's Restart= to handle)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as u, \
+            socket.socket(socket.AF_INET, socket.SOCK_STREAM) as t:
+        u.bind(("127.0.0.1", 0))
+        t.bind(("127.0.0.1", 0))
+        t.listen()
+        res = run_estopd(["--check", "--no-auth", "--bind", "127.0.0.1", "--udp-port",
+                          str(u.getsockname()[1]), "--tcp-port", str(t.getsockname()[1])])
+        assert res.returncode == 0 and res.stderr == "", res
+        res = run_estopd(["--no-auth", "--bind", "127.0.0.1", "--udp-port",
+                          str(u.getsockname()[1]), "--tcp-port", "0"])
+        assert res.returncode == 1, res  # the same options, started: the port is taken

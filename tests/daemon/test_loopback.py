@@ -17,28 +17,10 @@ from types import ModuleType
 import pytest
 
 from estop.protocol import auth, can, canlog, tcp, udp
+from estop.unit.canlog import DROP_REPORT_REACH_S, CanLogLoss, DaemonError, drop_windows
 from estop.unit.daemon import Daemon
-from estop.unit.log import (
-    DROP_REPORT_REACH_S,
-    CanLogLoss,
-    DaemonError,
-    OutputDropped,
-    drop_windows,
-    parse_output_dropped,
-)
+from estop.unit.events import OutputDropped
 from estop.unit.looplink import Link
-
-
-def test_output_dropped_lines_are_parsed_text_and_json() -> None:
-    text = "estopd 2690.173274 output_dropped stream=can_log dropped=12 total=40 err=EPIPE"
-    assert parse_output_dropped(text) == OutputDropped(2690.173274, "can_log", 12, 40, "EPIPE")
-    js = ('{"t_mono":12.5,"event":"output_dropped","stream":"log","dropped":3,"total":3,'
-          '"err":"full"}')
-    assert parse_output_dropped(js) == OutputDropped(12.5, "log", 3, 3, "full")
-    assert parse_output_dropped("estopd 1.0 state ARMED->STOPPED reason=udp_timeout") is None
-    assert parse_output_dropped('{"t_mono":1.0,"event":"start","udp":"127.0.0.1:1"}') is None
-    assert parse_output_dropped("estopd 1.0 output_dropped stream=can_log") is None  # no count
-    assert parse_output_dropped("{not json output_dropped") is None
 
 
 def test_drop_windows_reach_back_one_report_period_or_to_a_missing_report() -> None:

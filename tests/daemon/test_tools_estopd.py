@@ -17,8 +17,8 @@ from estop import cli
 from estop.client.keyfile import load_key_file
 from estop.client.sender import Remote
 from estop.protocol import can, canlog
+from estop.unit.canlog import stamp as canlog_stamp
 from estop.unit.daemon import Daemon
-from estop.unit.log import stamp as canlog_stamp
 from net_util import LOCAL, unused_tcp_port
 
 pytestmark = pytest.mark.timeout(120)

@@ -93,17 +93,6 @@ def test_goals_and_report_on_synthetic_runs(bench: ModuleType, tmp_path: Path) -
     assert (tmp_path / "h.png").stat().st_size > 1000
 
 
-def test_start_line_ports_are_parsed() -> None:
-    from estop.unit.log import parse_start_ports
-
-    assert parse_start_ports("estopd 0.000001 start udp=127.0.0.1:5700 tcp=127.0.0.1:5701") \
-        == (5700, 5701)
-    assert parse_start_ports('{"t_mono": 1.5, "event": "start", "udp_port": 40000, '
-                             '"tcp_port": 40001}') == (40000, 40001)
-    assert parse_start_ports("estopd 1.0 start udp_port=1 tcp_port=2") == (1, 2)
-    assert parse_start_ports("estopd 1.0 state ARMED->STOPPED reason=udp_timeout") is None
-
-
 def test_lost_lines_are_a_column_and_settle_moves_samples(bench: ModuleType) -> None:
     r = _run(bench, "estopd", "idle", [0.1, 0.2, 30.0])
     r.spans["overshoot"] = [((1.0, 1.1), (5.0, 5.1)), ((2.0, 2.1), (6.0, 6.1)),

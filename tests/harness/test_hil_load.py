@@ -15,22 +15,6 @@ from estop.protocol.can import StatusFrame
 from hilcheck import Frame
 from repo import ROOT
 
-PROC_NET_UDP = """\
-   sl  local_address rem_address   st tx_queue rx_queue tr tm->when retrnsmt   uid  timeout \
-inode ref pointer drops
-11060: 0100007F:D252 00000000:0000 07 00000000:007FFE80 00:00000000 00000000     0        0 \
-201297 2 0000000020bb6bc2 226942
-14081: 0100007F:9E1F 0100007F:D252 01 00000000:00000000 00:00000000 00000000     0        0 \
-201301 2 00000000afdcb09b 7
-"""
-
-
-def test_udp_socket_drops() -> None:
-    assert hilcheck.udp_socket_drops(PROC_NET_UDP, 0xD252) == (0x7FFE80, 226942)
-    # the flooder's own connected socket (remote port set) is not the daemon's
-    assert hilcheck.udp_socket_drops(PROC_NET_UDP, 0x9E1F) is None
-    assert hilcheck.udp_socket_drops("header only\n", 5700) is None
-
 
 def _status(ts: float, valid: int, invalid: int, auth: int, ctr: int) -> Frame:
     return Frame(ts, 0x051, StatusFrame(valid, invalid, auth, 0, 0xFFFF, ctr).encode())

@@ -16,8 +16,9 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
-from estop.client.channel import MessageCounter, StopChannel, StopChannelError, format_reply
-from estop.protocol import auth, tcp
+from estop.client.channel import StopChannel, StopChannelError, format_reply
+from estop.client.identity import Identity
+from estop.protocol import tcp
 from estop.protocol.tcp import Reply
 
 __all__ = [
@@ -40,31 +41,26 @@ _RETRY_GAPS = (0.05, 0.1, 0.2, 0.25)  # pause after the 1st, 2nd, 3rd, later fai
 
 class RequestDatagram:
     """Sends 48-byte request frames (spec section 5.2) with one msg_id to the unit's UDP control
-    port: the stop and lift datagrams of spec section 1. Without a key the tag is 16 zero
-    bytes; the session is 0 unless one is known; the counter rises with every datagram (the
+    port: the stop and lift datagrams of spec section 1, under the remote's
+    :class:`~estop.client.identity.Identity` (without a key the tag is 16 zero bytes; the
+    session is 0 until the identity learns one; its counter rises with every datagram: the
     unit checks none of them on a stop request, but a remote raises its counter with every
     message). No reply comes over UDP.
 
     ``send(seq)`` writes one datagram; it raises OSError when the socket refuses.
     ``transmit`` replaces the plain ``sendto`` (the remote passes its link model)."""
 
-    def __init__(self, host: str, port: int, msg_id: int, *, key: bytes | None = None,
-                 remote_id: int = 0, counter: MessageCounter | None = None,
-                 session: Callable[[], int] | None = None,
+    def __init__(self, host: str, port: int, msg_id: int, *, identity: Identity | None = None,
                  transmit: Callable[[bytes], None] | None = None) -> None:
         self.addr = (host, port)
         self.msg_id = msg_id
-        self.key = None if key is None else auth.check_key(key)
-        self.remote_id = remote_id
-        self.counter = counter or MessageCounter()
-        self._session = session or (lambda: 0)
+        self.identity = identity or Identity()
         self._transmit = transmit
         self._sock: socket.socket | None = None
         self.sent = 0
 
     def encode(self, seq: int) -> bytes:
-        return auth.AuthRequest(self.msg_id, seq, self.remote_id, self._session(),
-                                self.counter.next()).encode(self.key)
+        return self.identity.request_frame(self.msg_id, seq)
 
     def send(self, seq: int) -> None:
         data = self.encode(seq)
@@ -89,12 +85,10 @@ class StopDatagram(RequestDatagram):
     ``send(seq)`` takes the seq of the TCP STOP it goes with."""
 
     def __init__(self, host: str, port: int, *, stop_id: int = tcp.DEFAULT_STOP_ID,
-                 key: bytes | None = None, remote_id: int = 0,
-                 counter: MessageCounter | None = None,
-                 session: Callable[[], int] | None = None,
+                 identity: Identity | None = None,
                  transmit: Callable[[bytes], None] | None = None) -> None:
-        super().__init__(host, port, tcp.check_stop_id(stop_id), key=key, remote_id=remote_id,
-                         counter=counter, session=session, transmit=transmit)
+        super().__init__(host, port, tcp.check_stop_id(stop_id), identity=identity,
+                         transmit=transmit)
         self.stop_id = stop_id
 
 
@@ -103,12 +97,9 @@ class LiftDatagram(RequestDatagram):
     finger leaves the screen, at once and twice more :data:`LIFT_GAP` apart (spec section 8);
     the unit stops on it with reason lift whatever its tag says."""
 
-    def __init__(self, host: str, port: int, *, key: bytes | None = None, remote_id: int = 0,
-                 counter: MessageCounter | None = None,
-                 session: Callable[[], int] | None = None,
+    def __init__(self, host: str, port: int, *, identity: Identity | None = None,
                  transmit: Callable[[bytes], None] | None = None) -> None:
-        super().__init__(host, port, tcp.LIFT, key=key, remote_id=remote_id, counter=counter,
-                         session=session, transmit=transmit)
+        super().__init__(host, port, tcp.LIFT, identity=identity, transmit=transmit)
 
 
 def send_lift(datagram: LiftDatagram, seq: int, *, sends: int = LIFT_SENDS,

@@ -1,6 +1,6 @@
 """Client side of the TCP stop channel, the project's one request/reply client: one
-connection, requests answered by reply frames (plain, or keyed and verified), the counter a
-remote raises with every message, and how a reply reads.
+connection, requests answered by reply frames (plain, or keyed and verified, under the
+remote's :class:`~estop.client.identity.Identity`), and how a reply reads.
 
 Used by ``estop stop|lift|release|status`` (one request per connection), by
 :class:`estop.client.sender.Remote` (one connection kept open, as the tablet does), by the
@@ -16,14 +16,13 @@ import threading
 import time
 from collections.abc import Iterator
 
+from estop.client.identity import Identity
 from estop.protocol import auth, tcp
 from estop.protocol.can import flag_names, reason_name, state_name
 from estop.protocol.tcp import FrameAssembler, Reply, Request
 
 __all__ = [
-    "DEFAULT_REMOTE_ID",
     "ConnectionClosed",
-    "MessageCounter",
     "ReplyNotAuthentic",
     "StopChannel",
     "StopChannelError",
@@ -31,9 +30,6 @@ __all__ = [
     "nak_hint",
     "reply_dict",
 ]
-
-DEFAULT_REMOTE_ID = 1  # a remote's id (spec section 5) without a key, unless told otherwise
-
 
 class StopChannelError(OSError):
     """Connecting, sending or receiving failed, or the reply was malformed. One-line ``str``."""
@@ -100,29 +96,25 @@ class StopChannel:
     ``request()`` sends one frame and waits (at most ``timeout`` seconds) for the reply that
     echoes its seq. Any failure closes the connection and raises :class:`StopChannelError`.
 
-    Plain 16-byte frames, or, with ``key`` (or ``framed=True`` without one: zero tags), the
-    48-byte request frames of spec section 5.2, answered by 48-byte replies. With a key each
-    reply must verify against its request (else :class:`ReplyNotAuthentic`) and echo its
-    seq and counter; every reply teaches :attr:`session`, the unit's session, which later
-    requests carry (0 until known). ``counter`` is shared with the remote's other messages.
+    Plain 16-byte frames, or, with a keyed ``identity`` (or ``framed=True`` without a key:
+    zero tags), the 48-byte request frames of spec section 5.2, answered by 48-byte replies.
+    With a key each reply must verify against its request (else :class:`ReplyNotAuthentic`)
+    and echo its seq and counter; every reply teaches the identity's session, which later
+    requests (and the remote's other messages) carry. The identity's counter is the remote's
+    one counter.
     """
 
     def __init__(self, host: str, port: int = tcp.DEFAULT_PORT, *, timeout: float = 2.0,
                  stop_id: int = tcp.DEFAULT_STOP_ID, first_seq: int = 1,
-                 key: bytes | None = None, framed: bool | None = None,
-                 remote_id: int = DEFAULT_REMOTE_ID,
-                 counter: MessageCounter | None = None) -> None:
+                 identity: Identity | None = None, framed: bool | None = None) -> None:
         self.host = host
         self.port = port
         self.timeout = timeout
         self.stop_id = tcp.check_stop_id(stop_id)
-        self.key = None if key is None else auth.check_key(key)
-        self.framed = key is not None if framed is None else framed
-        if self.key is not None and not self.framed:
+        self.identity = identity or Identity()
+        self.framed = self.identity.keyed if framed is None else framed
+        if self.identity.keyed and not self.framed:
             raise ValueError("with a key, requests must be 48-byte frames")
-        self.remote_id = remote_id
-        self.counter = counter or MessageCounter()
-        self.session = 0  # the unit's session as last seen in a reply (0: not known yet)
         self.sent_session = 0  # the session the latest request carried
         self._seq = first_seq & 0xFFFFFFFF
         self._sock: socket.socket | None = None
@@ -130,6 +122,11 @@ class StopChannel:
         self._lock = threading.Lock()
         # requests sent and not answered yet: seq -> (frame, the framed request or None)
         self._pending: dict[int, tuple[bytes, auth.AuthRequest | None]] = {}
+
+    @property
+    def session(self) -> int:
+        """The unit's session as last seen in a reply (0: not known yet)."""
+        return self.identity.session
 
     @property
     def connected(self) -> bool:
@@ -186,7 +183,7 @@ class StopChannel:
 
     def nak_hint(self, reply: Reply) -> str | None:
         """:func:`nak_hint` for the latest reply of this channel."""
-        return nak_hint(reply, self.key is not None, self.remote_id,
+        return nak_hint(reply, self.identity.keyed, self.identity.remote_id,
                         same_session=self.sent_session == self.session)
 
     def stop(self, seq: int | None = None) -> Reply:
@@ -226,9 +223,8 @@ class StopChannel:
         self._seq = (seq + 1) & 0xFFFFFFFF
         if self.framed:
             self.sent_session = self.session
-            req = auth.AuthRequest(msg_id, seq, self.remote_id, self.session,
-                                   self.counter.next())
-            frame = req.encode(self.key)
+            req = self.identity.request(msg_id, seq)
+            frame = req.encode(self.identity.key)
             self._pending[seq] = (frame, req)
         else:
             frame = Request(msg_id, seq).encode()
@@ -312,7 +308,7 @@ class StopChannel:
 
     def _decode_framed(self, raw: bytes, frame: bytes, sent: auth.AuthRequest) -> Reply:
         try:
-            got = auth.AuthReply.decode(raw, self.key, auth.request_tag(frame))
+            got = auth.AuthReply.decode(raw, self.identity.key, auth.request_tag(frame))
         except auth.TagMismatch:
             raise ReplyNotAuthentic(
                 f"reply from {self.host}:{self.port} does NOT verify under the key (forged, "
@@ -322,26 +318,5 @@ class StopChannel:
         if got.counter != sent.counter:
             raise StopChannelError(f"reply counter {got.counter} does not match request "
                                    f"counter {sent.counter}")
-        self.session = got.session
+        self.identity.session = got.session
         return got.reply
-
-
-class MessageCounter:
-    """The u64 counter a remote raises with every message (spec section 5). It starts at the
-    wall clock in microseconds, so a remote started again continues above the counters it
-    used before. Thread-safe."""
-
-    def __init__(self, start: int | None = None) -> None:
-        self._last = (time.time_ns() // 1000 if start is None else start) - 1
-        self._lock = threading.Lock()
-
-    def next(self) -> int:
-        with self._lock:
-            self._last = (self._last + 1) & 0xFFFFFFFFFFFFFFFF
-            return self._last
-
-    @property
-    def last(self) -> int:
-        """The counter most recently handed out."""
-        with self._lock:
-            return self._last

@@ -23,13 +23,8 @@ from estop.client.button import (
     press_stop,
     send_lift,
 )
-from estop.client.channel import (
-    DEFAULT_REMOTE_ID,
-    MessageCounter,
-    StopChannel,
-    StopChannelError,
-    format_reply,
-)
+from estop.client.channel import StopChannel, StopChannelError, format_reply
+from estop.client.identity import DEFAULT_REMOTE_ID, Identity
 from estop.protocol import tcp, udp
 
 __all__ = ["LiftOutcome", "exchange", "lift_once", "send_once", "stop_once"]
@@ -55,8 +50,8 @@ def exchange(kind: str, host: str, port: int, *, seq: int, stop_id: int, timeout
     """:func:`send_once`, and why a NAK not_authenticated came where the client can tell."""
     msg_id = {"stop": stop_id, "lift": tcp.LIFT, "release": tcp.RELEASE,
               "status": tcp.STATUS}[kind]
-    with StopChannel(host, port, timeout=timeout, stop_id=stop_id, key=key,
-                     remote_id=remote_id) as channel:
+    with StopChannel(host, port, timeout=timeout, stop_id=stop_id,
+                     identity=Identity(key, remote_id)) as channel:
         if key is not None and kind == "release":
             channel.request(tcp.STATUS, seq)
         reply = channel.request(msg_id, seq)
@@ -70,11 +65,9 @@ def stop_once(host: str, port: int = tcp.DEFAULT_PORT, udp_port: int = udp.DEFAU
     """Press the stop button once (see :func:`estop.client.button.press_stop`): stop datagrams
     to ``udp_port`` and STOP with ``seq`` on fresh connections until an answer or
     ``deadline`` (with ``key``: 48-byte frames, replies that must verify)."""
-    counter = MessageCounter()
-    channel = StopChannel(host, port, timeout=timeout, stop_id=stop_id, key=key,
-                          remote_id=remote_id, counter=counter)
-    datagram = StopDatagram(host, udp_port, stop_id=stop_id, key=key, remote_id=remote_id,
-                            counter=counter, session=lambda: channel.session)
+    identity = Identity(key, remote_id)
+    channel = StopChannel(host, port, timeout=timeout, stop_id=stop_id, identity=identity)
+    datagram = StopDatagram(host, udp_port, stop_id=stop_id, identity=identity)
     with contextlib.closing(datagram), channel:
         return press_stop(channel, deadline=deadline, seq=seq, datagram=datagram)
 
@@ -102,13 +95,12 @@ def lift_once(host: str, port: int = tcp.DEFAULT_PORT, udp_port: int = udp.DEFAU
     ``seq`` to ``udp_port``, 10 ms apart, then LIFT with ``seq`` over TCP on a fresh
     connection (with ``key``: 48-byte frames under the key, a reply that must verify).
     Never raises :class:`estop.client.channel.StopChannelError`: failures are in the outcome."""
-    counter = MessageCounter()
-    datagram = LiftDatagram(host, udp_port, key=key, remote_id=remote_id, counter=counter)
+    identity = Identity(key, remote_id)
+    datagram = LiftDatagram(host, udp_port, identity=identity)
     with contextlib.closing(datagram):
         sent, errors = send_lift(datagram, seq)
     try:
-        with StopChannel(host, port, timeout=timeout, key=key, remote_id=remote_id,
-                         counter=counter) as channel:
+        with StopChannel(host, port, timeout=timeout, identity=identity) as channel:
             reply: tcp.Reply | None = channel.request(tcp.LIFT, seq)
     except StopChannelError as exc:
         reply = None

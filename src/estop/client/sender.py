@@ -49,10 +49,10 @@ from estop.client.button import (
     StopOutcome,
     press_stop,
 )
-from estop.client.channel import DEFAULT_REMOTE_ID, MessageCounter, StopChannel, StopChannelError
+from estop.client.channel import StopChannel, StopChannelError
+from estop.client.identity import DEFAULT_REMOTE_ID, Identity
 from estop.model.wifi import IDEAL, LinkConfig, LinkModel
 from estop.protocol import tcp, udp
-from estop.protocol.auth import AuthControlPacket
 from estop.protocol.tcp import Reply
 from estop.protocol.udp import ControlPacket
 
@@ -127,22 +127,17 @@ class Remote:
         self.stop_deadline = stop_deadline
         if key is not None and legacy:
             raise ValueError("with a key the remote sends 60-byte packets, not the 16-byte form")
-        self.key = key
-        self.remote_id = remote_id
-        self.counter = MessageCounter()  # one counter for all its messages: each channel rises
+        # one identity for all its messages: one key, remote id and session, one counter
+        self.identity = Identity(key, remote_id)
         self.addr = (host, udp_port)
         self.legacy = legacy
         self.on_packet = on_packet
         self.link = LinkModel(link, seed)
         self.channel = StopChannel(host, tcp_port, timeout=tcp_timeout, stop_id=stop_id,
-                                   key=key, remote_id=remote_id, counter=self.counter)
-        self.datagram = StopDatagram(host, udp_port, stop_id=stop_id, key=key,
-                                     remote_id=remote_id, counter=self.counter,
-                                     session=lambda: self.channel.session,
+                                   identity=self.identity)
+        self.datagram = StopDatagram(host, udp_port, stop_id=stop_id, identity=self.identity,
                                      transmit=self._send_datagram)
-        self.lift_datagram = LiftDatagram(host, udp_port, key=key, remote_id=remote_id,
-                                          counter=self.counter,
-                                          session=lambda: self.channel.session,
+        self.lift_datagram = LiftDatagram(host, udp_port, identity=self.identity,
                                           transmit=self._send_lift_datagram)
         self.stats = RemoteStats()
         self._control = ControlPacket()
@@ -215,7 +210,7 @@ class Remote:
         unit's session not known yet, ask STATUS first to learn it (a packet with another
         session keeps nothing alive); that may raise
         :class:`~estop.client.channel.StopChannelError`."""
-        if self.key is not None and not self.channel.session and not self._held:
+        if self.identity.keyed and not self.identity.session and not self._held:
             self.status()
         with self._cond:
             if not self._held:
@@ -366,11 +361,10 @@ class Remote:
                 self._cond.wait(min(0.5, max(_MIN_WAIT, timeout)))
 
     def _send_one(self, now: float) -> None:
-        if self.key is None:
-            data = self._control.encode(legacy=self.legacy)
+        if self.identity.keyed:
+            data = self.identity.control_packet(self._control)
         else:
-            data = AuthControlPacket(self.remote_id, self.channel.session, self.counter.next(),
-                                     self._control).encode(self.key)
+            data = self._control.encode(legacy=self.legacy)
         self.stats.sent += 1
         t_deliver = self._transmit(now, data, True)
         if t_deliver is None:

@@ -1,15 +1,17 @@
 """``estop dashboard``: the live status page a safety driver keeps open beside the track.
 
-Inputs (:mod:`estop.dashboard.feed`): the bus from python-can (``-i socketcan -c can0``), or
-a can-utils log being written (``--can-log FILE``, followed as ``tail -f`` does; ``-`` for
-standard input), and estopd's ``--log-json`` log (``--log FILE`` or ``-``: a file being
-written, a pipe, ``journalctl -u estopd -o cat -f | estop dashboard --log - ...``). What the
-page shows is :mod:`estop.dashboard.model`; the web side :mod:`estop.dashboard.server`.
+Inputs (:mod:`estop.dashboard.feed`): the bus from python-can (``-i socketcan -c can0``, or
+python-can's own configuration, as ``estop monitor`` reads it), or a can-utils log being
+written (``--can-log FILE``, followed as ``tail -f`` does; ``-`` for standard input), and
+estopd's ``--log-json`` log (``--log FILE`` or ``-``: a file being written, a pipe,
+``journalctl -u estopd -o cat -f | estop dashboard --log - ...``). What the page shows is
+:mod:`estop.dashboard.model`; the web side :mod:`estop.dashboard.server`.
 
 It listens on 127.0.0.1:8080 unless told otherwise (``--listen``): another address shows
 the page to the network, an explicit choice. It can never release or drive the car; with
-``--allow-stop`` (and ``--host``) the page has a STOP button, which does what ``estop stop``
-does.
+``--allow-stop`` the page has a STOP button, which does what ``estop stop`` does, to the unit
+of the common settings (``--host``, ``ESTOP_HOST`` or the configuration file, as every
+command reads them).
 """
 
 from __future__ import annotations
@@ -20,14 +22,21 @@ import contextlib
 import signal
 from typing import Any
 
-from estop.commands.options import add_time_option, parse_listen, parse_u32, port, positive_float
+from estop.commands.canbus import can_bus_config
+from estop.commands.configfile import config_path
+from estop.commands.options import (
+    add_can_options,
+    add_frame_id_options,
+    add_time_option,
+    parse_listen,
+)
 from estop.commands.output import err, out
-from estop.commands.settings import add_key_arguments, key_from_args
-from estop.errors import EXIT_OK, ConnectionFailure, UsageError
-from estop.protocol import tcp, udp
-from estop.protocol.can import BRAKE_ID, STATUS_ID
+from estop.commands.settings import add_settings, key_from_args
+from estop.errors import EXIT_OK, ConnectionFailure, NotInstalled, UsageError
+from estop.protocol import tcp
+from estop.unit.bus import open_bus
 
-__all__ = ["DEFAULT_LISTEN", "DESCRIPTION", "EPILOG", "add_parser", "run"]
+__all__ = ["DEFAULT_LISTEN", "DESCRIPTION", "EPILOG", "add_parser", "bus_config", "run"]
 
 DEFAULT_LISTEN = "127.0.0.1:8080"
 DESCRIPTION = ("Serve a live status page of the unit: its state (ARMED, SLOWING, STOPPED with "
@@ -47,74 +56,64 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     parser = sub.add_parser("dashboard", help="serve the live status page (state, frames, "
                             "link, timeline)", description=DESCRIPTION, epilog=EPILOG)
     parser.set_defaults(handler=run)
-    src = parser.add_mutually_exclusive_group()
-    src.add_argument("--can-log", metavar="FILE",
-                     help="a can-utils log being written (estopd --can-log FILE, candump -L), "
-                          "followed as tail -f does; '-': standard input")
-    src.add_argument("-i", "--interface", metavar="IF",
-                     help="python-can interface (socketcan, virtual, ...)")
-    parser.add_argument("-c", "--channel", help="python-can channel (vcan0, can0, ...)")
-    parser.add_argument("--bitrate", type=int, default=None,
-                        help="python-can bitrate, where the interface sets it")
+    parser.add_argument("--can-log", metavar="FILE",
+                        help="a can-utils log being written (estopd --can-log FILE, candump "
+                             "-L), followed as tail -f does; '-': standard input (instead of "
+                             "a python-can bus)")
+    add_can_options(parser)
     parser.add_argument("--log", metavar="FILE",
                         help="estopd's --log-json log: a file being written, a pipe, or '-' "
                              "(standard input, e.g. journalctl -u estopd -o cat -f)")
     parser.add_argument("--listen", default=DEFAULT_LISTEN, metavar="ADDR:PORT",
                         help=f"serve the page here (default {DEFAULT_LISTEN}: this machine "
                              "only; another address is an explicit choice; port 0: any free)")
-    parser.add_argument("--brake-id", type=parse_u32, default=BRAKE_ID,
-                        help=f"ESTOP_BRAKE CAN ID (default {BRAKE_ID:#05x})")
-    parser.add_argument("--status-id", type=parse_u32, default=STATUS_ID,
-                        help=f"ESTOP_STATUS CAN ID (default {STATUS_ID:#05x})")
-    parser.add_argument("--rate-hz", type=positive_float, default=50.0,
-                        help="the remote's send rate, for the link fit (default 50)")
+    add_frame_id_options(parser)
+    add_settings(parser, "rate_hz", help={"rate_hz": "the remote's send rate, for the link fit"})
     stop = parser.add_argument_group("the STOP button (only with --allow-stop)")
     stop.add_argument("--allow-stop", action="store_true",
                       help="show a STOP button that presses stop as estop stop does (stop "
                            "datagram and TCP STOP, retried); never a release")
-    stop.add_argument("--host", help="the unit's address (with --allow-stop)")
-    stop.add_argument("--tcp-port", type=port, default=tcp.DEFAULT_PORT,
-                      help=f"TCP stop port (default {tcp.DEFAULT_PORT})")
-    stop.add_argument("--udp-port", type=port, default=udp.DEFAULT_PORT,
-                      help=f"UDP control port, for the stop datagram (default "
-                           f"{udp.DEFAULT_PORT})")
-    stop.add_argument("--stop-id", type=parse_u32, default=tcp.DEFAULT_STOP_ID,
-                      help=f"the vehicle's stop ID (default {tcp.DEFAULT_STOP_ID:#010X})")
-    add_time_option(parser, "stop-deadline", "stop_deadline", 3.0,
+    add_settings(parser, "host", "tcp_port", "udp_port", "stop_id", "key_file", "remote_id",
+                 host_required=False, group=stop,
+                 help={"host": "the unit the STOP button stops",
+                       "udp_port": "the unit's UDP control port, for the stop datagram"})
+    add_time_option(stop, "stop-deadline", "stop_deadline", 3.0,
                     "a press tries again until the unit answers or this time passes")
-    add_key_arguments(parser)
 
 
 def _check(args: argparse.Namespace) -> None:
-    if args.can_log is None and args.interface is None and args.log is None:
-        raise UsageError("name an input: --can-log FILE, --interface IF (python-can), "
-                         "--log FILE")
-    if args.interface is None and (args.channel is not None or args.bitrate is not None):
-        raise UsageError("--channel and --bitrate need --interface")
     if args.can_log == "-" and args.log == "-":
         raise UsageError("only one of --can-log and --log can read standard input")
-    if args.brake_id > 0x7FF or args.status_id > 0x7FF:
-        raise UsageError("CAN IDs must be 11-bit (0..0x7FF)")
+    if args.can_log is not None and any(x is not None for x in (args.interface, args.channel,
+                                                                 args.bitrate)):
+        raise UsageError("--can-log reads a file: --interface, --channel and --bitrate are for "
+                         "a live bus")
     if args.allow_stop and not args.host:
-        raise UsageError("--allow-stop needs --host (the unit to stop)")
+        raise UsageError(f"--allow-stop needs the unit to stop: give --host, or set ESTOP_HOST "
+                         f"or host in {config_path()}")
     try:
         tcp.check_stop_id(args.stop_id)
     except ValueError as exc:
         raise UsageError(f"--stop-id: {exc}") from None
 
 
-def _open_bus(args: argparse.Namespace) -> Any:
-    import can  # python-can, imported only when a bus is used
-
-    kwargs: dict[str, Any] = {"interface": args.interface, "channel": args.channel}
-    if args.bitrate is not None:
-        kwargs["bitrate"] = args.bitrate
+def bus_config(args: argparse.Namespace) -> dict[str, object] | None:
+    """The bus to read, as ``estop monitor`` opens it (the command line over python-can's
+    configuration); None with --can-log, and with --log alone where python-can names no bus
+    (or is not installed)."""
+    if args.can_log is not None:
+        return None
+    named = any(x is not None for x in (args.interface, args.channel, args.bitrate))
     try:
-        return can.Bus(**kwargs)
-    except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
-        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise ConnectionFailure(f"cannot open {args.interface} bus {args.channel or ''}: "
-                                f"{why}") from None
+        return can_bus_config(args)
+    except (UsageError, NotInstalled) as exc:
+        if args.log is not None and not named:
+            return None  # the log alone is an input
+        if isinstance(exc, NotInstalled) or named:
+            raise
+        raise UsageError("name an input: --can-log FILE, a python-can bus (--interface, or "
+                         "python-can's configuration: CAN_INTERFACE, ~/.canrc), --log "
+                         "FILE") from None
 
 
 def run(args: argparse.Namespace) -> int:
@@ -132,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
                                       key=key_from_args(args), remote_id=args.remote_id,
                                       stop_id=args.stop_id, timeout=2.0,
                                       deadline=args.stop_deadline)
-    bus = _open_bus(args) if args.interface is not None else None
+    config = bus_config(args)
+    bus = None if config is None else open_bus(config)
     model = DashboardModel(brake_id=args.brake_id, status_id=args.status_id,
                            rate_hz=args.rate_hz)
     try:

@@ -19,19 +19,18 @@ lives in :mod:`estop.unit.daemon`, shared with the benchmarks.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import sys
 from typing import Any, TextIO
 
 from estop.commands.options import ErrorOnlyParser, parse_listen
-from estop.demo.bus import state_lines
 from estop.demo.result import TIME_MS_MAX, TIME_MS_MIN, Settings
 from estop.demo.run import run_demo
 from estop.demo.twin import V2_TIMEOUT_MS
 from estop.errors import EXIT_NOT_INSTALLED, EXIT_USAGE, CliError
 from estop.model.vehicle import kmh
 from estop.unit.daemon import find_estopd
+from estop.unit.events import state_changes
 
 __all__ = ["add_parser", "main"]
 
@@ -100,7 +99,7 @@ def _parser() -> ErrorOnlyParser:
 
 class _Page:
     """``--dashboard``: the status page, fed the unit's can-log and the ``state`` events of
-    its log (text here: given to the page as the JSON events they stand for)."""
+    its log (the page reads either form of estopd's log)."""
 
     def __init__(self, thread: Any) -> None:
         self.thread = thread
@@ -109,10 +108,8 @@ class _Page:
         if stream == "can_log":
             self.thread.can_line(line)
             return
-        for ev in state_lines([line]):
-            self.thread.log_line(json.dumps({
-                "t_mono": ev.t_mono, "event": "state", "from": ev.frm, "to": ev.to,
-                "reason": ev.reason, "src": ev.src, "cause": ev.cause}))
+        if state_changes([line]):
+            self.thread.log_line(line)
 
     def close(self) -> None:
         self.thread.close()

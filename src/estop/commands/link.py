@@ -5,7 +5,8 @@ or a pcap of the control port), fits a two-state Gilbert loss model at the known
 prints, for times from 50 ms to 2 s, the gaps seen in the recording and the model's silences
 per hour that reach each time: read as the timeout T, false emergency stops; read as the slow
 time S (PROTOCOL.md 3, version 3), brief slow-downs. It recommends T, the shortest time that
-meets ``--target``, and S, the shortest not above T that meets ``--slow-target``. The analysis
+meets ``--target``, and S, the shortest not above T nor ``--react-ms`` that meets
+``--slow-target``. The analysis
 lives in :mod:`estop.link` (imported only when the command runs: it needs numpy).
 Documentation: docs/LINK.md.
 """
@@ -60,10 +61,14 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
     parser.add_argument("--target", type=positive_float, default=0.01,
                         help="false emergency stops per hour to stay below: chooses the "
                              "timeout T (default 0.01)")
-    # the defaults are linkreport.DEFAULT_TARGET and DEFAULT_SLOW_TARGET (that module needs numpy)
+    # the defaults are estop.link.report's DEFAULT_TARGET, DEFAULT_SLOW_TARGET and
+    # DEFAULT_REACT_MS (that module needs numpy)
+    parser.add_argument("--react-ms", type=positive_float, default=200.0, metavar="MS",
+                        help="the longest acceptable slow time S: braking begins at most this "
+                             "long after the last packet (default 200)")
     parser.add_argument("--slow-target", type=positive_float, default=1000.0,
                         help="brief slow-downs per hour to stay below: chooses the slow time "
-                             "S <= T (default 1000, one every 3.6 s)")
+                             "S <= T and <= --react-ms (default 1000, one every 3.6 s)")
     parser.add_argument("--max-gap-s", dest="max_gap", type=non_negative_float, default=5.0,
                         metavar="S", help="gaps of this many seconds or more are the sender "
                         "pausing (finger lifted), left out of the fit (default 5; 0: none)")
@@ -120,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         gaps = load(args.file, args.format, args.rate_hz, args.max_gap, args.udp_port)
     rep = report(gaps, args.rate_hz, args.target, tail_from=args.tail_from,
-                 slow_target=args.slow_target)
+                 slow_target=args.slow_target, react_ms=args.react_ms)
     if args.plot:
         write_plot(rep, args.plot)
     if args.json:

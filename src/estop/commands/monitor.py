@@ -39,14 +39,18 @@ import argparse
 import sys
 
 from estop.commands.canbus import can_bus_config
-from estop.commands.options import add_can_options, non_negative_float, parse_u32, positive_float
+from estop.commands.options import (
+    add_can_options,
+    add_frame_id_options,
+    non_negative_float,
+    positive_float,
+)
 from estop.commands.output import SUB_EPILOG, out
 from estop.errors import EXIT_OK, EXIT_REFUSED, UsageError
 from estop.model.brakecheck import BrakeFrameChecker
 from estop.model.vehicle import DEFAULT_EMERGENCY_DECEL, VehicleParams, kmh
 from estop.monitor.sources import DbcDecoder, read_records
 from estop.monitor.watch import Monitor, run_bus, run_log
-from estop.protocol.can import BRAKE_ID, STATUS_ID
 
 DESCRIPTION = ("Decode ESTOP_BRAKE / ESTOP_STATUS from a python-can bus, a can-utils log or "
                "any log python-can reads (.asc .blf .csv .trc ...), optionally with a DBC, and "
@@ -73,10 +77,7 @@ def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None
                         help="also decode every frame with cantools from this DBC (no PATH: "
                              "the unit's own, estop/dbc); a frame the DBC and estop's "
                              "codecs read differently is flagged")
-    parser.add_argument("--brake-id", type=parse_u32, default=BRAKE_ID, metavar="ID",
-                        help=f"ESTOP_BRAKE CAN ID (default {BRAKE_ID:#05x})")
-    parser.add_argument("--status-id", type=parse_u32, default=STATUS_ID, metavar="ID",
-                        help=f"ESTOP_STATUS CAN ID (default {STATUS_ID:#05x})")
+    add_frame_id_options(parser)
     # the brake controller's own timeout (spec section 7); --timeout-ms is its older name here
     parser.add_argument("--brake-timeout-ms", dest="brake_timeout_ms",
                         type=positive_float, default=50.0, metavar="MS",
@@ -110,8 +111,6 @@ def run(args: argparse.Namespace) -> int:
     if args.log is not None and (args.interface, args.channel, args.bitrate) != (None,) * 3:
         raise UsageError("--log reads a file: --interface, --channel and --bitrate are for a "
                          "live bus")
-    if args.brake_id > 0x7FF or args.status_id > 0x7FF:
-        raise UsageError("CAN IDs must be 11-bit (0..0x7FF)")
     checker = BrakeFrameChecker(brake_id=args.brake_id, status_id=args.status_id,
                                 timeout=args.brake_timeout_ms / 1000.0)
     if args.speed_kmh is None and (args.decel_ms2, args.actuator_delay_ms) != (None, None):

@@ -13,10 +13,13 @@ from typing import NoReturn
 from estop.commands.output import err
 from estop.errors import EXIT_USAGE, UsageError
 from estop.protocol import tcp
+from estop.protocol.can import BRAKE_ID, STATUS_ID
 
 __all__ = [
     "ErrorOnlyParser",
     "add_can_options",
+    "add_frame_id_options",
+    "can_id",
     "add_time_option",
     "host",
     "key_path",
@@ -110,7 +113,7 @@ def key_path(text: str) -> str:
     return os.path.expanduser(text)
 
 
-def add_time_option(parser: argparse.ArgumentParser, name: str, dest: str, default_s: float,
+def add_time_option(parser: argparse._ActionsContainer, name: str, dest: str, default_s: float,
                     help_text: str, *, ms_aliases: Sequence[str] = (),
                     s_aliases: Sequence[str] | None = None) -> None:
     """``--NAME-ms MS``, the project's vocabulary (the unit in the name), stored in seconds in
@@ -141,6 +144,22 @@ def parse_listen(text: str) -> tuple[str, int]:
     if not 0 <= number <= 65535:
         raise UsageError(f"--listen: port {number} out of range 0..65535")
     return host, number
+
+
+def can_id(text: str) -> int:
+    """argparse type: an 11-bit CAN ID, decimal or 0x-hex."""
+    value = parse_u32(text)
+    if value > 0x7FF:
+        raise argparse.ArgumentTypeError(f"{text} is not an 11-bit CAN ID (0..0x7FF)")
+    return value
+
+
+def add_frame_id_options(parser: argparse.ArgumentParser) -> None:
+    """``--brake-id`` and ``--status-id``: the CAN IDs the unit's frames are read at."""
+    parser.add_argument("--brake-id", type=can_id, default=BRAKE_ID, metavar="ID",
+                        help=f"ESTOP_BRAKE CAN ID (default {BRAKE_ID:#05x})")
+    parser.add_argument("--status-id", type=can_id, default=STATUS_ID, metavar="ID",
+                        help=f"ESTOP_STATUS CAN ID (default {STATUS_ID:#05x})")
 
 
 def add_can_options(parser: argparse.ArgumentParser) -> None:

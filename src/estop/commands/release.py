@@ -8,10 +8,14 @@ import argparse
 
 from estop.commands.request import add_request_parser, run_request
 
-__all__ = ["add_parser"]
+__all__ = ["add_parser", "run"]
 
 HELP = "ask the unit to leave the stopped state (RELEASE) and print the reply"
 
 
 def add_parser(sub: argparse._SubParsersAction[argparse.ArgumentParser]) -> None:
-    add_request_parser(sub, "release", HELP).set_defaults(handler=run_request)
+    add_request_parser(sub, "release", HELP).set_defaults(handler=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    return run_request(args)

@@ -68,13 +68,15 @@ def add_settings(parser: argparse.ArgumentParser, *keys: str,
                  parse: Mapping[str, Callable[[str], object]] | None = None,
                  help: Mapping[str, str] | None = None,
                  default: Mapping[str, object] | None = None,
-                 host_required: bool = True) -> None:
+                 host_required: bool = True,
+                 group: argparse._ArgumentGroup | None = None) -> None:
     """Add the common settings ``keys`` (see :data:`COMMON_SETTINGS`) to ``parser``, each with
     its option, environment variable and configuration key; ``aliases`` gives a command's
     older, unlisted option names, ``parse``/``help``/``default`` a command's own reading,
     text or default; ``host_required=False`` for a command that may run without a unit (its
-    ``host`` stays None when no source names one). :func:`resolve_settings` fills them in after
-    parsing."""
+    ``host`` stays None when no source names one); ``group``: the options are listed in that
+    group of ``parser``'s help. :func:`resolve_settings` fills them in after parsing."""
+    where: argparse._ActionsContainer = parser if group is None else group
     chosen: dict[str, Setting] = {}
     for key in keys:
         base = COMMON_SETTINGS[key]
@@ -86,11 +88,11 @@ def add_settings(parser: argparse.ArgumentParser, *keys: str,
             shown = f"0x{s.default:08X}" if key == "stop_id" else f"{s.default:g}" \
                 if isinstance(s.default, float) else str(s.default)
             text += f"; default {shown}"
-        parser.add_argument(s.flag, dest=key, type=s.parse, default=None,
-                            metavar=_METAVAR[key], help=f"{text} (${s.env}, config: {key})")
+        where.add_argument(s.flag, dest=key, type=s.parse, default=None,
+                           metavar=_METAVAR[key], help=f"{text} (${s.env}, config: {key})")
         for flag in (aliases or {}).get(key, ()):
-            parser.add_argument(flag, dest=key, type=s.parse, default=argparse.SUPPRESS,
-                                help=argparse.SUPPRESS)
+            where.add_argument(flag, dest=key, type=s.parse, default=argparse.SUPPRESS,
+                               help=argparse.SUPPRESS)
     known = dict(parser.get_default(_SETTINGS_ATTR) or {})
     known.update(chosen)
     parser.set_defaults(**{_SETTINGS_ATTR: known})

@@ -21,7 +21,6 @@ JSON, a frame that fails a check (by kind), a malformed ``link_histogram``.
 
 from __future__ import annotations
 
-import json
 import math
 from collections import Counter, deque
 from collections.abc import Mapping
@@ -42,6 +41,7 @@ from estop.protocol.can import (
     reason_name,
     state_name,
 )
+from estop.unit import events
 
 __all__ = ["NO_SIGNAL", "SIGNAL_TIMEOUT", "DashboardModel", "StatusFields", "reason_words"]
 
@@ -255,45 +255,44 @@ class DashboardModel:
         self._changed()
 
     def log_line(self, line: str, arrived: float) -> None:
-        """One line of estopd's --log-json log (a journal line too); a line that is not JSON
-        (or not an object) is counted."""
+        """One line of estopd's log (either form, a journal line too; :mod:`estop.unit.events`);
+        a line that holds no event is counted."""
         text = line.strip()
         if not text:
             return
         self.inputs.log_lines += 1
-        try:
-            ev = json.loads(text)
-        except ValueError:
-            ev = None
-        if not isinstance(ev, dict) or not isinstance(ev.get("event"), str):
+        ev = events.parse(text)
+        if ev is None:
             self.inputs.log_bad += 1
-            self.inputs.last_bad = f"log: not a JSON event: {text[:120]!r}"
+            self.inputs.last_bad = f"log: not an estopd event: {text[:120]!r}"
             self._changed()
             return
         self._changed()
-        kind = ev["event"]
-        self.log_events[kind] += 1
-        if kind == "start":
+        self.log_events[ev.kind] += 1
+        if ev.kind == "start":
             self.unit = {k: ev.get(k) for k in ("slow_ms", "timeout_ms", "slow_level",
                                                 "warn_ms", "auth", "udp", "tcp", "pid")}
-        elif kind == "state":
-            self._log_state(ev, arrived)
+        change = events.state_change(ev)
+        if change is not None:
+            self._log_state(change, arrived)
+        if not ev.json:
+            return  # the link box reads the JSON form's link_histogram events
         try:
-            self.link.feed(ev, self.unit)
+            self.link.feed(dict(ev.fields), self.unit)
         except LinkInputError as exc:
             self.inputs.link_bad += 1
             self.inputs.last_bad = f"log: {exc}"[:200]
 
-    def _log_state(self, ev: dict[str, Any], arrived: float) -> None:
-        to = str(ev.get("to", ""))
-        reason = reason_words(str(ev.get("reason", "none"))) if to == _STOPPED else ""
-        cause, src = str(ev.get("cause", "")), str(ev.get("src", ""))
+    def _log_state(self, change: events.StateChange, arrived: float) -> None:
+        to = change.to
+        reason = reason_words(change.reason) if to == _STOPPED else ""
+        cause, src = change.cause or "", change.src
         # the frame change usually came first: explain the latest unexplained one
-        for change in reversed(self.timeline):
-            if change.source == "frames" and not change.cause \
-                    and (change.state, change.reason) == (to, reason) \
-                    and abs(arrived - change.t) <= CAUSE_MATCH_S:
-                change.cause, change.src = cause, src
+        for c in reversed(self.timeline):
+            if c.source == "frames" and not c.cause \
+                    and (c.state, c.reason) == (to, reason) \
+                    and abs(arrived - c.t) <= CAUSE_MATCH_S:
+                c.cause, c.src = cause, src
                 return
         if self.checker.last_brake_time is None:
             # no frames at all (a log alone): the log is the timeline

@@ -11,7 +11,7 @@ import time
 from collections.abc import Sequence
 
 from estop.protocol import auth, tcp, udp
-from estop.unit.log import DaemonError
+from estop.unit.canlog import DaemonError
 
 __all__ = ["Attacker"]
 

@@ -1,19 +1,18 @@
-"""What the demo reads from a unit: its logged CAN frames (:class:`BusWatch`, checked frame by
-frame as a receiver would) and the ``state`` lines of its event log (:class:`StateLine`, with
-the cause of each change)."""
+"""What the demo reads from a unit's bus: its logged CAN frames (:class:`BusWatch`, checked
+frame by frame as a receiver would). The unit's own account, the ``state`` events of its log,
+is :func:`estop.unit.events.state_changes`."""
 
 from __future__ import annotations
 
-import re
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from estop.demo.car import LiveCar
 from estop.model.brakecheck import grade_text
 from estop.protocol import can, canlog
-from estop.unit.log import stamp
+from estop.unit.canlog import stamp
 
-__all__ = ["BusWatch", "Change", "StateLine", "grade", "is_state", "state_lines"]
+__all__ = ["BusWatch", "Change", "grade", "is_state"]
 
 
 @dataclass(frozen=True, slots=True)
@@ -112,38 +111,3 @@ class BusWatch:
 def is_state(state: int, reason: int | None = None) -> Callable[[Change], bool]:
     """A test for :meth:`BusWatch.first`: into ``state`` (with ``reason``, when given)."""
     return lambda c: c.state == state and (reason is None or c.reason == reason)
-
-
-# --------------------------------------------------------------------------------------------
-# The unit's own account: `state` lines of its event log (docs/DESIGN.md)
-
-_STATE_LINE = re.compile(
-    r"^\S+\s+(?P<t>\d+(?:\.\d+)?)\s+state\s+(?P<frm>\w+)->(?P<to>\w+)\s+reason=(?P<reason>\w+)"
-    r"\s+src=(?P<src>\S+)\s+cause=(?P<cause>\w+)")
-
-
-@dataclass(frozen=True, slots=True)
-class StateLine:
-    """One ``state`` event of estopd's text log: the time the core was given for the change
-    (its CLOCK_MONOTONIC, seconds), the states, the reason's name, the peer and the cause."""
-
-    t_mono: float
-    frm: str
-    to: str
-    reason: str
-    src: str
-    cause: str
-
-    def text(self) -> str:
-        return f"{self.frm}->{self.to} reason={self.reason} cause={self.cause}"
-
-
-def state_lines(lines: Iterable[str]) -> list[StateLine]:
-    """Every ``state`` event in the text event-log lines ``lines``, in order."""
-    out = []
-    for line in lines:
-        m = _STATE_LINE.match(line)
-        if m is not None:
-            out.append(StateLine(float(m["t"]), m["frm"], m["to"], m["reason"], m["src"],
-                                 m["cause"]))
-    return out

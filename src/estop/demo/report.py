@@ -12,23 +12,24 @@ from __future__ import annotations
 import time
 from typing import TextIO
 
-from estop.demo.bus import BusWatch, Change, StateLine
+from estop.demo.bus import BusWatch, Change
 from estop.demo.result import BurstMeasure, Result, StopMeasure
 from estop.demo.view import View
 from estop.model.vehicle import DEFAULT_PARAMS
 from estop.protocol import can, tcp
+from estop.unit.events import StateChange
 
 __all__ = ["match_causes", "timeline", "write_report"]
 
 MATCH_S = 0.5  # a state line and its frame are at most this far apart
 
 
-def match_causes(changes: list[Change], lines: list[StateLine],
-                 clock: float) -> dict[int, StateLine]:
+def match_causes(changes: list[Change], lines: list[StateChange],
+                 clock: float) -> dict[int, StateChange]:
     """Each change of state or reason on the bus (by ``id``) with the unit's ``state`` line for
     it: the same new state and reason, the first not yet taken, within :data:`MATCH_S`.
     ``clock`` is realtime - monotonic. The boot frame has none."""
-    out: dict[int, StateLine] = {}
+    out: dict[int, StateChange] = {}
     used: set[int] = set()
     for c in changes:
         if c.flags_only:
@@ -43,7 +44,7 @@ def match_causes(changes: list[Change], lines: list[StateLine],
     return out
 
 
-def timeline(view: View, buses: list[tuple[str, BusWatch, dict[int, StateLine]]]
+def timeline(view: View, buses: list[tuple[str, BusWatch, dict[int, StateChange]]]
              ) -> list[tuple[float, str]]:
     """The demo's events and every change on each bus (``(who, watch, causes)``), in order."""
     entries = list(view.events)
@@ -61,7 +62,7 @@ def _ms(v: float | None) -> str:
     return "-" if v is None else f"{v:.3f} ms"
 
 
-def _answer(c: Change | None, causes: dict[int, StateLine]) -> str:
+def _answer(c: Change | None, causes: dict[int, StateChange]) -> str:
     """``STOPPED lift (lift_datagram)``, ``SLOWING brake 30 % (udp_silence)``."""
     if c is None:
         return "none seen"
@@ -88,7 +89,7 @@ def _distance(m: StopMeasure) -> str:
 WHAT_W, ANSWER_W, LATENCY_W = 48, 34, 11
 
 
-def _stop_rows(m: StopMeasure, causes: dict[int, StateLine]) -> list[str]:
+def _stop_rows(m: StopMeasure, causes: dict[int, StateChange]) -> list[str]:
     lost = (f"not measured: {m.lost} can-log line{'s' if m.lost != 1 else ''} lost"
             if m.lost else None)
     what = f"{m.what}, from {m.moment_name}"
@@ -114,7 +115,7 @@ def _lift_line(res: Result) -> str | None:
             f"{v2.rollout.distance:.3f} m ({saved:.3f} m further).")
 
 
-def _burst_line(b: BurstMeasure, res: Result, causes: dict[int, StateLine]) -> str:
+def _burst_line(b: BurstMeasure, res: Result, causes: dict[int, StateChange]) -> str:
     s = res.settings
     silence = "-" if b.silence_ms is None else f"{b.silence_ms:.0f} ms"
     head = (f"Bursty link: every packet lost for {(b.end - b.cut) * 1000:.0f} ms "
@@ -156,8 +157,8 @@ def _datagram_text(res: Result) -> str:
     return "its stop datagram stopped the car, because anyone may stop"
 
 
-def write_report(out: TextIO, view: View, res: Result, causes: dict[int, StateLine],
-                 v2: tuple[BusWatch, dict[int, StateLine]] | None = None,
+def write_report(out: TextIO, view: View, res: Result, causes: dict[int, StateChange],
+                 v2: tuple[BusWatch, dict[int, StateChange]] | None = None,
                  dropped: int = 0) -> None:
     """The timeline and the summary. ``causes`` matches the unit's changes to its state
     lines (:func:`match_causes`), ``v2`` the same for the version-2 unit."""

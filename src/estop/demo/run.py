@@ -11,7 +11,7 @@ from collections.abc import Callable
 from typing import TextIO
 
 from estop.client.keyfile import write_key_file
-from estop.demo.bus import BusWatch, state_lines
+from estop.demo.bus import BusWatch
 from estop.demo.car import LiveCar
 from estop.demo.checks import check
 from estop.demo.report import clock, match_causes, write_report
@@ -20,8 +20,9 @@ from estop.demo.story import finish_run, run_story
 from estop.demo.twin import V2Twin
 from estop.demo.view import View
 from estop.protocol import tcp
+from estop.unit.canlog import DaemonError
 from estop.unit.daemon import Daemon
-from estop.unit.log import DaemonError
+from estop.unit.events import state_changes
 
 __all__ = ["run_demo"]
 
@@ -62,8 +63,8 @@ def run_demo(exe: str, settings: Settings, out: TextIO, *, live: bool,
     view.event(time.time(), f"estopd ended (pid {unit.pid}, exit code {rc}); its last brake "
                             f"frame: brake_request={final}")
     offset = clock()
-    causes = match_causes(view.watch.changes, state_lines(unit.log_lines), offset)
-    twin_causes = match_causes(twin.watch.changes, state_lines(twin.daemon.log_lines), offset)
+    causes = match_causes(view.watch.changes, state_changes(unit.log_lines), offset)
+    twin_causes = match_causes(twin.watch.changes, state_changes(twin.daemon.log_lines), offset)
     write_report(out, view, res, causes, (twin.watch, twin_causes), unit.dropped_total)
 
     res.problems += check(res, view.watch, rc, twin_rc)

@@ -30,8 +30,8 @@ from estop.demo.result import BurstMeasure, Result, Settings, StopMeasure, settl
 from estop.demo.twin import V2Twin
 from estop.demo.view import View, reply_text
 from estop.protocol import can
+from estop.unit.canlog import DaemonError
 from estop.unit.daemon import Daemon
-from estop.unit.log import DaemonError
 
 __all__ = ["Story", "finish_run", "run_story"]
 

@@ -9,7 +9,7 @@ from typing import Any
 from estop.link.report import ENOUGH, Report
 from estop.link.unitcheck import FEWER, MORE, NOT_MOVING, Check, UnitCheck
 
-__all__ = ["REFERENCE_SPEED_KMH", "estopd_options", "format_report", "report_json"]
+__all__ = ["REFERENCE_SPEED_KMH", "estopd_options", "fmt_rate", "format_report", "report_json"]
 
 # the speed at which the report says how far the car rolls before it brakes
 REFERENCE_SPEED_KMH = 15.0
@@ -59,6 +59,14 @@ def report_json(rep: Report) -> dict[str, Any]:
         "slow_target_per_hour": rep.slow_target,
         "recommended_slow_ms": rep.recommended_slow_ms,
         "recommended_estopd_options": estopd_options(rep),
+        "react_ms": rep.react_ms,
+        # the two-stage contract: every pair S <= T with the model's rates, and the chosen one
+        "recommendation": None if rep.recommendation is None else {
+            "slow_ms": rep.recommendation[0], "timeout_ms": rep.recommendation[1]},
+        "pairs": [{"slow_ms": p.slow_ms, "timeout_ms": p.timeout_ms,
+                   "slowdowns_per_hour": p.slowdowns_per_hour,
+                   "emergency_stops_per_hour": p.emergency_stops_per_hour}
+                  for p in rep.pairs],
         "unit": _unit_json(rep.unit),
         "rows": [{
             "timeout_ms": r.timeout_ms,
@@ -97,7 +105,7 @@ def _unit_json(u: UnitCheck | None) -> dict[str, Any] | None:
             "timeouts_check": _check_json(u.timeouts)}
 
 
-def _fmt_rate(x: float) -> str:
+def fmt_rate(x: float) -> str:
     if x == 0:
         return "0"
     if x >= 100:
@@ -150,15 +158,15 @@ def format_report(rep: Report) -> list[str]:
         seen = (str(r.gaps_sure) if r.gaps_sure == r.gaps_possible
                 else f"{r.gaps_sure}-{r.gaps_possible}")
         if r.empirical is not None:
-            per_h = _fmt_rate(r.empirical)
+            per_h = fmt_rate(r.empirical)
         elif r.enough:
-            per_h = f"{_fmt_rate(r.gaps_sure / r.hours)}-{_fmt_rate(r.gaps_possible / r.hours)}"
+            per_h = f"{fmt_rate(r.gaps_sure / r.hours)}-{fmt_rate(r.gaps_possible / r.hours)}"
         else:
-            per_h = "<" + _fmt_rate(r.empirical_upper95)
+            per_h = "<" + fmt_rate(r.empirical_upper95)
         mark = "!" if r.contradicted else (" " if r.lost_in_row >= f.tail_from else "^")
         lines.append(f"{r.timeout_ms:5d} ms {r.lost_in_row:4d} {seen:>6} {per_h:>8} "
-                     f"{_fmt_rate(r.model):>12}{mark}  {_fmt_rate(r.model_low)} .. "
-                     f"{_fmt_rate(r.model_high)}{_pick(rep, r.timeout_ms)}")
+                     f"{fmt_rate(r.model):>12}{mark}  {fmt_rate(r.model_low)} .. "
+                     f"{fmt_rate(r.model_high)}{_pick(rep, r.timeout_ms)}")
     if any(r.contradicted for r in rep.rows):
         lines.append("! the recording holds more such gaps than the model allows: trust the "
                      "recording there")
@@ -177,7 +185,7 @@ def format_report(rep: Report) -> list[str]:
     else:
         r = rep.row(rep.recommended_ms)
         lines.append(f"recommendation: timeout T {rep.recommended_ms} ms (model "
-                     f"{_fmt_rate(r.model)} false stops per hour, target {rep.target:g}); one "
+                     f"{fmt_rate(r.model)} false stops per hour, target {rep.target:g}); one "
                      f"per {_fmt_hours(r.model)} against {f.hours:.3g} h recorded")
         if rep.recommended_conservative_ms is None:
             lines.append("  with the model's 95 % upper bound: none up to "
@@ -200,6 +208,10 @@ def _pick(rep: Report, time_ms: int) -> str:
     return ""
 
 
+def _shortest(rep: Report) -> int | None:
+    return next((r.timeout_ms for r in rep.rows if r.lost_in_row >= 1), None)
+
+
 def _metres(ms: int) -> str:
     return f"{ms / 1000 * REFERENCE_SPEED_KMH / 3.6:.2f} m"
 
@@ -208,16 +220,25 @@ def _two_stage_lines(rep: Report) -> list[str]:
     """The slow time S, the daemon's options and what a real loss of the link costs."""
     s, t = rep.recommended_slow_ms, rep.recommended_ms
     if s is None:
+        if t is not None:
+            return [f"slow time: none within --react-ms {rep.react_ms:g} (the shortest time "
+                    f"longer than one send period is {_shortest(rep)} ms): no options for "
+                    "estopd recommended"]
         return []
     lines = []
     r = rep.row(s)
+    react = f"--react-ms {rep.react_ms:g}"
     if t is not None and s == t:
         lines.append(f"slow time: S = T = {t} ms: no slow time shorter than the timeout keeps "
                      f"slow-downs below {rep.slow_target:g} per hour (--slow-target); the link "
                      "needs no two-stage stop")
+    elif not rep.slow_target_met:
+        lines.append(f"slow time: S {s} ms, the longest within {react}: no slow time up to it "
+                     f"keeps slow-downs below {rep.slow_target:g} per hour (--slow-target); "
+                     f"model {fmt_rate(r.model)} slow-downs per hour")
     else:
         every = f"one every {3600.0 / r.model:.3g} s" if r.model > 0 else "none"
-        lines.append(f"slow time: S {s} ms (model {_fmt_rate(r.model)} slow-downs per hour, "
+        lines.append(f"slow time: S {s} ms (model {fmt_rate(r.model)} slow-downs per hour, "
                      f"--slow-target {rep.slow_target:g}; {every}, each ended by the link's "
                      "return)")
     if t is None:
@@ -255,14 +276,14 @@ def _unit_lines(u: UnitCheck) -> list[str]:
 
 
 def _check_line(c: Check, hours_from: str) -> str:
-    model = (f"model at {c.time_ms:g} ms: {_fmt_rate(c.model)} ({_fmt_rate(c.model_low)} .. "
-             f"{_fmt_rate(c.model_high)})")
+    model = (f"model at {c.time_ms:g} ms: {fmt_rate(c.model)} ({fmt_rate(c.model_low)} .. "
+             f"{fmt_rate(c.model_high)})")
     verdict = c.verdict
     if verdict == NOT_MOVING:
         return f"{c.recorded:6d}; the unit never moved (never ARMED): nothing to compare"
     lo, hi, per_h = c.lower95 or 0.0, c.upper95 or 0.0, c.per_hour or 0.0
-    seen = (f"{c.recorded:6d}: {_fmt_rate(per_h)}/h (95 % bounds {_fmt_rate(lo)} .. "
-            f"{_fmt_rate(hi)})")
+    seen = (f"{c.recorded:6d}: {fmt_rate(per_h)}/h (95 % bounds {fmt_rate(lo)} .. "
+            f"{fmt_rate(hi)})")
     if verdict == MORE:
         say = "! more than the model allows: trust the unit's count"
         if c.pauses:

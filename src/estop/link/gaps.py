@@ -16,12 +16,29 @@ import numpy.typing as npt
 
 from estop.errors import FileFailure, UsageError
 
-__all__ = ["F64", "I64", "U32_MAX", "Gaps", "Histogram", "LinkInputError", "UnitRecord",
-           "check_rate", "gaps_from_histogram", "gaps_from_times"]
+__all__ = ["DAEMON_EDGES_US", "F64", "I64", "U32_MAX", "Gaps", "Histogram", "LinkInputError",
+           "UnitRecord", "check_rate", "daemon_bins", "gaps_from_histogram", "gaps_from_times"]
 
 U32_MAX = 0xFFFFFFFF
 I64 = npt.NDArray[np.int64]
 F64 = npt.NDArray[np.float64]
+
+
+# estopd's link_histogram bins (docs/DESIGN.md, the core's estop_gap_bin): bin 0 below
+# 1024 us, then two bins an octave (at 2^e and 1.5 * 2^e), bin 31 from 2^25 us on
+DAEMON_EDGES_US: tuple[int, ...] = (0, *((1 << (10 + (b - 1) // 2))
+                                         + ((b - 1) % 2) * (1 << (9 + (b - 1) // 2))
+                                         for b in range(1, 32)))
+
+
+def daemon_bins(gaps_us: npt.ArrayLike) -> I64:
+    """The bin estopd files each gap (integer us) in, as the core's estop_gap_bin does: 0
+    below 1024 us; else e = floor(log2 g), h = bit e-1 of g, bin 1 + 2 (e - 10) + h, at most
+    31 (for simulations of the daemon's log and the bench)."""
+    g = np.asarray(gaps_us, dtype=np.int64)
+    e = np.frexp(g.astype(np.float64))[1].astype(np.int64) - 1  # floor(log2 g), exact < 2^53
+    h = (g >> np.maximum(e - 1, 0)) & 1
+    return np.where(g < 1024, 0, np.minimum(1 + 2 * (e - 10) + h, 31)).astype(np.int64)
 
 
 class LinkInputError(FileFailure):

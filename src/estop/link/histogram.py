@@ -11,40 +11,20 @@ journalctl's own ``-- ...`` marker lines and blank lines pass unremarked.
 
 from __future__ import annotations
 
-import json
 import math
-import re
 from dataclasses import dataclass, field
 from typing import Any
 
 from estop.link.gaps import U32_MAX, Histogram, LinkInputError, UnitRecord
+from estop.unit import events
 
 __all__ = ["UNIT_KEYS", "HistogramReader", "open_text", "read_histogram_log"]
 
-# syslog-style prefix of plain journalctl output (short, short-iso, short-precise,
-# short-monotonic ...): anything, then `identifier[pid]: ` right before the message
-_PREFIX = re.compile(r"^.*?\S\[\d+\]: (?=\{)")
-
-
 def _event(line: str) -> dict[str, Any] | None:
-    """The estopd event on one line of the log, or None."""
-    if not line.startswith("{"):
-        m = _PREFIX.match(line)
-        if m is None:
-            return None
-        line = line[m.end():]
-    try:
-        ev = json.loads(line)
-    except ValueError:
-        return None
-    if not isinstance(ev, dict):
-        return None
-    if "event" not in ev and "MESSAGE" in ev:  # journalctl -o json: the entry around it
-        msg = ev["MESSAGE"]
-        if isinstance(msg, list) and all(isinstance(b, int) for b in msg):
-            msg = bytes(b & 0xFF for b in msg).decode("utf-8", "replace")
-        return _event(msg.strip()) if isinstance(msg, str) else None
-    return ev if isinstance(ev.get("event"), str) else None
+    """The estopd event on one line of the log in its JSON form (:mod:`estop.unit.events`
+    reads either form and unwraps the journal's), or None."""
+    ev = events.parse(line)
+    return dict(ev.fields) if ev is not None and ev.json else None
 
 
 class _Skipped:

@@ -30,6 +30,7 @@ from estop.protocol.can import (
     reason_name,
     state_name,
 )
+from estop.unit.bus import open_bus
 
 __all__ = ["Monitor", "format_frame", "grade_note", "run_bus", "run_log"]
 
@@ -180,12 +181,7 @@ def run_bus(monitor: Monitor, config: dict[str, object], duration: float | None,
              count: int | None) -> None:
     import can  # python-can, imported only when a bus is used
 
-    try:
-        bus = can.Bus(**config)  # type: ignore[arg-type]
-    except (can.CanError, OSError, ValueError, ImportError, NotImplementedError) as exc:
-        why = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-        raise ConnectionFailure(f"cannot open {config.get('interface')} bus "
-                                f"{config.get('channel') or ''}: {why}") from None
+    bus = open_bus(config)
     end = None if duration is None else time.monotonic() + duration
     seen = 0
     began = time.time()

@@ -29,7 +29,8 @@ from estop.client.channel import StopChannelError, format_reply
 from estop.client.sender import Remote
 from estop.errors import EXIT_UNREACHABLE, ConnectionFailure, UsageError
 from estop.extras import require_extra
-from estop.protocol.udp import Gear, InvalidPacket
+from estop.protocol.udp import InvalidPacket
+from estop.remote import actions
 from estop.remote.gamepadmap import (
     ABS_NAMES,
     DEADMAN_PREFERENCE,
@@ -45,7 +46,6 @@ from estop.remote.gamepadmap import (
 
 __all__ = ["load_evdev", "open_pad", "run_gamepad"]
 
-_GEAR_CYCLE = [Gear.PARK, Gear.REVERSE, Gear.NEUTRAL, Gear.DRIVE]
 Log = Callable[[str], None]
 
 
@@ -136,15 +136,7 @@ class _Requests:
 
     def _loop(self) -> None:
         while (act := self._queue.get()) is not None:
-            try:
-                if act is Act.STOP:
-                    self.log(f"stop -> {self.remote.press_stop().line()}")
-                elif act is Act.RELEASE:
-                    self.log(f"release -> {format_reply(self.remote.release())}")
-                else:
-                    self.log(f"status -> {format_reply(self.remote.status())}")
-            except StopChannelError as exc:
-                self.log(f"{act.value} -> error: {exc}")
+            self.log(actions.try_request(self.remote, act.value))
 
 
 class _PadRun:
@@ -156,29 +148,21 @@ class _PadRun:
         self.log = log
         self.requests = _Requests(remote, log)
 
-    def apply(self, actions: list[Action]) -> None:
-        for action in actions:
+    def apply(self, todo: list[Action]) -> None:
+        for action in todo:
             act = action.act
             if act is Act.LIFT:
-                n = self.remote.lift()  # the first lift datagram is out when this returns
+                n = actions.lift(self.remote)  # the first lift datagram is out on return
                 self.log(f"dead-man released: lift sent x{n}" if n else "dead-man released")
             elif act is Act.HOLD:
-                try:
-                    self.remote.hold()
-                    self.log("dead-man held: sending")
-                except StopChannelError as exc:
-                    self.log(f"hold -> error: {exc}")
+                self.log(actions.hold(self.remote) or "dead-man held: sending")
             elif act is Act.CONTROL:
                 try:
                     self.remote.set_control(None, **action.fields)
                 except InvalidPacket as exc:  # cannot happen with clamped axes; never fatal
                     self.log(f"control ignored: {exc}")
             elif act is Act.NEXT_GEAR:
-                gear = self.remote.control.gear
-                i = _GEAR_CYCLE.index(Gear(gear)) if gear in _GEAR_CYCLE else 0
-                new = _GEAR_CYCLE[(i + 1) % len(_GEAR_CYCLE)]
-                self.remote.set_control(gear=new)
-                self.log(f"gear {new.name.lower()}")
+                self.log(f"gear {actions.next_gear(self.remote).name.lower()}")
             elif act is Act.RESYNC:
                 self.log("events lost (SYN_DROPPED): state read again from the device")
                 self.apply(self.mapper.sync(*_state(self.device, self.layout)))
@@ -230,7 +214,7 @@ def run_gamepad(remote: Remote, path: str | None, deadman: str | None, log: Log)
     for sig in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, _interrupt)
     try:
-        if remote.key is not None:
+        if remote.identity.keyed:
             try:
                 log(f"status -> {format_reply(remote.status())}")  # learn the session first
             except StopChannelError as exc:

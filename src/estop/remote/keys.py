@@ -18,10 +18,9 @@ import select
 import sys
 from collections.abc import Callable, Iterator
 
-from estop.client.channel import StopChannelError, format_reply
 from estop.client.sender import Remote
-from estop.protocol import tcp
 from estop.protocol.udp import Gear, TurnSignal
+from estop.remote import actions
 
 __all__ = ["WARNING", "handle_key", "run_interactive"]
 
@@ -30,7 +29,6 @@ _HELP = ("keys: space hold/lift  s stop  r release  t status  arrows gas/steer  
 WARNING = ("NOTE: the space bar is a TOGGLE, NOT a dead-man: a terminal cannot see a key "
            "released, so packets go on until you press space again (or s, q, Ctrl-C). For a "
            "real dead-man use estop remote --gamepad.")
-_GEAR_CYCLE = [Gear.PARK, Gear.REVERSE, Gear.NEUTRAL, Gear.DRIVE]
 
 
 @contextlib.contextmanager
@@ -55,7 +53,7 @@ def _read_keys(fd: int, timeout: float) -> str:
 
 def _status_line(remote: Remote) -> str:
     c = remote.control
-    gear = Gear(c.gear).name.lower() if c.gear in _GEAR_CYCLE else str(c.gear)
+    gear = Gear(c.gear).name.lower() if c.gear in actions.GEAR_CYCLE else str(c.gear)
     if remote.held:
         hold = "HELD (toggle: space to lift)"
     elif remote.lift_sent:  # the latest hold ended: say that the unit was told
@@ -68,6 +66,7 @@ def _status_line(remote: Remote) -> str:
             f"lost {remote.stats.lost}   ")
 
 
+_REQUESTS = {"s": "stop", "r": "release", "t": "status"}
 _ARROWS = {"\x1b[A": ("gas_brake", 0.1), "\x1b[B": ("gas_brake", -0.1),
            "\x1b[C": ("steering", 0.1), "\x1b[D": ("steering", -0.1)}
 
@@ -84,42 +83,26 @@ def handle_key(remote: Remote, key: str) -> str | None:
     c = remote.control
     if key in ("q", "\x03", "\x04"):
         return "quit"
-    if key == " ":
-        if remote.held:
-            remote.lift()
-        else:
-            try:
-                remote.hold()
-            except StopChannelError as exc:  # with a key: the session could not be learned
-                return f"hold -> error: {exc}"
-    elif key == "s":
-        return f"stop -> {remote.press_stop().line()}"
-    elif key in ("r", "t"):
-        op = {"r": "release", "t": "status"}[key]
-        try:
-            return f"{op} -> {format_reply(remote.request(_OPS[op](remote)))}"
-        except StopChannelError as exc:
-            return f"{op} -> error: {exc}"
-    elif key in _ARROWS:
+    if key == " ":  # the toggle
+        if not remote.held:
+            return actions.hold(remote)
+        actions.lift(remote)
+        return None
+    if key in _REQUESTS:
+        return actions.try_request(remote, _REQUESTS[key])
+    if key in _ARROWS:
         name, step = _ARROWS[key]
         value = round(max(-1.0, min(1.0, getattr(c, name) + step)), 1)
         remote.set_control(**{name: value})
     elif key == "n":
-        remote.set_control(gas_brake=0.0, steering=0.0, gear=Gear.NEUTRAL)
+        actions.neutral(remote)
     elif key == "g":
-        i = _GEAR_CYCLE.index(Gear(c.gear)) if c.gear in _GEAR_CYCLE else 0
-        remote.set_control(gear=_GEAR_CYCLE[(i + 1) % len(_GEAR_CYCLE)])
+        actions.next_gear(remote)
     elif key == "h":
         remote.set_control(horn=1 - c.horn)
     elif key in ("0", "1", "2", "3"):
         remote.set_control(turn_signal=int(key))
     return None
-
-
-_OPS: dict[str, Callable[[Remote], int]] = {
-    "release": lambda r: tcp.RELEASE,
-    "status": lambda r: tcp.STATUS,
-}
 
 
 def run_interactive(remote: Remote, out: Callable[..., None]) -> None:

@@ -47,6 +47,7 @@ from estop.protocol import tcp
 from estop.protocol.can import REASON_NAMES, STATE_NAMES
 from estop.protocol.tcp import Reply
 from estop.protocol.udp import Gear, TurnSignal
+from estop.remote import actions
 
 __all__ = ["ExpectFailed", "ScriptError", "ScriptRunner", "Step", "parse_script"]
 
@@ -199,19 +200,13 @@ class ScriptRunner:
     def step(self, step: Step) -> None:
         r = self.remote
         op, args = step.op, step.args
-        if op == "stop":
-            outcome = r.press_stop()
-            if outcome.reply is None:
-                raise StopChannelError(f"stop: {outcome.summary()}")
-            self.last_reply = outcome.reply
-            self.replies.append((op, outcome.reply))
-            self._say(f"{op} -> {outcome.line()}")
-            return
-        if op in ("release", "status"):
-            reply = {"release": r.release, "status": r.status}[op]()
-            self.last_reply = reply
-            self.replies.append((op, reply))
-            self._say(f"{op} -> {format_reply(reply)}")
+        if op in actions.REQUESTS:
+            done = actions.request(r, op)
+            if done.reply is None:  # the stop button got no answer by its deadline
+                raise StopChannelError(done.line)
+            self.last_reply = done.reply
+            self.replies.append((op, done.reply))
+            self._say(done.line)
             return
         if op == "expect":
             if self.last_reply is None:
@@ -239,7 +234,7 @@ class ScriptRunner:
         elif op == "horn":
             r.set_control(horn=int(args[0]))
         elif op == "neutral":
-            r.set_control(gas_brake=0.0, steering=0.0, gear=Gear.NEUTRAL)
+            actions.neutral(r)
         elif op == "rate":
             r.rate_hz = args[0]
         elif op == "drive":

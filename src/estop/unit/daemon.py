@@ -2,7 +2,7 @@
 stop-latency and memory benchmarks in ``bench/``.
 
 :class:`Daemon` starts the binary with free loopback ports and reads its can-log (stdout) and
-its log (stderr) on threads, through :mod:`estop.unit.log` (the start line, lost can-log
+its log (stderr) on threads, through :mod:`estop.unit.canlog` (the start line, lost can-log
 lines, ``output_dropped`` reports); :class:`~estop.unit.looplink.Link` is the remote's side (UDP
 control packets, and the TCP stop channel of :class:`estop.client.channel.StopChannel`).
 """
@@ -23,15 +23,9 @@ from pathlib import Path
 from typing import IO
 
 from estop.protocol import canlog
-from estop.unit.log import (
-    CanLogLoss,
-    DaemonError,
-    OutputDropped,
-    drop_windows,
-    parse_output_dropped,
-    parse_start_ports,
-    parse_start_session,
-)
+from estop.unit import events
+from estop.unit.canlog import CanLogLoss, DaemonError, drop_windows
+from estop.unit.events import OutputDropped
 
 __all__ = ["Daemon", "find_estopd", "set_realtime"]
 
@@ -149,14 +143,14 @@ class Daemon:
             if self.tee is not None:
                 self.tee("log", line)
             self.log_lines.append(line.rstrip("\n"))
-            if not self._started.is_set():
-                ports = parse_start_ports(line)
-                if ports is not None:
-                    self.udp_port, self.tcp_port = ports
-                    self.session = parse_start_session(line)
-                    self._started.set()
-                    continue
-            dropped = parse_output_dropped(line)
+            ev = events.parse(line)
+            began = events.start(ev)
+            if began is not None and not self._started.is_set():
+                self.udp_port, self.tcp_port = began.udp_port, began.tcp_port
+                self.session = began.session or None
+                self._started.set()
+                continue
+            dropped = events.output_dropped(ev)
             if dropped is not None:
                 self.drop_reports.append(dropped)
 

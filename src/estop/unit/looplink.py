@@ -7,9 +7,10 @@ from __future__ import annotations
 import socket
 import time
 
-from estop.client.channel import ConnectionClosed, MessageCounter, ReplyNotAuthentic, StopChannel
-from estop.protocol import auth, tcp, udp
-from estop.unit.log import DaemonError
+from estop.client.channel import ConnectionClosed, ReplyNotAuthentic, StopChannel
+from estop.client.identity import Identity
+from estop.protocol import tcp, udp
+from estop.unit.canlog import DaemonError
 
 __all__ = ["Link"]
 
@@ -29,38 +30,38 @@ class Link:
                  reply_timeout_s: float = 2.0, *, key: bytes | None = None,
                  remote_id: int = 1) -> None:
         self.addr = (host, udp_port)
-        self.key = None if key is None else auth.check_key(key)
-        self.remote_id = remote_id
-        self._counter = MessageCounter()
-        self.channel = StopChannel(host, tcp_port, timeout=reply_timeout_s, key=self.key,
-                                   remote_id=remote_id, counter=self._counter)
+        self.identity = Identity(key, remote_id)
+        self.channel = StopChannel(host, tcp_port, timeout=reply_timeout_s,
+                                   identity=self.identity)
         self.udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self._packets: dict[tuple[float, float, int], bytes] = {}
         self.recording: list[bytes] | None = None  # a list here collects every datagram sent
         try:
             self.channel.connect()
-            if self.key is not None:
+            if self.identity.keyed:
                 self.request(tcp.STATUS)  # the reply carries the session
         except BaseException:
             self.close()
             raise
 
     @property
+    def key(self) -> bytes | None:
+        return self.identity.key
+
+    @property
     def session(self) -> int:
         """The unit's session, from its latest verified reply (0: not known)."""
-        return self.channel.session
+        return self.identity.session
 
     @property
     def counter(self) -> int:
         """The counter of the latest message sent (it rises with every one)."""
-        return self._counter.last
+        return self.identity.counter.last
 
     def send_control(self, gas: float = 0.0, steering: float = 0.0,
                      gear: int = udp.Gear.NEUTRAL) -> float:
-        if self.key is not None:
-            body = udp.ControlPacket(gas, steering, gear)
-            data = auth.AuthControlPacket(self.remote_id, self.session, self._counter.next(),
-                                          body).encode(self.key)
+        if self.identity.keyed:
+            data = self.identity.control_packet(udp.ControlPacket(gas, steering, gear))
         else:
             key = (gas, steering, gear)
             cached = self._packets.get(key)

@@ -30,13 +30,6 @@ pytestmark = pytest.mark.timeout(60)
 
 
 @pytest.fixture
-def sink() -> Iterator[UdpSink]:
-    s = UdpSink()
-    yield s
-    s.close()
-
-
-@pytest.fixture
 def restarting() -> Iterator[ScriptedStopPort]:
     """The first connection is closed without a reply (as by a daemon restarting), the second
     and later are answered."""

@@ -13,7 +13,8 @@ import pytest
 
 from cli_util import run_cli
 from estop import cli
-from estop.client.channel import MessageCounter, StopChannel
+from estop.client.channel import StopChannel
+from estop.client.identity import Identity, MessageCounter
 from estop.client.keyfile import write_key_file
 from estop.commands.configfile import ConfigFile, config_path
 from estop.commands.settings import COMMON_SETTINGS, resolve_settings
@@ -207,7 +208,7 @@ def test_a_remote_whose_counters_are_refused_as_replays_is_told_so(
     instead of a bare not_authenticated."""
     d, key, key_path = keyed_unit
     ahead = MessageCounter(start=(time_us() + 10**12))
-    with StopChannel(LOCAL, d.tcp_port, key=key, remote_id=42, counter=ahead) as other:
+    with StopChannel(LOCAL, d.tcp_port, identity=Identity(key, 42, ahead)) as other:
         other.status()
         other.release()  # authenticated (NAK no_live_link): the unit keeps its counter
     code, out, err = run_cli(capsys, "release", "--host", LOCAL, "--tcp-port", str(d.tcp_port),

@@ -5,6 +5,7 @@ command line. The page itself is tested in tests/browser/test_dashboard_browser.
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import http.client
 import json
@@ -22,8 +23,11 @@ import aiohttp
 import pytest
 
 from daemon_util import ARMED, R_TCP_STOP, STOPPED, Daemon
+from estop.cli import build_parser
 from estop.cli import main as estop_main
+from estop.commands.dashboard import bus_config
 from estop.commands.options import parse_listen
+from estop.commands.settings import resolve_settings
 from estop.dashboard.feed import FileFollower
 from estop.dashboard.model import NO_SIGNAL, DashboardModel
 from estop.dashboard.server import MIN_INTERVAL, DashboardServer, stop_action_for
@@ -288,9 +292,11 @@ def test_stop_button_only_with_allow_stop_and_it_stops(tmp_path: Path, estopd: s
 
 @pytest.mark.parametrize("argv, message", [
     ([], "name an input"),
-    (["--log", "x", "--channel", "vcan0"], "--channel and --bitrate need --interface"),
+    (["--log", "x", "--channel", "vcan0"], "no CAN bus: give --interface"),
     (["--can-log", "-", "--log", "-"], "only one of --can-log and --log"),
-    (["--log", "x", "--allow-stop"], "--allow-stop needs --host"),
+    (["--can-log", "x", "-i", "virtual"], "--can-log reads a file"),
+    (["--log", "x", "--allow-stop"], "--allow-stop needs the unit to stop: give --host, or "
+                                     "set ESTOP_HOST or host in"),
     (["--log", "x", "--listen", "nowhere"], "--listen must be ADDR:PORT"),
     (["--log", "x", "--listen", "127.0.0.1:99999"], "out of range"),
 ])
@@ -299,6 +305,44 @@ def test_usage_errors_are_one_line(argv: list[str], message: str,
     assert estop_main(["dashboard", *argv]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err
+
+
+def test_the_stop_button_takes_the_unit_from_the_shared_settings(
+        monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """--allow-stop's unit, the send rate and the key come as for every command: the command
+    line, else the environment, else the configuration file."""
+    def parsed(*argv: str) -> argparse.Namespace:
+        args = build_parser().parse_args(["dashboard", "--log", "x", "--allow-stop", *argv])
+        resolve_settings(args)
+        return args
+
+    config = tmp_path / "config.toml"
+    config.write_text('host = "192.0.2.1"\nrate_hz = 20\ntcp_port = 6001\nremote_id = 5\n')
+    monkeypatch.setenv("ESTOP_CONFIG", str(config))
+    args = parsed()
+    assert (args.host, args.rate_hz, args.tcp_port, args.remote_id) == ("192.0.2.1", 20.0, 6001, 5)
+    monkeypatch.setenv("ESTOP_HOST", "192.0.2.2")
+    monkeypatch.setenv("ESTOP_RATE_HZ", "25")
+    assert (parsed().host, parsed().rate_hz) == ("192.0.2.2", 25.0)
+    assert parsed("--host", "192.0.2.3").host == "192.0.2.3"
+
+
+def test_the_bus_comes_from_python_cans_configuration_too(monkeypatch: pytest.MonkeyPatch
+                                                          ) -> None:
+    """As estop monitor: -i/-c/--bitrate over python-can's own configuration; a log alone
+    needs no bus."""
+    def config(*argv: str) -> dict[str, object] | None:
+        return bus_config(build_parser().parse_args(["dashboard", *argv]))
+
+    assert config("--log", "x") is None  # python-can names no bus here
+    assert config("--can-log", "x") is None
+    monkeypatch.setenv("CAN_INTERFACE", "virtual")
+    monkeypatch.setenv("CAN_CHANNEL", "dash0")
+    got = config("--log", "x")
+    assert got is not None and (got["interface"], got["channel"]) == ("virtual", "dash0")
+    got = config("-c", "other")
+    assert got is not None and (got["interface"], got["channel"]) == ("virtual", "other")
+    assert config("--can-log", "x") is None
 
 
 def test_listen_addresses() -> None:

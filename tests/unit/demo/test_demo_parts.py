@@ -10,7 +10,7 @@ import math
 
 import pytest
 
-from estop.demo.bus import BusWatch, Change, state_lines
+from estop.demo.bus import BusWatch, Change
 from estop.demo.car import DRIVE_RAMP_S, LiveCar
 from estop.demo.checks import check
 from estop.demo.report import match_causes, write_report
@@ -20,6 +20,7 @@ from estop.model.rollout import roll_out, timed_frames
 from estop.model.vehicle import kmh
 from estop.protocol import can, canlog
 from estop.protocol.can import Reason, State
+from estop.unit.events import state_changes
 
 CRUISE = kmh(15)
 A_E = 8.0  # the model's default emergency deceleration
@@ -126,7 +127,7 @@ estopd 104.000000 state ARMED->STOPPED reason=lift src=127.0.0.1:5 cause=lift_da
 
 
 def test_state_lines_are_read_with_their_cause() -> None:
-    lines = state_lines(LOG.splitlines())
+    lines = state_changes(LOG.splitlines())
     assert [(ln.frm, ln.to, ln.reason, ln.cause) for ln in lines] == [
         ("STOPPED", "ARMED", "none", "release"), ("ARMED", "SLOWING", "none", "udp_silence"),
         ("SLOWING", "ARMED", "none", "link_back"), ("ARMED", "STOPPED", "lift", "lift_datagram")]
@@ -142,11 +143,11 @@ def test_each_change_on_the_bus_gets_the_cause_of_its_own_state_line() -> None:
     changes = [_change(T0, State.STOPPED, Reason.BOOT), _change(T0 + 1.0001, State.ARMED),
                _change(T0 + 2.0001, State.SLOWING), _change(T0 + 2.1, State.SLOWING, 0, True),
                _change(T0 + 2.2601, State.ARMED), _change(T0 + 4.0001, State.STOPPED, Reason.LIFT)]
-    causes = match_causes(changes, state_lines(LOG.splitlines()), clock)
+    causes = match_causes(changes, state_changes(LOG.splitlines()), clock)
     assert [causes[id(c)].cause if id(c) in causes else None for c in changes] == [
         None, "release", "udp_silence", None, "link_back", "lift_datagram"]
     # a line too far from its frame (a clock taken wrong) is no match
-    assert match_causes(changes, state_lines(LOG.splitlines()), clock + 5.0) == {}
+    assert match_causes(changes, state_changes(LOG.splitlines()), clock + 5.0) == {}
 
 
 # ----------------------------------------------------------------------------- the checks

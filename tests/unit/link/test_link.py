@@ -26,7 +26,7 @@ from cli_util import run_cli
 from estop import cli
 from estop.link.fit import false_stops_per_hour, fit, lost_in_row
 from estop.link.format import format_report
-from estop.link.gaps import Histogram, gaps_from_histogram, gaps_from_times
+from estop.link.gaps import Histogram, daemon_bins, gaps_from_histogram, gaps_from_times
 from estop.link.histogram import read_histogram_log
 from estop.link.poisson import poisson_lower95, poisson_upper95
 from estop.link.read import read_pcap_times
@@ -37,8 +37,6 @@ from link_util import (
     HOURS10,
     RATE,
     arrivals_us,
-    daemon_bin,
-    daemon_bin_one,
     gilbert_lost,
     histogram_log,
     loss_runs,
@@ -50,16 +48,20 @@ pytestmark = pytest.mark.timeout(120)
 # --------------------------------------------------------------------------- generators
 
 
-def test_daemon_bin_reference_itself() -> None:
-    # the vectorised and the integer form agree, and the edges are the lower ends of the
-    # bins (the event's example: 0, 1024, 1536, 2048, 3072; bin 31 from 2^25 us)
+def test_the_daemons_bins_are_the_cores() -> None:
+    # estop.link.gaps.daemon_bins against the core's own estop_gap_bin, at every edge and
+    # around it; the edges are the lower ends of the bins (the event's example: 0, 1024,
+    # 1536, 2048, 3072; bin 31 from 2^25 us)
+    from estop.core import lib
+
     assert EDGES_US[:5] == [0, 1024, 1536, 2048, 3072] and EDGES_US[31] == 1 << 25
     probe = sorted({max(0, e + d) for e in EDGES_US for d in (-1, 0, 1)}
-                   | {20_000, 40_000, 200_000, 2**32 - 1, 10**12})
-    vec = daemon_bin(np.array(probe, dtype=np.int64)).tolist()
-    assert vec == [daemon_bin_one(g) for g in probe]
+                   | {20_000, 40_000, 200_000, 2**32 - 1})
+    vec = daemon_bins(np.array(probe, dtype=np.int64)).tolist()
+    assert vec == [lib.estop_gap_bin(g) for g in probe]
     for g, b in zip(probe, vec, strict=True):
         assert EDGES_US[b] <= g and (b == 31 or g < EDGES_US[b + 1]), (g, b)
+    assert daemon_bins(np.array([10**12])).tolist() == [31]  # beyond u32: still the last bin
 
 
 @dataclass
@@ -237,8 +239,8 @@ def test_restarted_daemon_runs_add_up(tmp_path: Path) -> None:
     t = arrivals_us(lost)
     half = t.size // 2
     whole = Histogram(tuple(EDGES_US), tuple(int(c) for c in np.bincount(
-        daemon_bin(np.diff(t)), minlength=32)), 0, 0, 0, 0, 1, False)
-    crossing = int(daemon_bin(np.array([t[half] - t[half - 1]]))[0])
+        daemon_bins(np.diff(t)), minlength=32)), 0, 0, 0, 0, 1, False)
+    crossing = int(daemon_bins(np.array([t[half] - t[half - 1]]))[0])
     log = tmp_path / "two.jsonl"
     log.write_text(histogram_log([t[:half], t[half:]]))
     h = read_histogram_log(str(log))
@@ -273,9 +275,9 @@ def test_jittered_arrivals_still_fit(tmp_path: Path) -> None:
 def test_jitter_beyond_a_bin_is_credited_to_the_nearest_period() -> None:
     # gaps of 27 ms fall in [24.6, 32.8) ms, which holds no multiple of 20 ms: counted as k=0
     counts = [0] * 32
-    counts[int(daemon_bin(np.array([20_000]))[0])] = 900
-    counts[int(daemon_bin(np.array([27_000]))[0])] = 50
-    counts[int(daemon_bin(np.array([40_000]))[0])] = 50
+    counts[int(daemon_bins(np.array([20_000]))[0])] = 900
+    counts[int(daemon_bins(np.array([27_000]))[0])] = 50
+    counts[int(daemon_bins(np.array([40_000]))[0])] = 50
     g = gaps_from_histogram(Histogram(tuple(EDGES_US), tuple(counts), 1001, 0, 0,
                                           100_000, 1, False), RATE)
     assert int(g.counts[g.k_lo == 0][0]) == 950 and g.notes

@@ -21,7 +21,13 @@ from estop.link.fit import false_stops_per_hour, fit, lost_in_row
 from estop.link.gaps import gaps_from_times
 from estop.link.histogram import read_histogram_log
 from estop.link.poisson import poisson_lower95, poisson_upper95
-from estop.link.report import DEFAULT_SLOW_TARGET, DEFAULT_TARGET, TIMEOUTS_MS, report
+from estop.link.report import (
+    DEFAULT_REACT_MS,
+    DEFAULT_SLOW_TARGET,
+    DEFAULT_TARGET,
+    TIMEOUTS_MS,
+    report,
+)
 from link_util import (
     HOURS10,
     PERIOD_US,
@@ -116,6 +122,59 @@ def test_bursty_link_gets_two_stages(bursty: np.ndarray, tmp_path: Path,
     assert rep_j["unit"] is None
 
 
+def test_json_gives_every_pair_and_the_recommended_one(bursty: np.ndarray, tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]
+                                                       ) -> None:
+    """The two-stage contract of ``--json``: ``pairs`` (every S <= T of the grid with the
+    model's slow-downs at S and emergency stops at T; none at S = T, one stage) and
+    ``recommendation``, beside today's keys."""
+    code, text, _ = run_link([write_times(tmp_path / "t.txt", bursty), "--json"], capsys)
+    rep_j = json.loads(text)
+    assert code == 0 and rep_j["react_ms"] == DEFAULT_REACT_MS
+    assert rep_j["recommendation"] == {"slow_ms": 130, "timeout_ms": 700}
+    model = {r["timeout_ms"]: r["false_stops_per_hour"] for r in rep_j["rows"]}
+    short = {r["timeout_ms"] for r in rep_j["rows"] if r["lost_in_row"] < 1}
+    pairs = {(p["slow_ms"], p["timeout_ms"]): p for p in rep_j["pairs"]}
+    assert set(pairs) == {(s, t) for s in TIMEOUTS_MS for t in TIMEOUTS_MS
+                          if s <= t and s not in short}
+    assert set(pairs[130, 700]) == {"slow_ms", "timeout_ms", "slowdowns_per_hour",
+                                    "emergency_stops_per_hour"}
+    for (s, t), p in pairs.items():
+        assert p["emergency_stops_per_hour"] == model[t]
+        assert p["slowdowns_per_hour"] == (model[s] if s < t else 0.0)
+
+
+@pytest.mark.parametrize("react_ms", [50, 90, 100, 129, 130, 200, 700, 2000])
+def test_the_slow_time_never_exceeds_react_ms(bursty: np.ndarray, react_ms: int) -> None:
+    rep = report(gaps_from_times(bursty / 1e6, RATE), RATE, react_ms=react_ms)
+    assert rep.recommended_ms == 700  # T is the target's alone
+    s = rep.recommended_slow_ms
+    assert s is not None and s <= react_ms and rep.recommendation == (s, 700)
+    # within the reaction: the shortest time below the slow target (130 ms), else the longest
+    # one the reaction allows (the fewest slow-downs)
+    assert s == (130 if react_ms >= 130 else max(d for d in TIMEOUTS_MS if d <= react_ms))
+    assert rep.slow_target_met == (react_ms >= 130)
+
+
+def test_react_ms_on_the_command_line(bursty: np.ndarray, tmp_path: Path,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    times = write_times(tmp_path / "t.txt", bursty)
+    code, text, _ = run_link([times, "--react-ms", "100"], capsys)
+    assert code == 0
+    assert "slow time: S 100 ms, the longest within --react-ms 100: no slow time up to it " \
+           "keeps slow-downs below 1000 per hour" in text
+    assert "estopd options: --slow-ms 100 --timeout-ms 700" in text
+    code, text, _ = run_link([times, "--react-ms", "10", "--json"], capsys)
+    rep_j = json.loads(text)
+    assert code == 0 and rep_j["recommendation"] is None and rep_j["recommended_slow_ms"] is None
+    assert rep_j["recommended_timeout_ms"] == 700 and rep_j["recommended_estopd_options"] is None
+    code, text, _ = run_link([times, "--react-ms", "10"], capsys)
+    assert "slow time: none within --react-ms 10 (the shortest time longer than one send " \
+           "period is 50 ms): no options for estopd recommended" in text
+    code, _, err = run_link([times, "--react-ms", "0"], capsys)
+    assert code == 2 and "--react-ms" in err
+
+
 def test_independent_losses_need_almost_no_second_stage(independent: np.ndarray,
                                                         bursty: np.ndarray) -> None:
     # without bursts the rate falls by 1/loss = 11 per packet: from 1000 slow-downs to 0.01
@@ -137,8 +196,9 @@ def test_independent_losses_need_almost_no_second_stage(independent: np.ndarray,
 def test_one_stage_when_no_shorter_time_meets_the_slow_target(
         bursty: np.ndarray, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = write_times(tmp_path / "t.txt", bursty[:360_000])  # 2 hours
-    # slow-downs held to the stop target: only T itself meets it, so S = T
-    code, text, _ = run_link([path, "--slow-target", "0.01"], capsys)
+    # slow-downs held to the stop target: only T itself meets it, so S = T where the reaction
+    # allows T (here any time of the grid)
+    code, text, _ = run_link([path, "--slow-target", "0.01", "--react-ms", "2000"], capsys)
     assert code == 0
     assert "the link needs no two-stage stop" in text
     t_line = next(x for x in text.splitlines() if x.endswith("<- S = T"))
@@ -146,7 +206,8 @@ def test_one_stage_when_no_shorter_time_meets_the_slow_target(
     assert f"estopd options: --timeout-ms {t_ms}" in text.splitlines()
     assert "--slow-ms" not in text
     assert f"the emergency brake starts T = {t_ms} ms after the last packet" in text
-    code, text, _ = run_link([path, "--slow-target", "0.01", "--json"], capsys)
+    code, text, _ = run_link([path, "--slow-target", "0.01", "--react-ms", "2000", "--json"],
+                             capsys)
     rep = json.loads(text)
     assert rep["recommended_slow_ms"] == rep["recommended_timeout_ms"] == t_ms
     assert rep["recommended_estopd_options"] == ["--timeout-ms", str(t_ms)]
@@ -155,11 +216,14 @@ def test_one_stage_when_no_shorter_time_meets_the_slow_target(
 def test_slow_time_is_never_above_the_timeout(bursty: np.ndarray) -> None:
     gaps = gaps_from_times(bursty[:360_000] / 1e6, RATE)
     for slow_target in (1e-9, 1e-3, 0.01, 1.0, 100.0, 1e4, 1e9):
-        rep = report(gaps, RATE, slow_target=slow_target)
+        rep = report(gaps, RATE, slow_target=slow_target, react_ms=2000)
         assert rep.recommended_ms is not None and rep.recommended_slow_ms is not None
         assert rep.recommended_slow_ms <= rep.recommended_ms
         if rep.recommended_slow_ms < rep.recommended_ms:
             assert rep.row(rep.recommended_slow_ms).meets(slow_target)
+        # with the default reaction, S is within it whatever the slow target
+        s = report(gaps, RATE, slow_target=slow_target).recommended_slow_ms
+        assert s is not None and s <= DEFAULT_REACT_MS
     # a laxer slow target never lengthens S
     s = [report(gaps, RATE, slow_target=x).recommended_slow_ms for x in (10.0, 300.0, 3000.0)]
     assert s == sorted(s, reverse=True) and s[0] != s[-1]  # type: ignore[type-var]

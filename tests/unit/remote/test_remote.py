@@ -9,7 +9,6 @@ import signal
 import struct
 import threading
 import time
-from collections.abc import Iterator
 
 import pytest
 
@@ -21,13 +20,6 @@ from net_util import LOCAL, UdpSink, unused_tcp_port
 from stall_probe import StallProbe
 
 pytestmark = pytest.mark.timeout(60)
-
-
-@pytest.fixture
-def sink() -> Iterator[UdpSink]:
-    s = UdpSink()
-    yield s
-    s.close()
 
 
 def is_lift(data: bytes) -> bool:

@@ -84,8 +84,7 @@ def run_touch(remote: Remote, host: str, port: int, *, log: Log, say: Log, warn:
                                 f"{exc}") from None
     stop_channel = StopChannel(remote.addr[0], remote.channel.port,
                                timeout=remote.channel.timeout, stop_id=remote.channel.stop_id,
-                               key=remote.key, remote_id=remote.remote_id,
-                               counter=remote.counter)
+                               identity=remote.identity)
     for sig in (signal.SIGTERM, signal.SIGHUP):
         signal.signal(sig, _interrupt)
     try:

@@ -1,5 +1,6 @@
-"""Reading what ``estopd`` writes: its start line (ports, session), its can-log (stamps, stop
-frames, the lines its alive counters show missing) and its ``output_dropped`` reports.
+"""Reading estopd's can-log (stamps, stop frames, the lines its alive counters show missing)
+and the windows in which its ``output_dropped`` reports (:mod:`estop.unit.events`) say lines
+may be missing.
 
 A tool that times frames from the can-log must not mistake a lost line for a late frame:
 estopd drops can-log lines when its reader is slow (``output_dropped`` in its event log). Every
@@ -9,25 +10,20 @@ kept; :func:`drop_windows` says when lines may be missing. Used by :mod:`estop.u
 
 from __future__ import annotations
 
-import json
 import math
-import re
 from collections.abc import Iterable
 from dataclasses import dataclass
 
 from estop.protocol import can, canlog
+from estop.unit.events import OutputDropped
 
 __all__ = [
     "DROP_REPORT_REACH_S",
     "CanLogLoss",
     "DaemonError",
     "Gap",
-    "OutputDropped",
     "drop_windows",
     "is_stop_frame",
-    "parse_output_dropped",
-    "parse_start_ports",
-    "parse_start_session",
     "stamp",
 ]
 
@@ -45,34 +41,6 @@ def stamp(rec: canlog.CanLogRecord) -> float:
 def is_stop_frame(rec: canlog.CanLogRecord) -> bool:
     """An ESTOP_BRAKE frame that requests the brake."""
     return rec.can_id == can.BRAKE_ID and len(rec.data) == can.DLC and rec.data[0] == 1
-
-
-_PORT_RE = {
-    kind: re.compile(kind + r"[A-Za-z_]*\"?\s*[=:]\s*\"?(?:[0-9A-Za-z.\[\]:]*:)?(\d{1,5})\b")
-    for kind in ("udp", "tcp")
-}
-
-
-def parse_start_ports(line: str) -> tuple[int, int] | None:
-    """(udp_port, tcp_port) from a daemon's ``start`` log line, text or JSON; else None.
-
-    Accepts ``udp=5700``, ``udp_port=5700``, ``udp=127.0.0.1:5700``, ``"udp_port": 5700`` ...
-    """
-    if not re.search(r"\bstart\b", line):
-        return None
-    found = []
-    for kind in ("udp", "tcp"):
-        m = _PORT_RE[kind].search(line)
-        if m is None:
-            return None
-        found.append(int(m.group(1)))
-    return found[0], found[1]
-
-
-def parse_start_session(line: str) -> int | None:
-    """The unit's session from a ``start`` line (``session=0x...``, text or JSON); else None."""
-    m = re.search(r"\bsession\"?\s*[=:]\s*\"?0x([0-9A-Fa-f]{1,16})\b", line)
-    return int(m.group(1), 16) if m else None
 
 
 # --------------------------------------------------------------------------------------------
@@ -139,52 +107,6 @@ class CanLogLoss:
     def seen_after(self, t: float) -> bool:
         """Both IDs have been logged after ``t``: a gap around ``t`` would have shown."""
         return all(self._last.get(i, -math.inf) > t for i in self.IDS)
-
-
-@dataclass(frozen=True, slots=True)
-class OutputDropped:
-    """One ``output_dropped`` event of estopd's log: ``dropped`` lines of ``stream`` lost since
-    the previous report, ``total`` since start; ``t_mono`` is the daemon's CLOCK_MONOTONIC in
-    seconds (the clock of Python's time.monotonic() on Linux)."""
-
-    t_mono: float
-    stream: str
-    dropped: int
-    total: int
-    err: str
-
-
-_TEXT_DROPPED = re.compile(
-    r"^\S+\s+(?P<t>\d+(?:\.\d+)?)\s+output_dropped\b(?P<kv>.*)$")
-
-
-def parse_output_dropped(line: str) -> OutputDropped | None:
-    """An ``output_dropped`` event from one event-log line (text or ``--log-json``); else None."""
-    text = line.strip()
-    if "output_dropped" not in text:
-        return None
-    fields: dict[str, object]
-    if text.startswith("{"):
-        try:
-            fields = json.loads(text)
-        except ValueError:
-            return None
-        if not isinstance(fields, dict) or fields.get("event") != "output_dropped":
-            return None
-    else:
-        m = _TEXT_DROPPED.match(text)
-        if m is None:
-            return None
-        fields = {"t_mono": m["t"]}
-        for kv in m["kv"].split():
-            k, _, v = kv.partition("=")
-            fields[k] = v
-    try:
-        return OutputDropped(float(str(fields["t_mono"])), str(fields["stream"]),
-                             int(str(fields["dropped"])), int(str(fields["total"])),
-                             str(fields.get("err", "")))
-    except (KeyError, ValueError):
-        return None
 
 
 DROP_REPORT_REACH_S = 2.0

@@ -5,6 +5,7 @@ thread), the TCP stop channel's clients (plain and 48-byte frames), and the key 
 from __future__ import annotations
 
 import bisect
+import select
 import socket
 import struct
 import threading
@@ -176,6 +177,20 @@ class StopClient:
 
     def release(self) -> Exchange:
         return self.request(tcp.RELEASE)
+
+    def peer_closed(self) -> bool:
+        """Whether the unit has closed this connection (EOF or reset), seen without reading a
+        byte (MSG_PEEK) or sending one, so that an idle client stays idle."""
+        sock = self.channel._sock  # the package's channel keeps its socket to itself
+        if sock is None:
+            return True
+        # select first: on a socket with a timeout, recv waits out the timeout on EAGAIN
+        if not select.select([sock], [], [], 0)[0]:
+            return False
+        try:
+            return sock.recv(16, socket.MSG_DONTWAIT | socket.MSG_PEEK) == b""
+        except OSError:
+            return True
 
     def close(self) -> None:
         self.channel.close()

@@ -47,3 +47,35 @@ def test_the_key_holders_release_is_not_made_stale_by_its_own_keepalive(
             assert ex.reply.ack and ex.reply.state == 1, ex.reply  # type: ignore[attr-defined]
         finally:
             ar.close()
+
+
+def test_the_storm_row_counts_the_stop_clients_the_unit_closed() -> None:
+    """rows_storm.evicted: the harness's idle stop clients that the unit closed, found
+    without reading or sending. Since the harness's StopClient became the package's
+    StopChannel (issue 27) it has no ``sock``: the storm row failed with an AttributeError."""
+    import socket
+    from types import SimpleNamespace
+
+    import rows_storm
+    from hilclients import StopClient
+
+    with socket.socket() as srv:
+        srv.bind(("127.0.0.1", 0))
+        srv.listen(8)
+        port = srv.getsockname()[1]
+        clients = [StopClient(port) for _ in range(3)]
+        accepted = [srv.accept()[0] for _ in clients]
+        try:
+            run = SimpleNamespace(clients=clients)
+            assert rows_storm.evicted(run) == 0  # type: ignore[arg-type]
+            accepted[0].close()
+            accepted[2].close()
+            deadline = time.monotonic() + 2.0
+            while rows_storm.evicted(run) < 2 and time.monotonic() < deadline:  # type: ignore[arg-type]
+                time.sleep(0.01)
+            assert rows_storm.evicted(run) == 2  # type: ignore[arg-type]
+        finally:
+            for c in clients:
+                c.close()
+            for a in accepted:
+                a.close()

@@ -300,7 +300,12 @@ class AuthRemote(UdpRemote):
         return pkt
 
     def release(self) -> Exchange:
-        return self.tcp.release()
+        # No control packet is made between the RELEASE and its reply: the unit reads the
+        # control port before each stop-channel frame, so one made later (a higher counter)
+        # that came while the RELEASE waited would make it stale (NAK 4, a RELEASE must be
+        # above the remote's newest counter on either channel, issue 25 item 2).
+        with self.lock:
+            return self.tcp.release()
 
     def close(self) -> None:
         super().close()

@@ -1,0 +1,49 @@
+"""The harness's own clients against a real estopd (hil/hilclients.py)."""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from pathlib import Path
+
+from daemon_util import Daemon
+from hilclients import NEUTRAL, AuthRemote
+
+KEY = bytes(range(32))
+RID = 9
+
+
+def test_the_key_holders_release_is_not_made_stale_by_its_own_keepalive(
+        tmp_path: Path, estopd: str) -> None:
+    """A RELEASE that waits in the unit's TCP socket while the remote's keepalive goes on: the
+    unit reads the control port before the frame, so a control packet made after the RELEASE
+    (a higher counter) made it stale, NAK 4 (issue 25 item 2: one counter per remote, a
+    RELEASE above the newest on either channel). `make hil`'s keyed rows failed so on a loaded
+    machine. The daemon is held (SIGSTOP) for five keepalive periods while the RELEASE waits;
+    the remote must make no control packet until its reply."""
+    key = tmp_path / "key"
+    key.write_text(KEY.hex() + "\n")
+    key.chmod(0o600)
+    with Daemon(tmp_path, "--key-file", str(key)) as d:
+        assert d.proc is not None
+        ar = AuthRemote(d.udp_port, d.tcp_port, KEY, RID)
+        try:
+            ar.learn_session()
+            ar.start(NEUTRAL, period=0.01)
+            time.sleep(0.1)  # a live link
+            os.kill(d.proc.pid, signal.SIGSTOP)
+            got: list[object] = []
+            th = threading.Thread(target=lambda: got.append(ar.release()), daemon=True)
+            try:
+                th.start()
+                time.sleep(0.05)  # the RELEASE waits; the keepalive would send five meanwhile
+            finally:
+                os.kill(d.proc.pid, signal.SIGCONT)
+            th.join(timeout=5)
+            assert got, "no reply to the RELEASE"
+            ex = got[0]
+            assert ex.reply.ack and ex.reply.state == 1, ex.reply  # type: ignore[attr-defined]
+        finally:
+            ar.close()

@@ -139,6 +139,19 @@ def reported_udp_drops(log_lines: Sequence[str]) -> int | None:
     return total
 
 
+def reported_deadline_cuts(log_lines: Sequence[str]) -> int | None:
+    """Drains a silence deadline cut short (``deadline_cuts`` of the daemon's last
+    ``udp_reads`` event): each a deadline that came while the daemon read a backlog, acted on
+    after one batch instead of the rest of the round. None from a daemon that does not count
+    them (estopd before issue 25's follow-up, the baseline)."""
+    cuts: int | None = None
+    for line in log_lines:
+        ev = events.parse(line)
+        if ev is not None and ev.kind == "udp_reads" and ev.integer("deadline_cuts") is not None:
+            cuts = ev.integer("deadline_cuts")
+    return cuts
+
+
 @dataclass
 class FloodStats:
     target_rate: float

@@ -247,7 +247,9 @@ def _flood_lines(results: list[RunResult]) -> list[str]:
                          f"{f.rate:,.0f} packets/s; kernel drops {_drops(r)} (the daemon's own "
                          f"count {own}); udp_rcvbuf {_rcvbuf(r)}; STATUS saturated "
                          f"{r.status_invalid_saturated} (invalid), {r.status_auth_saturated} "
-                         f"(auth failures) of {r.status_frames}")
+                         f"(auth failures) of {r.status_frames}"
+                         + ("" if r.deadline_cuts is None else
+                            f"; drains cut short by a silence deadline {r.deadline_cuts:,}"))
     return lines
 
 

@@ -80,6 +80,7 @@ class RunResult:
     floor_ms: list[float] = field(default_factory=list)  # timer wake-ups before its blocks
     udp_rcvbuf: int | None = None  # the receive buffer the daemon's start line reports
     daemon_udp_drops: int | None = None  # kernel drops the daemon itself reported (udp_drops)
+    deadline_cuts: int | None = None  # drains cut short by a silence deadline (udp_reads)
     wall_s: float = 0.0
     flood: FloodStats | None = None
     other_cpu: float | None = None  # cores used by other processes during the run

@@ -17,7 +17,7 @@ from estop.protocol import tcp
 from estop.unit.canlog import DaemonError
 from estop.unit.daemon import Daemon
 from estop.unit.looplink import Link
-from latency_flood import Flood, reported_udp_drops, start_rcvbuf
+from latency_flood import Flood, reported_deadline_cuts, reported_udp_drops, start_rcvbuf
 from latency_machine import CpuMeter, timer_floor
 from latency_result import PLAIN_METRICS, ROLE_MAIN, RunResult
 from latency_trials import Trials
@@ -143,6 +143,7 @@ def run_load(load: str, daemons: list[DaemonSpec], args: argparse.Namespace, n: 
             c.result.log_gap_lines = c.daemon.loss.lines_lost
             c.result.daemon_dropped = c.daemon.dropped_total
             c.result.daemon_udp_drops = reported_udp_drops(c.daemon.log_lines)
+            c.result.deadline_cuts = reported_deadline_cuts(c.daemon.log_lines)
     wall = time.monotonic() - t0
     for c in cons:
         c.result.wall_s = wall

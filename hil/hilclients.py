@@ -5,6 +5,7 @@ thread), the TCP stop channel's clients (plain and 48-byte frames), and the key 
 from __future__ import annotations
 
 import bisect
+import select
 import socket
 import struct
 import threading
@@ -177,6 +178,20 @@ class StopClient:
     def release(self) -> Exchange:
         return self.request(tcp.RELEASE)
 
+    def peer_closed(self) -> bool:
+        """Whether the unit has closed this connection (EOF or reset), seen without reading a
+        byte (MSG_PEEK) or sending one, so that an idle client stays idle."""
+        sock = self.channel._sock  # the package's channel keeps its socket to itself
+        if sock is None:
+            return True
+        # select first: on a socket with a timeout, recv waits out the timeout on EAGAIN
+        if not select.select([sock], [], [], 0)[0]:
+            return False
+        try:
+            return sock.recv(16, socket.MSG_DONTWAIT | socket.MSG_PEEK) == b""
+        except OSError:
+            return True
+
     def close(self) -> None:
         self.channel.close()
         if self._framed is not None:
@@ -300,7 +315,12 @@ class AuthRemote(UdpRemote):
         return pkt
 
     def release(self) -> Exchange:
-        return self.tcp.release()
+        # No control packet is made between the RELEASE and its reply: the unit reads the
+        # control port before each stop-channel frame, so one made later (a higher counter)
+        # that came while the RELEASE waited would make it stale (NAK 4, a RELEASE must be
+        # above the remote's newest counter on either channel, issue 25 item 2).
+        with self.lock:
+            return self.tcp.release()
 
     def close(self) -> None:
         super().close()

@@ -344,3 +344,10 @@ def recv_exact(s: socket.socket, n: int) -> bytes:
 
 def state_lines(lines: list[str]) -> list[str]:
     return [line for line in lines if " state " in line]
+
+
+def udp_reads(lines: list[str]) -> dict[str, int]:
+    """The latest udp_reads line's numbers: max_round (the most datagrams read in one loop
+    round), budget and deadline_cuts (drains cut short by a silence deadline)."""
+    found = [s for s in lines if " udp_reads " in s]
+    return {k: int(v) for k, v in (f.split("=") for f in found[-1].split()[3:])} if found else {}

@@ -49,6 +49,7 @@ class UdpTap:
         self.out = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         self.port: int = self.sock.getsockname()[1]
         self._got: list[tuple[float, bytes]] = []
+        self.forwarded: list[float] = []  # when each went on to the unit (wall clock)
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -64,13 +65,14 @@ class UdpTap:
                 return
             with contextlib.suppress(OSError):
                 self.out.sendto(data, self.target)
-            stamp = time.time()
+            forwarded = stamp = time.time()
             for level, typ, raw in anc:
                 if level == socket.SOL_SOCKET and typ == SO_TIMESTAMPNS and len(raw) >= 16:
                     sec, nsec = struct.unpack("qq", raw[:16])
                     stamp = sec + nsec / 1e9
             with self._lock:
                 self._got.append((stamp, data))
+                self.forwarded.append(forwarded)
 
     def received(self, after: int = 0) -> list[tuple[float, bytes]]:
         with self._lock:
@@ -79,6 +81,14 @@ class UdpTap:
     def count(self) -> int:
         with self._lock:
             return len(self._got)
+
+    def last_forwarded(self, what: str) -> float:
+        """When the latest datagram of a kind reached the unit: on a loaded machine this
+        tap's thread may forward it well after the kernel's stamp, and the unit's silence
+        starts from then."""
+        with self._lock:
+            return max(f for (_, d), f in zip(self._got, self.forwarded, strict=True)
+                       if kind(d) == what)
 
     def of(self, what: str, after: int = 0) -> list[tuple[float, bytes]]:
         return [(t, d) for t, d in self.received(after) if kind(d) == what]

@@ -24,10 +24,11 @@ static int broken(const daemon_t *d)
     return d->fatal || d->unit.fatal;
 }
 
-/* Silence that has passed by host time t0 while datagrams still wait behind the read budget:
- * acted on at its own time, with what has been read (the car stops rather than waits for the
- * rest). The core's clock goes no further, so the datagrams still queued go in at their own
- * receive times. Returns the core's time after it. */
+/* Silence that has passed by host time t0 while datagrams still wait unread (behind the read
+ * budget, or behind a drain cut short for that very deadline): acted on at its own time, with
+ * what has been read (the car stops rather than waits for the rest). The core's clock goes no
+ * further, so the datagrams still queued go in at their own receive times (or at the
+ * deadline's, if they came before it). Returns the core's time after it. */
 static uint64_t silence_first(daemon_t *d, uint64_t t0)
 {
     uint64_t due = unit_silence_due(&d->unit);
@@ -68,12 +69,14 @@ static uint64_t prepare(daemon_t *d)
     if (udp_drain(&d->udp, &d->unit, &d->apply, t0)) {
         now = t0 > d->unit.last_call_us ? t0 : d->unit.last_call_us;
     } else {
-        /* Cut short by the round's budget: datagrams received before t0 are still queued. A
-         * core call at t0 would hand them over later than they arrived and so stretch the
-         * deadline by the backlog's age; the core's clock stays at the latest datagram read,
-         * and only a silence that has passed moves it (to its own time). The periodic frames
-         * follow the clock: late by the time the backlog takes to read, a few ms. */
-        now = silence_first(d, t0);
+        /* Cut short by the round's budget, or by a silence deadline that came while the
+         * drain read: datagrams received before t0 are still queued. A core call at t0 would
+         * hand them over later than they arrived and so stretch the deadline by the backlog's
+         * age; the core's clock stays at the latest datagram read, and only a silence that
+         * has passed by now (during the drain too) moves it (to its own time). The periodic
+         * frames follow the clock: late by the time the backlog takes to read, a few ms. */
+        uint64_t t1 = clock_unit_us();
+        now = silence_first(d, t1 > t0 ? t1 : t0);
     }
     apply_catch_up(&d->apply, &d->unit, now);
     if (!d->unit.fatal && clock_bad && !d->clock_fault) {
@@ -156,6 +159,7 @@ int loop_init(daemon_t *d, char *err, size_t errlen)
     d->stats_src.cfg = &d->opt.cfg;
     d->stats_src.udp_drops = &d->udp.drops;
     d->stats_src.udp_max_round = &d->udp.max_round;
+    d->stats_src.udp_deadline_cuts = &d->udp.deadline_cuts;
     d->stats_src.udp_budget = UDP_ROUND_MAX;
     /* In this order every round: the unit's due tick, the stop port, the log, CAN. */
     if (wake_add(&d->wake, unit_next, unit_service, d) != 0 ||

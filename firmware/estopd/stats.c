@@ -100,18 +100,22 @@ static void report_drops(stats_t *s, uint32_t drops, uint64_t now)
 }
 
 /* udp_reads: the most datagrams the loop read in one round so far, beside the budget that
- * bounds it (a backlog is read a budget per round, so TCP stops and deadlines never wait
- * behind more). Written when it grew. */
+ * bounds it (a backlog is read a budget per round, so TCP stops never wait behind more), and
+ * how many drains a silence deadline cut short (it waits for one batch, not the budget).
+ * Written when either grew. */
 static void report_reads(stats_t *s, const stats_src_t *src, uint64_t now)
 {
     uint32_t max_round = *src->udp_max_round;
-    if (max_round != s->max_round_reported) {
+    uint32_t cuts = *src->udp_deadline_cuts;
+    if (max_round != s->max_round_reported || cuts != s->cuts_reported) {
         log_kv_t kv[] = {
             KV_NUM("max_round", max_round),
             KV_NUM("budget", src->udp_budget),
+            KV_NUM("deadline_cuts", cuts),
         };
         s->max_round_reported = max_round;
-        log_event(now, "udp_reads", NULL, kv, 2u);
+        s->cuts_reported = cuts;
+        log_event(now, "udp_reads", NULL, kv, 3u);
     }
 }
 

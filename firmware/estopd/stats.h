@@ -16,6 +16,7 @@ typedef struct {
     const uint32_t *udp_drops;    /* the kernel's drop count (udp.h) */
     const uint32_t *udp_max_round; /* the most datagrams read in one loop round (udp.h) */
     uint32_t udp_budget;          /* ... and the most a round may read (UDP_ROUND_MAX) */
+    const uint32_t *udp_deadline_cuts; /* drains cut short by a silence deadline (udp.h) */
 } stats_src_t;
 
 /* What has been reported so far. */
@@ -27,6 +28,7 @@ typedef struct {
     uint32_t timeouts_reported;
     uint32_t drops_reported;      /* udp_drops in the latest udp_drops event */
     uint32_t max_round_reported;  /* max_round in the latest udp_reads event */
+    uint32_t cuts_reported;       /* ... and deadline_cuts */
 } stats_t;
 
 /* Call from the loop; cheap until the period has passed. */

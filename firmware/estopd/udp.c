@@ -165,6 +165,13 @@ int udp_drain(udp_t *u, unit_t *unit, const apply_t *a, uint64_t t0)
         if (reached || (uint32_t)n < vlen) {
             return 1;
         }
+        /* The silence deadline came while this batch was read (a datagram received after it
+         * would have had it acted on in the catch-up): the car stops at it rather than waits
+         * for the rest of the round; the caller acts on it at its own time (loop.c). */
+        if (clock_unit_us() >= unit_silence_due(unit)) {
+            u->deadline_cuts++;
+            return unit->fatal ? 1 : 0;
+        }
     }
     return unit->fatal ? 1 : 0; /* the budget is spent: what is still queued waits a round */
 }

@@ -20,6 +20,7 @@ typedef struct {
     uint32_t drops;           /* the kernel's count of datagrams dropped for want of room */
     uint32_t round_read;      /* datagrams read this loop round */
     uint32_t max_round;       /* the most read in one round so far (the stats' udp_reads) */
+    uint32_t deadline_cuts;   /* drains cut short by a silence deadline that fell meanwhile */
 } udp_t;
 
 /* Asks the kernel for receive stamps on the open socket u->fd. Returns 0, or -1 with a
@@ -29,9 +30,13 @@ int udp_setup(udp_t *u, char *err, size_t errlen);
 void udp_round(udp_t *u);
 /* The drain before any deadline is acted on: reads datagrams, oldest first, and hands each to
  * the core at its receive time, until the socket is empty, a datagram received at or after t0
- * (the moment the drain began) has been read, or the round's budget is spent. Returns 1 when
- * everything received before t0 has been handed over, 0 when the budget ran out first (more
- * may be queued: the core's clock must then not pass the datagrams still unread). */
+ * (the moment the drain began) has been read, the round's budget is spent, or the unit's
+ * silence deadline (unit_silence_due) has come while it read: the clock is looked at after
+ * every batch of UDP_BATCH datagrams (32), so a deadline waits for one batch at most, not
+ * for the rest of a budget (every tag checked: a MAC a datagram, milliseconds a budget).
+ * Returns 1 when everything received before t0 has been handed over, 0 when it was cut short
+ * first (more may be queued: the core's clock must then not pass the datagrams still unread,
+ * except to act on a silence deadline that has come, loop.c). */
 int udp_drain(udp_t *u, unit_t *unit, const apply_t *a, uint64_t t0);
 
 #endif

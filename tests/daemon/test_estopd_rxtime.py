@@ -279,3 +279,74 @@ def test_a_deadline_passed_during_a_stall_is_not_held_back_by_the_backlog(
     reading before it, against about 2 ms now.) Judged on the daemon's own CPU time (the
     stall probe's), not on the clock."""
     attempt(overdue_run, tmp_path)
+
+
+T_EARLY_S = 0.003  # clock conversion and send-time slack, as above
+BATCH_S = 0.0003  # one batch of 32 forged datagrams (32 MACs, ~0.06 ms here) and the SIGCONT
+
+
+def busy_until(t: float) -> None:
+    """Sleeps to 3 ms before t, then spins: a sleeper's oversleep would miss the window."""
+    sleep_until(t - 0.003)
+    while time.time() < t:
+        pass
+
+
+def during_drain_run(tmp_path: Path) -> None:
+    with Daemon(tmp_path, "--key-file", str(key_file(tmp_path))) as d:
+        assert d.proc is not None
+        remote = Remote(d)
+        remote.request(MSG_STATUS)
+        forger = Remote(d, key=bytes(32))
+        forger.session, forger.udp_counter = remote.session, 100_000
+        forged = []
+        for _ in range(FORGED):
+            forger.udp_counter += 1
+            forged.append(auth.AuthControlPacket(forger.rid, forger.session,
+                                                 forger.udp_counter,
+                                                 ControlPacket()).encode(forger.key))
+        remote.arm()
+        try:
+            with StallProbe(d.proc.pid) as probe:
+                n0 = len(d.frames())
+                remote.udp_counter += 1
+                last = auth.AuthControlPacket(remote.rid, remote.session, remote.udp_counter,
+                                              ControlPacket()).encode(remote.key)
+                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+                    t_last = time.time()  # the last valid packet is received after this
+                    s.sendto(last, ("127.0.0.1", d.udp_port))
+                    t_sent = time.time()
+                    due = t_last + T  # its deadline, at the earliest
+                    pause(d)
+                    for p in forged:
+                        s.sendto(p, ("127.0.0.1", d.udp_port))
+                t_queued = time.time()
+                busy_until(due - 0.00015)  # the reading begins just before the deadline
+                t_resume = resume(d)
+                stop = d.wait_frame(lambda f: f.is_brake() and f.reason == R_UDP_TIMEOUT,
+                                    timeout=3, after=n0)
+                time.sleep(0.2)  # the rest of the backlog read meanwhile
+        finally:
+            if d.proc is not None and d.proc.poll() is None:
+                os.kill(d.proc.pid, signal.SIGCONT)
+    if t_sent - t_last > 0.0005 or t_queued > due - 0.01 or not due - 0.001 <= t_resume <= due:
+        raise Mistimed
+    backlog = probe.ran_s(t_resume, t_resume + 0.2)
+    assert backlog >= 0.004, f"the backlog took only {backlog * 1e3:.1f} ms to read"
+    assert stop.t >= due - T_EARLY_S, f"stopped {(due - stop.t) * 1e3:.1f} ms early"
+    start = max(due, t_resume)  # the deadline, or the reading's start if that came later
+    assert stop.t - start <= BATCH_S + probe.stall_s(start, stop.t), \
+        (f"stopped {(stop.t - due) * 1e3:.2f} ms after the deadline, "
+         f"{(stop.t - t_resume) * 1e3:.2f} ms after the resume: {probe.explain(start, stop.t)}")
+
+
+def test_a_deadline_that_falls_during_a_drain_waits_for_one_batch_not_the_budget(
+        tmp_path: Path) -> None:
+    """Issue 25, after item 1 (every tag checked by estopd): the daemon reads 8,000 forged
+    authenticated packets (a MAC each, about four budgets) that queued while it was stopped,
+    and the last valid packet's deadline falls just after the reading began. Before, the drain
+    read on to the end of its 2,048-datagram budget (about 2 ms of MACs here) before the
+    deadline was acted on; now it looks at the clock after every batch of 32 and stops the
+    car at once. Judged on the wall clock against the daemon's own stall in the same interval
+    (run-queue wait and a sleeper's oversleep, tests/stall_probe.py) plus one batch."""
+    attempt(during_drain_run, tmp_path)

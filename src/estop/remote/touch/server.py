@@ -33,11 +33,11 @@ from typing import Any
 from aiohttp import WSMsgType, web
 
 from estop.client.button import press_stop
-from estop.client.channel import StopChannel, StopChannelError, format_reply
+from estop.client.channel import StopChannel, StopChannelError
 from estop.client.sender import Remote
-from estop.protocol import tcp
 from estop.protocol.can import FLAG_LINK_DEGRADED, reason_name, state_name
 from estop.protocol.udp import Gear, InvalidPacket
+from estop.remote import actions
 from estop.remote.touch.hold import DeadMan, Verdict
 from estop.remote.touch.wire import (
     Message,
@@ -191,7 +191,7 @@ class TouchServer:
     def _end_hold(self, page_id: int, why: str) -> None:
         if not self.deadman.end(page_id):
             return
-        n = self.remote.lift()  # the first lift datagram is out when this returns
+        n = actions.lift(self.remote)  # the first lift datagram is out when this returns
         self.lift_reasons.append(why)
         self.log(f"page {page_id}: {why}: lift sent x{n}" if n else f"page {page_id}: {why}")
         self._changed.set()
@@ -378,7 +378,7 @@ class TouchServer:
             why = fields.get("why")
             self._end_hold(page.id, f"lift ({why if isinstance(why, str) else '?'})"[:80])
         elif kind == "release":
-            self._request(page, "release", self.remote.release)
+            self._request(page, "release")
         elif kind == "gear":
             self._gear(page, fields.get("gear"))
         else:
@@ -412,13 +412,16 @@ class TouchServer:
 
     # ------------------------------------------------------------------ requests
 
-    def _request(self, page: _Page, what: str, call: Callable[[], tcp.Reply]) -> None:
+    def _request(self, page: _Page, what: str) -> None:
+        """RELEASE (or STATUS) as every front-end does it (:mod:`estop.remote.actions`), off
+        the loop, on the remote's channel; the reply's line goes to the page."""
         async def run() -> None:
             loop = asyncio.get_running_loop()
             try:
-                reply = await loop.run_in_executor(self._tcp, call)
-                line, ok = format_reply(reply), reply.ack
-                hint = self.remote.channel.nak_hint(reply)
+                done = await loop.run_in_executor(self._tcp, actions.request, self.remote, what)
+                line, ok = done.line.partition(" -> ")[2], done.reply is not None and \
+                    done.reply.ack
+                hint = self.remote.channel.nak_hint(done.reply) if done.reply else None
                 if hint:
                     line += f" ({hint})"
             except StopChannelError as exc:

@@ -101,7 +101,8 @@ class StopChannel:
     With a key each reply must verify against its request (else :class:`ReplyNotAuthentic`)
     and echo its seq and counter; every reply teaches the identity's session, which later
     requests (and the remote's other messages) carry. The identity's counter is the remote's
-    one counter.
+    one counter; the channel tells the identity when a request is answered or can be no
+    more, which ends a RELEASE's quiet (:class:`~estop.client.identity.Identity`).
     """
 
     def __init__(self, host: str, port: int = tcp.DEFAULT_PORT, *, timeout: float = 2.0,
@@ -161,7 +162,10 @@ class StopChannel:
             self._sock.close()
             self._sock = None
         self._asm.reset()
+        pending = [req for _frame, req in self._pending.values() if req is not None]
         self._pending.clear()  # no reply comes on a closed connection
+        for req in pending:
+            self.identity.answered(req.counter)  # a RELEASE's quiet ends with it
 
     def __enter__(self) -> StopChannel:
         return self
@@ -289,6 +293,7 @@ class StopChannel:
             frame, sent = self._pending.pop(got, (b"", None))
             if sent is None:
                 raise StopChannelError(f"a reply to seq {got}, which was never asked")
+            self.identity.answered(sent.counter)  # the unit has read it (a RELEASE's quiet)
             reply = self._decode_framed(raw, frame, sent)
             ours = True
         else:

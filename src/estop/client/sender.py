@@ -14,7 +14,11 @@ connection and another datagram each time) until the unit answers or ``stop_dead
 With a key (spec section 5) the packets are the 60-byte authenticated form and the requests
 48-byte frames whose replies must verify; the remote learns the unit's session from replies
 (``hold`` asks STATUS first when it does not know it yet) and raises one counter with every
-message it sends.
+message it sends. While a RELEASE is in flight (from taking its counter until its reply, at most
+``release_quiet_s``, default 50 ms) no control packet goes out: one with a higher counter, read
+by the unit before the RELEASE, would make the RELEASE stale (NAK 4; issue 25, docs/REMOTE.md
+section 4); a packet held back goes out as soon as the reply comes. Stop and lift datagrams are
+never held back.
 
 An optional :class:`estop.model.wifi.LinkModel` makes the UDP link lossy and slow like Wi-Fi;
 its one-way delay (not its loss) is also applied to each TCP request and its reply.
@@ -50,7 +54,7 @@ from estop.client.button import (
     press_stop,
 )
 from estop.client.channel import StopChannel, StopChannelError
-from estop.client.identity import DEFAULT_REMOTE_ID, Identity
+from estop.client.identity import DEFAULT_REMOTE_ID, RELEASE_QUIET_S, Identity
 from estop.model.wifi import IDEAL, LinkConfig, LinkModel
 from estop.protocol import tcp, udp
 from estop.protocol.tcp import Reply
@@ -117,7 +121,8 @@ class Remote:
                  stop_id: int = tcp.DEFAULT_STOP_ID, tcp_timeout: float = 2.0,
                  stop_deadline: float = DEFAULT_STOP_DEADLINE, legacy: bool = False,
                  on_packet: PacketHook | None = None, key: bytes | None = None,
-                 remote_id: int = DEFAULT_REMOTE_ID, paced: bool = True) -> None:
+                 remote_id: int = DEFAULT_REMOTE_ID, paced: bool = True,
+                 release_quiet_s: float = RELEASE_QUIET_S) -> None:
         self._period = 1.0 / check_rate(rate_hz)
         # paced: the sender thread sends one packet each period while held; not paced: the
         # caller's own clock does, one packet per pulse() (the touch page's fresh frames)
@@ -128,7 +133,8 @@ class Remote:
         if key is not None and legacy:
             raise ValueError("with a key the remote sends 60-byte packets, not the 16-byte form")
         # one identity for all its messages: one key, remote id and session, one counter
-        self.identity = Identity(key, remote_id)
+        self.identity = Identity(key, remote_id, release_quiet_s=release_quiet_s)
+        self.identity.on_quiet_end = self._quiet_ended
         self.addr = (host, udp_port)
         self.legacy = legacy
         self.on_packet = on_packet
@@ -149,6 +155,7 @@ class Remote:
         self._lift_left = 0  # lift datagrams of the latest lift still to send
         self._lift_due = 0.0  # when the next of them goes out
         self._lift_sent = 0  # lift datagrams of the latest lift handed to the link
+        self._owed = False  # a control packet held back while a RELEASE was in flight
         self._closing = False
         self._cond = threading.Condition()
         self._thread: threading.Thread | None = None
@@ -234,6 +241,7 @@ class Remote:
             if not self._held:
                 return 0
             self._held = False
+            self._owed = False
             self._lifts += 1
             self._lift_left = LIFT_SENDS
             self._lift_sent = 0
@@ -243,7 +251,8 @@ class Remote:
 
     def pulse(self) -> bool:
         """One control packet now, while held (for ``paced=False``: the caller's clock sets
-        the rate); False when not held, and nothing is sent."""
+        the rate); False when not held, and nothing is sent. While a RELEASE is in flight the
+        packet is held back and goes out when its reply comes."""
         with self._cond:
             if not self._held:
                 return False
@@ -345,14 +354,16 @@ class Remote:
                 if self._lift_left and self._lift_due <= now:
                     self._send_lift()
                     self._cond.notify_all()  # wait_lift_sent() may be waiting
-                if self._held and self.paced and self._next_send <= now:
-                    self._send_one(now)
+                if self._held and self.paced and self._next_send <= now and \
+                        self._send_one(now):
                     self._next_send += self._period
                     if self._next_send < now:  # fell behind (paused): no burst, restart
                         self._next_send = now + self._period
                 wake = math.inf
                 if self._held and self.paced:
                     wake = self._next_send
+                    if self._owed:  # held back: until the reply (notified) or the bound
+                        wake = max(wake, self.identity.quiet_until())
                 if self._lift_left:
                     wake = min(wake, self._lift_due)
                 if self._inflight:
@@ -360,17 +371,33 @@ class Remote:
                 timeout = 0.5 if wake == math.inf else wake - time.monotonic()
                 self._cond.wait(min(0.5, max(_MIN_WAIT, timeout)))
 
-    def _send_one(self, now: float) -> None:
+    def _send_one(self, now: float) -> bool:
+        """One control packet now (the lock is held); False when it is held back because a
+        RELEASE is in flight."""
         if self.identity.keyed:
-            data = self.identity.control_packet(self._control)
+            made = self.identity.control_packet(self._control)
+            if made is None:
+                self._owed = True
+                return False
+            data = made
         else:
             data = self._control.encode(legacy=self.legacy)
+        self._owed = False
         self.stats.sent += 1
         t_deliver = self._transmit(now, data, True)
         if t_deliver is None:
             self.stats.lost += 1
         if self.on_packet is not None:
             self.on_packet(now, data, t_deliver)
+        return True
+
+    def _quiet_ended(self) -> None:
+        """The RELEASE's reply came: the packet held back goes out now (the sender thread's,
+        woken here; the caller's clock's, sent from here)."""
+        with self._cond:
+            if self._owed and self._held and not self.paced:
+                self._send_one(time.monotonic())
+            self._cond.notify_all()
 
     def _send_lift(self) -> None:
         """One lift datagram of the latest lift, now (the lock is held). The next is due

@@ -61,7 +61,11 @@ class Link:
     def send_control(self, gas: float = 0.0, steering: float = 0.0,
                      gear: int = udp.Gear.NEUTRAL) -> float:
         if self.identity.keyed:
-            data = self.identity.control_packet(udp.ControlPacket(gas, steering, gear))
+            made = self.identity.control_packet(udp.ControlPacket(gas, steering, gear))
+            if made is None:  # only when a RELEASE was sent and its reply not read yet
+                raise RuntimeError("a RELEASE is in flight: read its reply before the next "
+                                   "control packet (docs/REMOTE.md section 4)")
+            data = made
         else:
             key = (gas, steering, gear)
             cached = self._packets.get(key)

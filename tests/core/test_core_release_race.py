@@ -164,14 +164,17 @@ def slow_unit(request: pytest.FixtureRequest) -> Iterator[WorstOrderUnit]:
     assert unit.error is None, unit.error
 
 
-def _release_after_hold(unit: WorstOrderUnit, **remote: float) -> tcp.Reply:
+def _release_after_hold(unit: WorstOrderUnit, **remote: float) -> tuple[tcp.Reply, float]:
+    """The remote's RELEASE after a live link; its reply, and the quiet left once release()
+    has returned (0.0: the reply ended it)."""
     with Remote("127.0.0.1", unit.udp_port, unit.tcp_port, key=K, remote_id=RID,
                 rate_hz=200.0, **remote) as r:  # type: ignore[arg-type]
         r.hold()  # STATUS first: the session
         time.sleep(0.1)  # 20 packets: a live, neutral link
         reply = r.release()
+        quiet_left = r.identity.quiet_until()
         r.lift()
-    return reply
+    return reply, quiet_left
 
 
 @pytest.mark.parametrize("slow_unit", [0.03], indirect=True)
@@ -183,9 +186,10 @@ def test_the_remote_makes_no_control_packet_above_its_release_in_flight(
     the reply, and the RELEASE arms the unit. (The quiet's bound is raised to 1 s here so that
     a loaded machine cannot end it before the unit has read the frame; the bound itself is
     the next test's.)"""
-    reply = _release_after_hold(slow_unit, release_quiet_s=1.0)
+    reply, quiet_left = _release_after_hold(slow_unit, release_quiet_s=1.0)
     assert slow_unit.held_packets == []
     assert (reply.ack, reply.state) == (True, ARMED), reply
+    assert quiet_left == 0.0  # the reply ended the quiet, not its bound
 
 
 @pytest.mark.parametrize("slow_unit", [0.3], indirect=True)
@@ -195,6 +199,6 @@ def test_the_quiet_for_a_release_in_flight_ends_at_its_bound(
     300 ms gets control packets again once the quiet's bound (RELEASE_QUIET_S, 50 ms) is up,
     long before the reply. The RELEASE is then refused (NAK 4), a fail-safe refusal the
     operator answers with another press; the remote never re-sends it on its own."""
-    reply = _release_after_hold(slow_unit)
+    reply, _ = _release_after_hold(slow_unit)
     assert len(slow_unit.held_packets) >= 10, slow_unit.held_packets
     assert (reply.ack, reply.nak_code) == (False, NAK_NOT_AUTH)

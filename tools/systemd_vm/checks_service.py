@@ -192,8 +192,10 @@ def arm(project: Path, frames: BrakeFrames,
             if remote.poll() is not None:  # its expect failed: released nothing
                 return [Frame(-1.0, b"")]
             return [f for f in frames.since(t0) if f.data and f.state == "ARMED"]
+        # (the tool's own start-up, not the unit's: Python and the package under TCG, 3 to 30 s
+        # when three VMs shared this busy machine)
         first = wait_for("ESTOP_BRAKE 'released, ARMED' after estop remote's release", armed,
-                         30)[0]
+                         90)[0]
         if first.t >= 0:
             return remote, first
         remote.wait(timeout=10)

@@ -6,7 +6,9 @@
  *
  * What the host contract fixes, and the driver therefore keeps:
  *  - estop_init() first; every call gets the core, a valid out and distinct buffers;
- *  - data points to len readable bytes (any content, any len up to the buffer's size);
+ *  - data points to len readable bytes: each datagram and TCP chunk lies in an array of exactly
+ *    len bytes (any content, every len from 0 to DRIVER_MAX, each length its own state), so a
+ *    read past len is an alarm; NULL with a non-zero length is tried too and must be refused;
  *  - consumed non-NULL for estop_tcp_rx (NULL is also tried: it must be refused).
  * Everything else is unknown: the configuration (any value estop_config_check accepts, keyed
  * or plain, any slow time and level of version 3, and any value at all for the refused
@@ -24,7 +26,10 @@
 #define DRIVER_KEYED 1
 #endif
 
-/* Large enough for every frame form (60 bytes) and the bytes after it. */
+/* The longest datagram or TCP chunk tried: every frame form (60 bytes at most) and bytes
+ * after it. */
+#define DRIVER_MAX 64u
+/* The buffer of the calls that must be refused before any byte is read. */
 #define DRIVER_BUF 96u
 
 static uint32_t any_u32(void)
@@ -148,12 +153,64 @@ static void refused_calls(void)
     (void)estop_tick(&core, any_u32(), NULL);
 }
 
+/* Every length 1 .. DRIVER_MAX as a case of a switch, each with its own array of exactly that
+ * many bytes: Eva gives every local array a base of its own size, so a read past len is an
+ * alarm (a variable-length array would share one base of any size among the lengths). */
+#define EXACT_CASES(CALL) \
+    EXACT(1, CALL) EXACT(2, CALL) EXACT(3, CALL) EXACT(4, CALL) EXACT(5, CALL) EXACT(6, CALL) \
+    EXACT(7, CALL) EXACT(8, CALL) EXACT(9, CALL) EXACT(10, CALL) EXACT(11, CALL) \
+    EXACT(12, CALL) EXACT(13, CALL) EXACT(14, CALL) EXACT(15, CALL) EXACT(16, CALL) \
+    EXACT(17, CALL) EXACT(18, CALL) EXACT(19, CALL) EXACT(20, CALL) EXACT(21, CALL) \
+    EXACT(22, CALL) EXACT(23, CALL) EXACT(24, CALL) EXACT(25, CALL) EXACT(26, CALL) \
+    EXACT(27, CALL) EXACT(28, CALL) EXACT(29, CALL) EXACT(30, CALL) EXACT(31, CALL) \
+    EXACT(32, CALL) EXACT(33, CALL) EXACT(34, CALL) EXACT(35, CALL) EXACT(36, CALL) \
+    EXACT(37, CALL) EXACT(38, CALL) EXACT(39, CALL) EXACT(40, CALL) EXACT(41, CALL) \
+    EXACT(42, CALL) EXACT(43, CALL) EXACT(44, CALL) EXACT(45, CALL) EXACT(46, CALL) \
+    EXACT(47, CALL) EXACT(48, CALL) EXACT(49, CALL) EXACT(50, CALL) EXACT(51, CALL) \
+    EXACT(52, CALL) EXACT(53, CALL) EXACT(54, CALL) EXACT(55, CALL) EXACT(56, CALL) \
+    EXACT(57, CALL) EXACT(58, CALL) EXACT(59, CALL) EXACT(60, CALL) EXACT(61, CALL) \
+    EXACT(62, CALL) EXACT(63, CALL) EXACT(64, CALL)
+#define EXACT(n, CALL) \
+    case n: {                   \
+        uint8_t data##n[n];     \
+        any_bytes(data##n, n);  \
+        CALL(data##n, n);       \
+        break;                  \
+    }
+
+/* One datagram of len bytes (0 .. DRIVER_MAX) in an array of exactly len bytes. len 0 passes
+ * a pointer one past a one-byte array: nothing may be read through it. */
+static void udp_exact(estop_core_t *core, size_t len, uint32_t now, estop_out_t *out)
+{
+    uint8_t none[1];
+#define UDP_CALL(d, n) (void)estop_udp_rx(core, d, n, now, out)
+    switch (len) {
+    EXACT_CASES(UDP_CALL)
+    default:
+        (void)estop_udp_rx(core, &none[1], 0u, now, out);
+        break;
+    }
+}
+
+/* A TCP chunk of len bytes (0 .. DRIVER_MAX) in an array of exactly len bytes, as udp_exact. */
+static void tcp_exact(estop_core_t *core, uint32_t slot, size_t len, size_t *consumed,
+                      uint32_t now, estop_out_t *out)
+{
+    uint8_t none[1];
+#define TCP_CALL(d, n) (void)estop_tcp_rx(core, slot, d, n, consumed, now, out)
+    switch (len) {
+    EXACT_CASES(TCP_CALL)
+    default:
+        (void)estop_tcp_rx(core, slot, &none[1], 0u, consumed, now, out);
+        break;
+    }
+}
+
 int main(void)
 {
     estop_core_t core;
     estop_config_t cfg;
     estop_out_t out;
-    uint8_t buf[DRIVER_BUF];
     size_t consumed;
 
     refused_calls();
@@ -165,19 +222,19 @@ int main(void)
     (void)estop_tick(&core, any_u32(), &out);
     /* Any number of calls, any of them each time. */
     while (Frama_C_nondet(0, 1) != 0) {
-        size_t len = Frama_C_unsigned_int_interval(0u, DRIVER_BUF);
+        size_t len = Frama_C_unsigned_int_interval(0u, DRIVER_MAX);
         uint32_t now = any_u32();
         uint32_t slot = Frama_C_unsigned_int_interval(0u, ESTOP_MAX_SLOTS);
-        any_bytes(buf, DRIVER_BUF);
+        estop_err_t err;
         switch (Frama_C_interval(0, 7)) {
         case 0:
             (void)estop_tick(&core, now, &out);
             break;
         case 1:
-            (void)estop_udp_rx(&core, buf, len, now, &out);
+            udp_exact(&core, len, now, &out);
             break;
         case 2:
-            (void)estop_udp_rx(&core, NULL, 0u, now, &out);
+            (void)estop_udp_rx(&core, NULL, len, now, &out); /* NULL: an invalid datagram */
             break;
         case 3:
             (void)estop_tcp_open(&core, slot, now, &out);
@@ -186,13 +243,20 @@ int main(void)
             (void)estop_tcp_close(&core, slot, now, &out);
             break;
         case 5:
-            (void)estop_tcp_rx(&core, slot, buf, len, &consumed, now, &out);
+            tcp_exact(&core, slot, len, &consumed, now, &out);
             break;
         case 6:
             if (Frama_C_nondet(0, 1) != 0) {
-                (void)estop_tcp_rx(&core, slot, NULL, 0u, &consumed, now, &out);
+                (void)estop_tcp_rx(&core, slot, NULL, 0u, &consumed, now, &out); /* allowed */
+            } else if (Frama_C_nondet(0, 1) != 0) {
+                err = estop_tcp_rx(&core, slot, NULL,
+                                   Frama_C_unsigned_int_interval(1u, DRIVER_MAX), &consumed,
+                                   now, &out);
+                /*@ assert null_data_refused: err == ESTOP_ERR_NULL_ARG || err == ESTOP_ERR_SLOT; */
             } else {
-                (void)estop_tcp_rx(&core, slot, buf, len, NULL, now, &out);
+                uint8_t data[1] = {0u};
+                err = estop_tcp_rx(&core, slot, data, 1u, NULL, now, &out);
+                /*@ assert null_consumed_refused: err == ESTOP_ERR_NULL_ARG || err == ESTOP_ERR_SLOT; */
             }
             break;
         default:

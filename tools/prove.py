@@ -45,7 +45,12 @@ EVA_OPTS = ["-eva-precision", "2", "-eva-auto-loop-unroll", "1024", "-eva-split-
 # A slot's fill is bounded by a quantified invariant (slots_ok): Qed instantiates it for the 8
 # slots. The timeout leaves the slowest goal (about 16 s on an idle 2-core machine) room on a
 # loaded one; a run on a machine busy with other work timed out at 20 s.
-WP_OPTS = ["-wp-model", "Caveat", "-wp-prover", PROVERS, "-wp-timeout", "40", "-wp-par", "2",
+WP_MODEL = "Caveat"
+# A run under Typed also checks the hypotheses of its model at every call and runs smoke tests
+# (a precondition that cannot hold or code the proof finds dead fails the run).
+MODEL_CHECKS = {"Typed": ["-wp-check-memory-model", "-wp-smoke-tests"]}
+MODEL_TAGS = {"Typed": "typed_", "Caveat": "typed_caveat_"}  # how WP names their goals
+WP_OPTS = ["-wp-prover", PROVERS, "-wp-timeout", "40", "-wp-par", "2",
            "-wp-bound-forall-unfolding", "8"]
 
 
@@ -69,6 +74,9 @@ class WpResult:
     failed: list[str]
     log: Path
     error: str = ""
+    smoke: int = 0  # smoke tests checked (Typed runs)
+    smoke_failed: list[str] = dataclasses.field(default_factory=list)
+    wrong_model: list[str] = dataclasses.field(default_factory=list)
 
 
 def core_sources(core_dir: Path) -> list[Path]:
@@ -209,14 +217,16 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str]) -> W
     only = [f[1:] for f in fcts if f.startswith("+")]
     models = [f[1:] for f in fcts if f.startswith("@")]
     flags = [opt for f in fcts if f.startswith("%") for opt in WP_FLAGS[f[1:]]]
+    model = models[0] if models else WP_MODEL
     args = [*cpp_args(core_dir, f"-include {PROVE / 'contracts.h'}"),
             *map(str, core_sources(core_dir)),
-            "-inline-calls", inline_list(), "-wp", "-wp-fct", ",".join(names), *WP_OPTS,
+            "-inline-calls", inline_list(), "-wp", "-wp-fct", ",".join(names),
+            # One model a run: a second -wp-model is added to the first, not put in its place
+            # (Typed and Caveat together named the goals typed_caveat_*).
+            "-wp-model", model, *WP_OPTS, *MODEL_CHECKS.get(model, []),
             *flags]
     if left_out or only:
         args.append("-wp-prop=" + ",".join(only + left_out))
-    if models:
-        args += ["-wp-model", models[0]]  # the later option wins
     rc, out = frama_c(args, log, WP_TIMEOUT_S, env)
     res = WpResult(name, 0, 0, {}, [], log)
     m = re.search(r"Proved goals:\s+(\d+)\s*/\s*(\d+)", out)
@@ -236,7 +246,27 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str]) -> W
         res.failed.append(fm.group(1))
     for fm in re.finditer(r"^\[wp\] Goal (\S+) : (?!Valid)", out, re.M):
         res.failed.append(fm.group(1))
+    parse_checks(res, out, model)
     return res
+
+
+def parse_checks(res: WpResult, out: str, model: str) -> None:
+    """The smoke tests of a run's log and the goals of another memory model than its own."""
+    # A smoke test fails when the solvers prove \false at a point: a precondition that can
+    # never hold, or code the proof finds dead (every goal after it would be proved vacuously).
+    smoke: dict[str, bool] = {}
+    for sm in re.finditer(r"^\[wp\] \[(Passed|Failed)\] Smoke-test (\S+)", out, re.M):
+        smoke[sm.group(2)] = smoke.get(sm.group(2), True) and sm.group(1) == "Passed"
+    res.smoke = len(smoke)
+    res.smoke_failed = sorted(g for g, passed in smoke.items() if not passed)
+    # Every goal carries the run's model and no other one (WP names them typed_* under Typed,
+    # typed_caveat_* under Caveat: Typed with Caveat's hypotheses, which a run under Typed
+    # alone must not get).
+    tag = MODEL_TAGS[model]
+    goals = set(re.findall(r"Goal (\w+)", out)) | set(smoke)
+    res.wrong_model = sorted(g for g in goals if not g.startswith(tag) or any(
+        g.startswith(tag + extra) for extra in ("caveat_", "ref_", "raw_")
+        if extra not in tag))
 
 
 def why3_env() -> dict[str, str]:
@@ -312,12 +342,15 @@ def run_plant(p: Plant, env: dict[str, str]) -> tuple[Plant, bool, str]:
         hits = [a for a in r.alarms if p.expect in a]
         return p, bool(hits) and not r.error, (hits[0] if hits else
                                                f"{len(r.alarms)} alarms, none '{p.expect}'")
-    group = p.check.split(":", 1)[1]
+    parts = p.check.split(":")  # wp:GROUP or wp:GROUP:FUNCTION
+    group, only_fct = parts[1], (parts[2] if len(parts) > 2 else "")
     fcts = dict(wp_groups())[group]
+    if only_fct:  # the group's options on one of its functions
+        fcts = [f for f in fcts if f.startswith(("@", "%"))] + [only_fct]
     if p.prop:
         fcts = [f for f in fcts if not f.startswith(("-", "+"))] + [f"+{p.prop}"]
     w = run_wp(f"planted-{p.name}", core_dir, fcts, env)
-    hit = any(p.expect in g for g in w.failed)
+    hit = any(p.expect in g for g in w.failed + w.smoke_failed)
     return p, hit and not w.error, (f"{p.expect} not proved" if hit else
                                     f"{w.proved}/{w.total} proved, {p.expect} not among the "
                                     "failures") + (f" ({w.error})" if w.error else "")
@@ -384,8 +417,13 @@ def main() -> int:
                 totals[k] = totals.get(k, 0) + v
             provers = ", ".join(f"{k} {v}" for k, v in sorted(w.by_prover.items()))
             secs = re.search(r"wall time (\d+) s", w.log.read_text()) if w.log.exists() else None
-            print(f"prove: wp {w.name}: {w.proved}/{w.total} goals proved ({provers})"
-                  + (f" in {secs.group(1)} s" if secs else ""))
+            model = next((f[1:] for f in dict(wp_groups())[w.name] if f.startswith("@")),
+                         WP_MODEL)
+            checks = (f"; {w.smoke} smoke tests, {len(w.smoke_failed)} failed; memory-model "
+                      "hypotheses checked at the calls" if model in MODEL_CHECKS else
+                      "; no smoke tests, hypotheses not checked")
+            print(f"prove: wp {w.name} ({model}): {w.proved}/{w.total} goals proved ({provers})"
+                  + checks + (f"; {secs.group(1)} s" if secs else ""))
             groups = dict(wp_groups())
             left_out = [f[1:] for f in groups[w.name] if f.startswith("-")]
             # A property left out of this run may be the only one of another run (+property)
@@ -402,9 +440,15 @@ def main() -> int:
                 print(f"prove:   left out, not proved (docs/PROOF.md): {' '.join(left_out)}")
             for g in w.failed:
                 print(f"prove:   not proved: {g}")
+            for g in w.smoke_failed:
+                print(f"prove:   smoke test failed (a precondition that cannot hold, or code "
+                      f"the proof finds dead): {g}")
+            for g in w.wrong_model[:5]:
+                print(f"prove:   goal of another memory model than {model}: {g}")
             if w.error:
                 print(f"prove:   error: {w.error}")
-            ok = ok and not w.error and w.proved == w.total and w.total > 0
+            ok = ok and not w.error and w.proved == w.total and w.total > 0 and \
+                not w.smoke_failed and not w.wrong_model
         if wps:
             print("prove: wp total by prover: "
                   + ", ".join(f"{k} {v}" for k, v in sorted(totals.items())))

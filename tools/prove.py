@@ -68,6 +68,7 @@ class EvaResult:
     log: Path
     error: str = ""
     unknown_props: int = 0
+    invalid: list[str] = dataclasses.field(default_factory=list)  # annotations found false
 
 
 @dataclasses.dataclass
@@ -157,6 +158,7 @@ def run_eva(name: str, core_dir: Path, keyed: int, env: dict[str, str]) -> EvaRe
                 res.unknown_props += 1
             elif "got status invalid" in what:
                 res.error = f"Eva finds an annotation false: {where}: {what}"
+                res.invalid.append(f"{where}: {what}")
             else:
                 res.alarms.append(f"{where}: {what}")
     # Eva also meets the ACSL annotations (WP proves them); one it finds false is a failure.
@@ -345,9 +347,11 @@ def run_plant(p: Plant, env: dict[str, str]) -> tuple[Plant, bool, str]:
     core_dir = planted_copy(p)
     if p.check == "eva":
         r = run_eva(f"planted-{p.name}", core_dir, 0, env)
-        hits = [a for a in r.alarms if p.expect in a]
-        return p, bool(hits) and not r.error, (hits[0] if hits else
-                                               f"{len(r.alarms)} alarms, none '{p.expect}'")
+        # An alarm, or an annotation Eva finds false (a helper's precondition at its call).
+        hits = [a for a in r.alarms + r.invalid if p.expect in a]
+        return p, bool(hits) and (not r.error or bool(r.invalid)), (
+            hits[0] if hits else f"{len(r.alarms)} alarms, none '{p.expect}'"
+            + (f" ({r.error})" if r.error else ""))
     parts = p.check.split(":")  # wp:GROUP or wp:GROUP:FUNCTION
     group, only_fct = parts[1], (parts[2] if len(parts) > 2 else "")
     fcts = dict(wp_groups())[group]

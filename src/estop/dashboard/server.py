@@ -23,11 +23,11 @@ import json
 import threading
 import time
 from collections.abc import Callable
-from importlib import resources
 
 from aiohttp import web
 
 from estop.dashboard.model import DashboardModel
+from estop.web import StaticPages, serve
 
 __all__ = ["MIN_INTERVAL", "REGULAR_INTERVAL", "DashboardServer", "ServerThread",
            "stop_action_for"]
@@ -71,8 +71,7 @@ class DashboardServer:
         self._runner: web.AppRunner | None = None
         self._pusher: asyncio.Task[None] | None = None
         self._stopping = asyncio.Event()
-        self._assets = {name: resources.files("estop.dashboard").joinpath("static", name)
-                        .read_bytes() for name in _STATIC}
+        self._pages = StaticPages("estop.dashboard", _STATIC, {"Cache-Control": "no-cache"})
 
     # ------------------------------------------------------------------ feeding the model
 
@@ -104,19 +103,10 @@ class DashboardServer:
 
     async def start(self) -> None:
         app = web.Application()
-        app.router.add_get("/", self._index)
-        app.router.add_get("/static/{name}", self._static)
+        self._pages.add_routes(app)
         app.router.add_get("/events", self._events)
         app.router.add_post("/stop", self._stop)
-        self._runner = web.AppRunner(app, access_log=None, handle_signals=False,
-                                     shutdown_timeout=0.5)
-        await self._runner.setup()
-        site = web.TCPSite(self._runner, self.host, self.port)
-        await site.start()
-        server = getattr(site, "_server", None)
-        sockets = getattr(server, "sockets", None) or []
-        if sockets:
-            self.port = int(sockets[0].getsockname()[1])
+        self._runner, self.port = await serve(app, self.host, self.port)
         self._pusher = asyncio.get_running_loop().create_task(self._push())
 
     async def close(self) -> None:
@@ -173,19 +163,6 @@ class DashboardServer:
             await asyncio.sleep(MIN_INTERVAL)
 
     # ------------------------------------------------------------------ handlers
-
-    async def _index(self, request: web.Request) -> web.Response:
-        return self._asset("index.html")
-
-    async def _static(self, request: web.Request) -> web.Response:
-        name = request.match_info["name"]
-        if name not in _STATIC:
-            raise web.HTTPNotFound()
-        return self._asset(name)
-
-    def _asset(self, name: str) -> web.Response:
-        return web.Response(body=self._assets[name], content_type=_STATIC[name],
-                            headers={"Cache-Control": "no-cache"})
 
     async def _events(self, request: web.Request) -> web.StreamResponse:
         resp = web.StreamResponse(headers={"Content-Type": "text/event-stream",

@@ -27,7 +27,6 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from importlib import resources
 from typing import Any
 
 from aiohttp import WSMsgType, web
@@ -48,6 +47,7 @@ from estop.remote.touch.wire import (
     parse_held,
     seal,
 )
+from estop.web import StaticPages, serve
 
 __all__ = ["MAX_PAGES", "POLL_S", "TouchServer"]
 
@@ -125,26 +125,16 @@ class TouchServer:
         # at a time; the stop button has its own channel and thread, so it never waits
         self._tcp = ThreadPoolExecutor(1, thread_name_prefix="touch-tcp")
         self._stop = ThreadPoolExecutor(1, thread_name_prefix="touch-stop")
-        self._assets = {name: resources.files("estop.remote.touch").joinpath("static", name)
-                        .read_bytes() for name in _STATIC}
+        self._pages = StaticPages("estop.remote.touch", _STATIC, _HEADERS)
 
     # ------------------------------------------------------------------ life cycle
 
     async def start(self) -> None:
         app = web.Application()
-        app.router.add_get("/", self._index)
-        app.router.add_get("/static/{name}", self._static)
+        self._pages.add_routes(app)
         app.router.add_get("/ws", self._ws)
         app.router.add_get("/favicon.ico", self._no_icon)
-        self._runner = web.AppRunner(app, access_log=None, handle_signals=False,
-                                     shutdown_timeout=0.5)
-        await self._runner.setup()
-        site = web.TCPSite(self._runner, self.host, self.port)
-        await site.start()
-        server = getattr(site, "_server", None)
-        sockets = getattr(server, "sockets", None) or []
-        if sockets:
-            self.port = int(sockets[0].getsockname()[1])
+        self._runner, self.port = await serve(app, self.host, self.port)
         loop = asyncio.get_running_loop()
         self._tasks = [loop.create_task(self._poll()), loop.create_task(self._watch())]
 
@@ -289,21 +279,8 @@ class TouchServer:
             for msg, authenticated in out:
                 await page.ws.send_str(self._seal(page, msg, authenticated))
 
-    async def _index(self, request: web.Request) -> web.Response:
-        return self._asset("index.html")
-
     async def _no_icon(self, request: web.Request) -> web.Response:
         return web.Response(status=204, headers=_HEADERS)
-
-    async def _static(self, request: web.Request) -> web.Response:
-        name = request.match_info["name"]
-        if name not in _STATIC:
-            raise web.HTTPNotFound()
-        return self._asset(name)
-
-    def _asset(self, name: str) -> web.Response:
-        return web.Response(body=self._assets[name], content_type=_STATIC[name],
-                            headers=_HEADERS)
 
     async def _ws(self, request: web.Request) -> web.StreamResponse:
         if len(self.pages) >= MAX_PAGES:

@@ -77,9 +77,11 @@ static void reply_plain(const estop_core_t *core, uint32_t seq, uint8_t nak_code
 }
 
 /* Section 5.3: the 48-byte reply to a request frame, tagged over the request's tag and the
- * reply's first 32 bytes (zero tag without a key, or when the MAC cannot be made). */
+ * reply's first 32 bytes (zero tag without a key, or when the MAC cannot be made). The key
+ * state's digest length (at most 16: the invariant's) is estop_b2s_mac's precondition. */
 /*@ requires \valid_read(core) && \valid(out) && \valid_read(req + (0 .. 47));
     requires \separated(out, core) && \separated(out, req + (0 .. 47));
+    requires core->mac.outlen <= 16;
     assigns out->reply[0 .. 47], out->reply_len, out->has_reply;
     ensures out->has_reply == 1 && out->reply[15] == nak_code;
  */

@@ -57,6 +57,7 @@ GOAL_TIMEOUT_S = 40
 # is run once more with this per-goal timeout; the output says so. Still a proof: only the
 # time the solvers get changes.
 GOAL_RETRY_TIMEOUT_S = 150
+WP_CACHE = BUILD / "wp-cache"
 
 
 @dataclasses.dataclass
@@ -218,7 +219,7 @@ WP_FLAGS = {
 
 
 def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
-           goal_timeout_s: int = GOAL_TIMEOUT_S) -> WpResult:
+           goal_timeout_s: int = GOAL_TIMEOUT_S, cache: bool = False) -> WpResult:
     log = BUILD / f"wp-{name}.log"
     names = [f for f in fcts if not f.startswith(("-", "+", "@", "%"))]
     left_out = [f for f in fcts if f.startswith("-")]
@@ -233,6 +234,10 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
             # (Typed and Caveat together named the goals typed_caveat_*).
             "-wp-model", model, *WP_OPTS, *MODEL_CHECKS.get(model, []),
             "-wp-timeout", str(goal_timeout_s), *flags]
+    if cache:
+        # The solvers' verdicts by goal (a hash of the goal and the prover): a run again with
+        # a longer timeout re-tries only what timed out. Emptied by every make prove.
+        args += ["-wp-cache", "update", "-wp-cache-dir", str(WP_CACHE / name)]
     if left_out or only:
         args.append("-wp-prop=" + ",".join(only + left_out))
     rc, out = frama_c(args, log, WP_TIMEOUT_S, env)
@@ -275,6 +280,17 @@ def parse_checks(res: WpResult, out: str, model: str) -> None:
     res.wrong_model = sorted(g for g in goals if not g.startswith(tag) or any(
         g.startswith(tag + extra) for extra in ("caveat_", "ref_", "raw_")
         if extra not in tag))
+
+
+def run_wp_retrying(name: str, fcts: list[str], env: dict[str, str]) -> tuple[list[str], WpResult]:
+    """A run of the core's group, and once more with GOAL_RETRY_TIMEOUT_S a goal when goals
+    were left unproved (the cache keeps what the first pass proved); the goals the first pass
+    left unproved, and the last pass's result."""
+    (WP_CACHE / name).mkdir(parents=True, exist_ok=True)
+    first = run_wp(name, CORE, fcts, env, GOAL_TIMEOUT_S, cache=True)
+    if not first.failed or first.error:
+        return [], first
+    return first.failed, run_wp(name, CORE, fcts, env, GOAL_RETRY_TIMEOUT_S, cache=True)
 
 
 def why3_env() -> dict[str, str]:
@@ -383,13 +399,14 @@ def main() -> int:
               file=sys.stderr)
         return 2
     BUILD.mkdir(parents=True, exist_ok=True)
+    shutil.rmtree(WP_CACHE, ignore_errors=True)
     env = why3_env()
     t0 = time.monotonic()
     ok = True
     with concurrent.futures.ThreadPoolExecutor(max_workers=args.jobs) as pool:
         evas = [pool.submit(run_eva, n, CORE, k, env) for n, k in (("keyed", 1), ("plain", 0))
                 ] if "eva" in parts else []
-        wps = [pool.submit(run_wp, n, CORE, f, env) for n, f in wp_groups()
+        wps = [pool.submit(run_wp_retrying, n, f, env) for n, f in wp_groups()
                if not args.group or n in args.group] if "wp" in parts else []
         selftests = [pool.submit(run_plant, p, env) for p in plants()
                      ] if "self-test" in parts else []
@@ -422,12 +439,10 @@ def main() -> int:
             ok = ok and not never
         totals: dict[str, int] = {}
         for fut in wps:
-            w = fut.result()
-            if w.failed and not w.error:
-                first = w
-                w = run_wp(w.name, CORE, dict(wp_groups())[w.name], env, GOAL_RETRY_TIMEOUT_S)
-                print(f"prove: wp {w.name}: {len(first.failed)} goals not proved with "
-                      f"{GOAL_TIMEOUT_S} s each ({' '.join(first.failed)}); run again with "
+            retried, w = fut.result()
+            if retried:
+                print(f"prove: wp {w.name}: {len(retried)} goals not proved with "
+                      f"{GOAL_TIMEOUT_S} s each ({' '.join(retried)}); run again with "
                       f"{GOAL_RETRY_TIMEOUT_S} s each")
             for k, v in w.by_prover.items():
                 totals[k] = totals.get(k, 0) + v

@@ -79,8 +79,23 @@ StandardError=journal+console
 TEST_SCRIPT = """#!/bin/sh
 project=$(sed -n 's/.*estop_vm.project=\\([^ ]*\\).*/\\1/p' /proc/cmdline)
 mkdir -p "$project" /run/estop-vm-out
-mount -t 9p -o trans=virtio,version=9p2000.L,ro,msize=262144 project "$project" &&
-  mount -t 9p -o trans=virtio,version=9p2000.L,rw,msize=262144 out /run/estop-vm-out &&
+# A share's virtio device may still be probing when this runs (Debian 13's kernel once said
+# "9pnet_virtio: no channels available for device project" at 20 s): tried for 30 s.
+mount9p() {
+  i=0
+  while ! mount -t 9p -o trans=virtio,version=9p2000.L,$3,msize=262144 "$1" "$2" 2>/dev/null
+  do
+    i=$((i + 1))
+    if [ "$i" -ge 60 ]; then
+      mount -t 9p -o trans=virtio,version=9p2000.L,$3,msize=262144 "$1" "$2"
+      return
+    fi
+    sleep 0.5
+  done
+  if [ "$i" -gt 0 ]; then echo "estop-vmtest: share $1 mounted after $i retries" >/dev/console; fi
+  return 0
+}
+mount9p project "$project" ro && mount9p out /run/estop-vm-out rw &&
   python3 -B "$project/tools/systemd_vm/inner.py" --project "$project" \\
     --out /run/estop-vm-out
 echo "estop-vmtest: exit $?" >/dev/console

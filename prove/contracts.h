@@ -80,9 +80,15 @@ uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
 /* ---- authentication and link statistics: what they may touch ------------------------------- */
 
 /*@ requires \valid(core) && \valid_read(msg + (0 .. tag_at + 15)) && \valid_read(msg + (ids_at .. ids_at + 19));
-    requires 1 <= tag_at <= 64 && channel <= 1;
+    requires (tag_at == 32 || tag_at == 44) && channel <= 1 && core->mac.outlen <= 16;
+    requires \separated(msg + (0 .. tag_at + 15), &core->counters, &core->status_auth_failed,
+        core->remotes + (0 .. 7), &core->tag_window_us, &core->tag_window_open,
+        &core->newcomer_checks, &core->mac);
     assigns core->counters, core->status_auth_failed, core->remotes[0 .. 7],
             core->tag_window_us, core->tag_window_open, core->newcomer_checks;
+    ensures auth_result: \result == 0 || \result == 1;
+    ensures auth_tag: \result == 1 ==>
+        \at(core->mac.outlen == 16 && tag_ok(&core->mac, msg, tag_at), Pre);
  */
 int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, size_t ids_at,
                         uint32_t channel);
@@ -132,6 +138,9 @@ int estop_b2s_key_init(estop_b2s_key_t *k, const uint8_t *key, size_t keylen, si
 /*@ requires \valid_read(k) && k->outlen <= 16 && \valid_read(msg + (0 .. len - 1));
     requires \valid(out + (0 .. 15)) && \separated(out + (0 .. 15), k, msg + (0 .. len - 1));
     assigns out[0 .. 15];
+    ensures mac_made: \result == 0 ==> 1 <= k->outlen;
+    admit ensures mac_value: \result == 0 && k->outlen == 16 && 1 <= len <= 64 && len % 4 == 0 ==>
+        \forall integer i; 0 <= i < 16 ==> out[i] == MAC_BYTE(k, msg, len, i);
  */
 int estop_b2s_mac(const estop_b2s_key_t *k, const uint8_t *msg, size_t len, uint8_t *out);
 
@@ -145,9 +154,10 @@ int estop_blake2s(uint8_t *out, size_t outlen, const uint8_t *key, size_t keylen
 
 /*@ requires a == \null || \valid_read(a + (0 .. n - 1));
     requires b == \null || \valid_read(b + (0 .. n - 1));
-    requires n <= 0xFFFFFFFF;  // no object of 4 GiB: i + 4 cannot wrap
     assigns \nothing;
     ensures \result == 0 || \result == 1;
+    ensures equal: \result == 1 ==> n == 0 || (a != \null && b != \null &&
+        \forall integer i; 0 <= i < n ==> a[i] == b[i]);
  */
 int estop_ct_equal(const uint8_t *a, const uint8_t *b, size_t n);
 

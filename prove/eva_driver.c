@@ -14,6 +14,12 @@
  * or plain, any slow time and level of version 3, and any value at all for the refused
  * configurations), the clock (any tick, so steps of any size, backwards included), slots
  * (in range or not), bytes, lengths, and the order of the calls.
+ *
+ * The rules (assertions rule_*, which tools/proof/eva.py requires Eva to show valid in both
+ * runs): from STOPPED, estop_tick, estop_udp_rx (any bytes, or NULL), estop_tcp_open and
+ * estop_tcp_close leave the unit STOPPED; estop_fault that returns ESTOP_OK leaves it
+ * STOPPED from any state. Eva shows them for every state the loop reaches, whatever came
+ * before; WP proves the same per function (never_leaves_stopped) under its memory model.
  */
 #include <stddef.h>
 #include <stdint.h>
@@ -228,19 +234,44 @@ int main(void)
         estop_err_t err;
         switch (Frama_C_interval(0, 7)) {
         case 0:
-            (void)estop_tick(&core, now, &out);
+            if (core.state == ESTOP_STATE_STOPPED) {
+                (void)estop_tick(&core, now, &out);
+                /*@ assert rule_tick_never_leaves_stopped: core.state == ESTOP_STATE_STOPPED; */
+            } else {
+                (void)estop_tick(&core, now, &out);
+            }
             break;
         case 1:
-            udp_exact(&core, len, now, &out);
+            if (core.state == ESTOP_STATE_STOPPED) {
+                udp_exact(&core, len, now, &out);
+                /*@ assert rule_udp_never_leaves_stopped: core.state == ESTOP_STATE_STOPPED; */
+            } else {
+                udp_exact(&core, len, now, &out);
+            }
             break;
         case 2:
-            (void)estop_udp_rx(&core, NULL, len, now, &out); /* NULL: an invalid datagram */
+            if (core.state == ESTOP_STATE_STOPPED) {
+                (void)estop_udp_rx(&core, NULL, len, now, &out); /* NULL: an invalid datagram */
+                /*@ assert rule_null_never_leaves_stopped: core.state == ESTOP_STATE_STOPPED; */
+            } else {
+                (void)estop_udp_rx(&core, NULL, len, now, &out);
+            }
             break;
         case 3:
-            (void)estop_tcp_open(&core, slot, now, &out);
+            if (core.state == ESTOP_STATE_STOPPED) {
+                (void)estop_tcp_open(&core, slot, now, &out);
+                /*@ assert rule_open_never_leaves_stopped: core.state == ESTOP_STATE_STOPPED; */
+            } else {
+                (void)estop_tcp_open(&core, slot, now, &out);
+            }
             break;
         case 4:
-            (void)estop_tcp_close(&core, slot, now, &out);
+            if (core.state == ESTOP_STATE_STOPPED) {
+                (void)estop_tcp_close(&core, slot, now, &out);
+                /*@ assert rule_close_never_leaves_stopped: core.state == ESTOP_STATE_STOPPED; */
+            } else {
+                (void)estop_tcp_close(&core, slot, now, &out);
+            }
             break;
         case 5:
             tcp_exact(&core, slot, len, &consumed, now, &out);
@@ -260,7 +291,10 @@ int main(void)
             }
             break;
         default:
-            (void)estop_fault(&core, now, &out);
+            if (estop_fault(&core, now, &out) == ESTOP_OK) {
+                /* A fault stops the unit whatever its state: a stop is never refused. */
+                /*@ assert rule_fault_stops: core.state == ESTOP_STATE_STOPPED; */
+            }
             break;
         }
         read_outs(&core);

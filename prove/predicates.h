@@ -7,6 +7,7 @@
 #define ESTOP_PROVE_PREDICATES_H
 
 #include "estop_core.h"
+#include "logic.h"
 
 /* Written as macros, not ACSL predicates: Qed then sees each field read on its own and drops
  * the memory updates that cannot touch it (a predicate is opaque to Qed, and the solvers

@@ -86,6 +86,12 @@ static estop_remote_t *free_place(estop_core_t *core)
 /* One tag check from the allowance of r (NULL: the shared one) in the current window; false
  * when that allowance is spent. A window begins at the first check after the previous one
  * ended (estop__age_tag_window; a tick that went backwards ends it too). */
+/*@ requires \valid(core);
+    requires r == \null || \exists integer k; 0 <= k < 8 && r == &core->remotes[k];
+    assigns core->tag_window_us, core->tag_window_open, core->newcomer_checks,
+            core->remotes[0 .. 7];
+    ensures \result == 0 || \result == 1;
+ */
 static int take_check(estop_core_t *core, estop_remote_t *r)
 {
     uint8_t *used = (r != NULL) ? &r->checks : &core->newcomer_checks;
@@ -123,6 +129,10 @@ void estop__age_tag_window(estop_core_t *core)
 
 /* The counter is one of remote r's next UDP counters: r has a place and a UDP counter kept,
  * and this one is above it (checked before) by at most COUNTER_AHEAD. */
+/*@ requires r == \null || \valid_read(r);
+    assigns \nothing;
+    ensures \result == 0 || \result == 1;
+ */
 static int next_of(const estop_remote_t *r, uint64_t counter)
 {
     return (r != NULL) && ((r->seen & (1u << CHANNEL_UDP)) != 0u) &&
@@ -136,6 +146,10 @@ static int next_of(const estop_remote_t *r, uint64_t counter)
  * packets dropped unchecked raised it above the RELEASE's, back down to the RELEASE's: they
  * were sent after the RELEASE, or forged (a forgery of a high counter would otherwise lock
  * the remote out for the session); it stays above every control packet authenticated. */
+/*@ requires \valid(core) && channel <= 1;
+    requires \exists integer k; 0 <= k < 8 && r == &core->remotes[k];
+    assigns core->remotes[0 .. 7];
+ */
 static void keep(estop_core_t *core, estop_remote_t *r, uint32_t channel, uint64_t counter)
 {
     /* (A counter not kept yet reads 0: places start zeroed and are never freed.) */
@@ -154,6 +168,76 @@ static void keep(estop_core_t *core, estop_remote_t *r, uint32_t channel, uint64
     r->seen = (uint8_t)(r->seen | (1u << CHANNEL_TCP));
 }
 
+/* A control packet left unchecked uses up its counter under its remote id (issue 25). The
+ * functions that write an entry of the table say they write the table, as
+ * estop__authenticate does: WP matches equal ranges at once, where the inclusion of one
+ * field's range in the table's is an existential goal the solvers time out on. */
+/*@ requires \valid(core);
+    requires \exists integer k; 0 <= k < 8 && r == &core->remotes[k];
+    assigns core->remotes[0 .. 7];
+ */
+static void use_up(estop_core_t *core, estop_remote_t *r, uint64_t counter)
+{
+    (void)core; /* named by the contract: r lies in its table */
+    r->counter[CHANNEL_UDP] = counter;
+    r->seen = (uint8_t)(r->seen | (1u << CHANNEL_UDP));
+}
+
+/* A free place of the table taken by a new remote id. */
+/*@ requires \valid(core);
+    requires \exists integer k; 0 <= k < 8 && place == &core->remotes[k];
+    assigns core->remotes[0 .. 7];
+ */
+static void take_place(estop_core_t *core, estop_remote_t *place, uint32_t id)
+{
+    (void)core; /* named by the contract: place lies in its table */
+    place->used = 1u;
+    place->id = id;
+    place->seen = 0u;
+}
+
+/* Whether a tag check is left in the allowance of r (NULL: the shared one): what take_check
+ * would grant, without spending it. */
+/*@ requires \valid_read(core);
+    requires r == \null || \exists integer k; 0 <= k < 8 && r == &core->remotes[k];
+    assigns \nothing;
+    ensures \result == 0 || \result == 1;
+ */
+static int can_check(const estop_core_t *core, const estop_remote_t *r)
+{
+    const uint8_t used = (r != NULL) ? r->checks : core->newcomer_checks;
+    /* A window that is not open opens with every allowance unspent. */
+    const uint8_t spent = (core->tag_window_open == 0u) ? 0u : used;
+    return (spent < core->cfg.tag_checks) ? 1 : 0;
+}
+
+/* Section 5: the 16 bytes at msg[tag_at] are the MAC of msg[0 .. tag_at-1] under the unit's
+ * key. Writes nothing but its own copy of the MAC. */
+/*@ requires \valid_read(core) && (tag_at == 32 || tag_at == 44);
+    requires \valid_read(msg + (0 .. tag_at + 15));
+    requires \separated(msg + (0 .. tag_at + 15), &core->mac);
+    requires core->mac.outlen <= 16;
+    assigns \nothing;
+    ensures \result == 0 || \result == 1;
+    ensures tag_right: \result == 1 ==> core->mac.outlen == 16 && tag_ok(&core->mac, msg, tag_at);
+ */
+static int tag_right(const estop_core_t *core, const uint8_t *msg, size_t tag_at)
+{
+    uint8_t tag[ESTOP_TAG_LEN];
+    int right = 0;
+    /* A MAC that cannot be made (a broken key state, or one of another length, which would
+     * leave bytes of tag unwritten) authenticates nothing. */
+    if ((core->mac.outlen == ESTOP_TAG_LEN) &&
+        (estop_b2s_mac(&core->mac, msg, tag_at, tag) == 0) &&
+        (estop_ct_equal(tag, &msg[tag_at], ESTOP_TAG_LEN) != 0)) {
+        /*@ assert compared: \forall integer i; 0 <= i < 16 ==> tag[i] == msg[tag_at + i]; */
+        /*@ assert made: \forall integer i; 0 <= i < 16 ==>
+                tag[i] == MAC_BYTE(&core->mac, msg, tag_at, i); */
+        right = 1;
+    }
+    return right;
+}
+
 /* Section 5: msg[0 .. tag_at-1] is covered by the tag at msg[tag_at]; the remote id, session
  * and counter follow one another from msg[ids_at] (5.1 and 5.2 lay them out alike). True when
  * the message is authenticated; the new counter is then kept. A failure is counted by the
@@ -162,12 +246,16 @@ static void keep(estop_core_t *core, estop_remote_t *r, uint32_t channel, uint64
 int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, size_t ids_at,
                         uint32_t channel)
 {
-    uint8_t tag[ESTOP_TAG_LEN];
     const uint8_t bit = (uint8_t)(1u << channel);
     const uint32_t id = rd_u32le(&msg[ids_at]);
     const uint64_t counter = rd_u64le(&msg[ids_at + COUNTER_AFTER_ID]);
     estop_remote_t *r = find_remote(core, id);
     estop_remote_t *place = (r != NULL) ? r : free_place(core); /* NULL: the table is full */
+    /* A control packet's check comes out of its remote's allowance when it is one of the
+     * remote's next counters, else out of the newcomers' (take_check). */
+    const int budgeted = (channel == CHANNEL_UDP) &&
+                         (core->cfg.tag_checks != ESTOP_TAG_CHECKS_ALL);
+    estop_remote_t *payer = next_of(r, counter) ? r : NULL;
     int ok = 0;
     int failed = 1;
     if (rd_u64le(&msg[ids_at + SESSION_AFTER_ID]) != core->cfg.session) {
@@ -176,30 +264,32 @@ int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, s
         sat32_inc(&core->counters.auth_old_counter);
     } else if (place == NULL) {
         sat32_inc(&core->counters.auth_table_full);
-    } else if ((channel == CHANNEL_UDP) && (core->cfg.tag_checks != ESTOP_TAG_CHECKS_ALL) &&
-               (take_check(core, next_of(r, counter) ? r : NULL) == 0)) {
+    } else if (budgeted && (can_check(core, payer) == 0)) {
         sat32_inc(&core->counters.auth_unchecked);
         failed = 0; /* not looked at: invalid, but no authentication failure */
         if (r != NULL) {
             /* It may have been genuine: its counter is used up all the same. (An id without
              * a place gets none: forgeries would fill the table.) */
-            r->counter[CHANNEL_UDP] = counter;
-            r->seen = (uint8_t)(r->seen | (1u << CHANNEL_UDP));
+            use_up(core, r, counter);
         }
-    } else if ((estop_b2s_mac(&core->mac, msg, tag_at, tag) != 0) ||
-               !estop_ct_equal(tag, &msg[tag_at], ESTOP_TAG_LEN)) {
-        /* A MAC that cannot be made (a broken key state) authenticates nothing. */
-        sat32_inc(&core->counters.auth_bad_tag);
     } else {
-        if (r == NULL) {
-            /* A new remote id gets a place only here, with a right tag and session. */
-            place->used = 1u;
-            place->id = id;
-            place->seen = 0u;
+        /* The tag is checked before anything is written, so that what the check saw is what
+         * the call was given (the proof's rule, auth_tag, speaks of the call's input). */
+        const int right = tag_right(core, msg, tag_at);
+        if (budgeted) {
+            (void)take_check(core, payer); /* the check is spent: can_check found it left */
         }
-        keep(core, place, channel, counter);
-        ok = 1;
-        failed = 0;
+        if (right == 0) {
+            sat32_inc(&core->counters.auth_bad_tag);
+        } else {
+            if (r == NULL) {
+                /* A new remote id gets a place only here, with a right tag and session. */
+                take_place(core, place, id);
+            }
+            keep(core, place, channel, counter);
+            ok = 1;
+            failed = 0;
+        }
     }
     if (failed != 0) {
         core->status_auth_failed = sat8_inc(core->status_auth_failed);

@@ -290,24 +290,23 @@ int estop_ct_equal(const uint8_t *a, const uint8_t *b, size_t n)
         }
     } else {
         size_t i;
-        /* Four bytes at a time (the loads are byte-wise, so any alignment), then the rest:
-         * every byte is looked at, whatever an earlier one was. */
-        /*@ loop invariant 0 <= i <= n && i % 4 == 0;
+        /* Every byte is looked at, whatever an earlier one was: diff collects the bits in
+         * which any pair differs (0..255). */
+        /*@ loop invariant 0 <= i <= n && diff <= 255;
+            loop invariant diff == 0 ==> \forall integer k; 0 <= k < i ==> a[k] == b[k];
             loop assigns i, diff;
             loop variant n - i; */
-        for (i = 0u; (i + 4u) <= n; i += 4u) {
-            diff |= load32(&a[i]) ^ load32(&b[i]);
-        }
-        /*@ loop assigns i, diff;
-            loop variant n - i; */
-        for (; i < n; i++) {
+        for (i = 0u; i < n; i++) {
+            /*@ assert xor_byte: 0 <= ((uint32_t)a[i] ^ (uint32_t)b[i]) <= 255; */
             diff |= (uint32_t)a[i] ^ (uint32_t)b[i];
+            /*@ assert or_byte: diff <= 255; */
+            /*@ assert or_is: diff == (\at(diff, LoopCurrent) | (a[i] ^ b[i])); */
+            /*@ assert or_zero: diff == 0 ==> \at(diff, LoopCurrent) == 0 && (a[i] ^ b[i]) == 0; */
+            /*@ assert xor_zero: diff == 0 ==> a[i] == b[i]; */
         }
-        /* Fold to 0..255 (any bit set in any byte stays set). */
-        diff = (diff | (diff >> 16)) & 0xFFFFu;
-        diff = (diff | (diff >> 8)) & 0xFFu;
     }
     /* diff is 0..255: diff - 1 has bit 8 set only when diff is 0. */
     equal = ((diff - 1u) >> 8) & 1u;
+    /*@ assert equal_bit: (equal == 1 ==> diff == 0) && (equal == 0 || equal == 1); */
     return (int)equal;
 }

@@ -655,6 +655,7 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
                          estop_out_t *out)
 {
     estop_err_t err = estop__begin(core, now_us, out);
+    /*@ assert begun_stopped: core != \null ==> (\at(core->state, Pre) == 0 ==> core->state == 0); */
     if (err == ESTOP_OK) {
         const uint8_t *body = NULL;
         uint8_t reason = (uint8_t)ESTOP_REASON_NONE;
@@ -680,6 +681,7 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
         /*@ assert handled_inv: slots_ok(core); */
         /*@ assert handled_inv: fresh_ok(core); */
         /*@ assert handled_times: times_ok(core); */
+        /*@ assert handled_stopped: \at(core->state, Pre) == 0 ==> core->state == 0; */
         estop__finish(core, out);
     }
     return err;

@@ -14,6 +14,7 @@ from repo import ROOT
 
 
 def load_prove() -> ModuleType:
+    sys.path.insert(0, str(ROOT / "tools"))  # tools/prove.py imports tools/proof/
     spec = importlib.util.spec_from_file_location("prove_tool", ROOT / "tools" / "prove.py")
     assert spec is not None and spec.loader is not None
     mod = importlib.util.module_from_spec(spec)
@@ -70,3 +71,91 @@ def test_a_caveat_run_is_named_typed_caveat() -> None:
 
 def test_every_typed_run_checks_hypotheses_and_smoke() -> None:
     assert {"-wp-check-memory-model", "-wp-smoke-tests"} <= set(prove.MODEL_CHECKS["Typed"])
+
+
+# -- issue 24: the checks that make prove can fail --------------------------------------------
+
+def test_a_run_that_filters_properties_is_refused(tmp_path: Path) -> None:
+    groups = tmp_path / "wp_groups.txt"
+    for entry in ("udp: estop_udp_rx -never_leaves_stopped", "udp: estop_udp_rx +inv_kept"):
+        groups.write_text(f"steps: release\n{entry}\n")
+        try:
+            prove.wp.wp_groups(groups)
+        except SystemExit as e:
+            assert "filters properties" in str(e)
+        else:
+            raise AssertionError(f"{entry} was accepted")
+    groups.write_text("steps: release stop %split\nlemmas: @Typed\n")
+    assert dict(prove.wp.wp_groups(groups)) == {"steps": ["release", "stop", "%split"],
+                                                 "lemmas": ["@Typed"]}
+
+
+def test_every_assumption_is_listed_with_a_test_that_exists() -> None:
+    items, errors = prove.assumed.check()
+    assert errors == []
+    assert {"mac_value", "u32_wrap_up", "or_byte"} <= {a.name for a in items}
+
+
+def test_an_unlisted_admitted_clause_or_axiom_is_found(tmp_path: Path) -> None:
+    h = tmp_path / "x.h"
+    h.write_text("/*@ axiomatic A { axiom sneaky: \\forall integer x; x == x + 1; } */\n"
+                 "/*@ admit ensures quiet: \\result == 0; */\n"
+                 "/*@ admit ensures \\result == 1; */\n")
+    found = prove.assumed.found([h])
+    assert {"sneaky", "quiet"} <= found
+    assert any("unnamed" in n for n in found)
+
+
+def test_a_listed_test_that_does_not_exist_is_an_error() -> None:
+    assert prove.assumed.test_exists(
+        "tests/core/test_prove_axioms.py::test_every_byte_axiom_holds_for_every_pair")
+    assert not prove.assumed.test_exists("tests/core/test_prove_axioms.py::test_nothing_here")
+    assert not prove.assumed.test_exists("tests/core/no_such_file.py::test_x")
+
+
+REPORT = """[  Valid  ] Assertion 'rule_udp_never_leaves_stopped' (file prove/eva_driver.c, line 240)
+            by Eva.
+[    -    ] Assertion 'rule_null_never_leaves_stopped' (file prove/eva_driver.c, line 248)
+            tried with Eva.
+[  Dead   ] Assertion 'rule_fault_stops' (file prove/eva_driver.c, line 260)
+"""
+
+
+def test_a_rule_of_the_driver_counts_only_when_eva_shows_it_valid() -> None:
+    rules = ["rule_udp_never_leaves_stopped", "rule_null_never_leaves_stopped",
+             "rule_fault_stops", "rule_missing"]
+    got = prove.eva.rule_statuses(REPORT, rules)
+    assert got == {"rule_udp_never_leaves_stopped": "Valid",
+                   "rule_null_never_leaves_stopped": "Unknown",
+                   "rule_fault_stops": "Dead", "rule_missing": "missing"}
+    res = prove.eva.EvaResult("keyed", [], {}, [], Path("x.log"), rules=got)
+    assert len(res.rules_not_shown) == 3
+
+
+def test_the_driver_states_rules() -> None:
+    assert {"rule_udp_never_leaves_stopped", "rule_null_never_leaves_stopped"} <= set(
+        prove.eva.driver_rules())
+
+
+def test_the_plants_of_one_check_share_a_run_and_the_issues_faults_are_planted() -> None:
+    by_check = prove.selftest.plant_checks()
+    names = {p.name for ps in by_check.values() for p in ps}
+    assert {"null-datagram-arms", "tag-never-compared", "oob-write"} <= names
+    assert sum(len(ps) for (c, _), ps in by_check.items() if c == "eva") >= 3
+    assert len(by_check) < sum(len(ps) for ps in by_check.values())  # some share a run
+    for ps in by_check.values():
+        for p in ps:
+            src = (ROOT / "firmware" / "core" / p.file).read_text()
+            assert src.count(p.old) == 1, p.name
+
+
+def test_the_mutant_sample_is_fixed_and_inside_the_scope() -> None:
+    every = prove.selftest.mutants_in_scope()
+    scope = prove.selftest.scope()
+    assert len(every) > 100
+    assert all(getattr(m, "func") in scope for m, _ in every)
+    first = [getattr(m, "key") for m, _ in prove.selftest.sample(every, 4)]
+    again = [getattr(m, "key") for m, _ in prove.selftest.sample(every, 4)]
+    assert first == again and len(first) == 4
+    assert prove.selftest.sample(every, -1) == []
+    assert len(prove.selftest.sample(every, 0)) == len(every)

@@ -1,0 +1,206 @@
+"""The self-test of `make prove`: the same analyses on copies of the core with faults in them.
+
+Named plants (prove/planted.txt): each must make its analysis report the expected alarm, rule
+or goal. Plants with the same check share one copy and one run (each is still judged by its own
+expected failure), so the self-test costs one Eva run and one WP run per group it tries.
+
+Mutants (prove/mutants_scope.txt): tools/mutants.py's mutants of the lines that decide a state
+change. Each is tried by the WP run of its function (or, for a helper WP inlines, of the
+functions that call it); one that every goal and smoke test still passes must be listed in
+prove/mutants_equivalent.txt with the reason the proofs cannot see it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+from . import eva, wp
+from .frama import BUILD, CORE, PROVE
+
+GOAL_TIMEOUT_S = 40  # a planted goal costs this: it times out or fails at once
+
+
+@dataclasses.dataclass
+class Plant:
+    name: str
+    file: str        # in firmware/core
+    old: str         # text replaced (must occur exactly once)
+    new: str
+    check: str       # "eva" or "wp:<group>[:<function>]"
+    expect: str      # an alarm, a rule, or a goal (its name or a part of it) that must fail
+    prop: str = ""   # wp: only this property is tried (the planted goal costs its timeout)
+    copy: str = ""   # plants of one check and one copy are planted and tried together
+
+
+def plants(path: Path = PROVE / "planted.txt") -> list[Plant]:
+    out = []
+    for block in path.read_text().split("\n---\n"):
+        fields: dict[str, str] = {}
+        key = None
+        for raw in block.splitlines():
+            if raw.startswith("#"):
+                continue
+            m = re.match(r"^(name|file|check|expect|prop|copy|old|new):\s?(.*)$", raw)
+            if m:
+                key = m.group(1)
+                fields[key] = m.group(2)
+            elif key in ("old", "new"):
+                fields[key] += "\n" + raw
+        if fields:
+            out.append(Plant(fields["name"], fields["file"], fields["old"], fields["new"],
+                             fields["check"], fields["expect"], fields.get("prop", ""),
+                             fields.get("copy", "")))
+    return out
+
+
+def planted_copy(name: str, edits: list[tuple[str, str, str]]) -> Path:
+    """A copy of the core with each (file, old, new) edit made; old must occur once."""
+    dst = BUILD / f"planted-{name}"
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(CORE, dst)
+    for file, old, new in edits:
+        target = dst / file
+        src = target.read_text()
+        if src.count(old) != 1:
+            raise SystemExit(f"prove: error: self-test {name}: a planted site occurs "
+                             f"{src.count(old)} times in {file} (want 1)")
+        target.write_text(src.replace(old, new))
+    return dst
+
+
+def wp_fcts(check: str) -> list[str]:
+    parts = check.split(":")  # wp:GROUP or wp:GROUP:FUNCTION
+    fcts = dict(wp.wp_groups())[parts[1]]
+    if len(parts) > 2:  # the group's options on one of its functions
+        fcts = [f for f in fcts if f.startswith(("@", "%"))] + [parts[2]]
+    return fcts
+
+
+def run_plants(check: str, group: list[Plant], env: dict[str, str]
+               ) -> list[tuple[Plant, bool, str]]:
+    """The plants of one check and copy, planted together and tried in one run: each caught
+    when the run reports its own expected failure."""
+    tag = re.sub(r"\W", "-", check) + (f"-{group[0].copy}" if group[0].copy else "")
+    core_dir = planted_copy(tag, [(p.file, p.old, p.new) for p in group])
+    out = []
+    if check == "eva":
+        r = eva.run_eva(f"planted-{tag}", core_dir, 0, env)
+        found = r.alarms + r.invalid + r.rules_not_shown
+        for p in group:
+            hits = [a for a in found if p.expect in a]
+            out.append((p, bool(hits), hits[0] if hits else
+                        f"{len(r.alarms)} alarms, none '{p.expect}'"
+                        + (f" ({r.error})" if r.error else "")))
+        return out
+    props = ",".join(p.prop for p in group if p.prop)
+    w = wp.run_wp(f"planted-{tag}", core_dir, wp_fcts(check), env, GOAL_TIMEOUT_S,
+                  only_prop=props)
+    for p in group:
+        hit = any(p.expect in g for g in w.failed + w.smoke_failed)
+        out.append((p, hit and not w.error, (f"{p.expect} not proved" if hit else
+                    f"{w.proved}/{w.total} proved, {p.expect} not among the failures")
+                    + (f" ({w.error})" if w.error else "")))
+    return out
+
+
+def plant_checks() -> dict[tuple[str, str], list[Plant]]:
+    """The plants by (check, copy): one planted copy and one run each. A plant that would
+    mask another (a read made invalid cuts Eva's states where a later fault needs them) gets
+    a copy of its own."""
+    by_check: dict[tuple[str, str], list[Plant]] = {}
+    for p in plants():
+        by_check.setdefault((p.check, p.copy), []).append(p)
+    return by_check
+
+
+# ---- mutants ---------------------------------------------------------------------------------
+
+@dataclasses.dataclass
+class MutantTry:
+    key: str
+    check: str
+    caught: bool
+    what: str
+
+
+def scope(path: Path = PROVE / "mutants_scope.txt") -> dict[str, str]:
+    """function -> the check that tries its mutants ("wp:<group>:<function>")."""
+    groups = wp.wp_groups()
+    where = {f: g for g, fs in groups for f in fs if not f.startswith(("@", "%"))}
+    out: dict[str, str] = {}
+    for raw in path.read_text().splitlines():
+        line = raw.split("#", 1)[0].strip()
+        if not line:
+            continue
+        fn, _, via = (x.strip() for x in line.partition("via"))
+        target = via or fn
+        if target not in where:
+            raise SystemExit(f"prove: error: mutants_scope.txt: {target} is in no WP run")
+        out[fn] = f"wp:{where[target]}:{target}"
+    return out
+
+
+def equivalents(path: Path = PROVE / "mutants_equivalent.txt") -> dict[str, str]:
+    out = {}
+    for raw in path.read_text().splitlines():
+        if raw.strip() and not raw.startswith("#"):
+            key, _, why = raw.rpartition(" | ")
+            out[key.strip()] = why.strip()
+    return out
+
+
+def mutants_in_scope() -> list[tuple[object, str]]:
+    """(mutant, check) for every mutant of tools/mutants.py in a function of the scope."""
+    import mutants  # tools/mutants.py (tools/ is on the path of tools/prove.py)
+    sc = scope()
+    out = []
+    for path in sorted(CORE.glob("*.c")):
+        for m in mutants.generate(path):
+            if m.func in sc:
+                out.append((m, sc[m.func]))
+    return out
+
+
+def sample(items: list[tuple[object, str]], n: int) -> list[tuple[object, str]]:
+    """n mutants spread over the list, the same ones every run (a fixed choice: make test
+    must not turn red on a commit that changed nothing of the core)."""
+    if n < 0:
+        return []
+    if n == 0 or n >= len(items):
+        return items
+    ranked = sorted(items, key=lambda it: hashlib.sha256(
+        getattr(it[0], "key").encode()).hexdigest())
+    return ranked[:n]
+
+
+def compiles(core_dir: Path, file: str) -> bool:
+    proc = subprocess.run(["gcc", "-std=c99", "-fsyntax-only", "-w", f"-I{core_dir}",
+                           str(core_dir / file)], capture_output=True, timeout=60)
+    return proc.returncode == 0
+
+
+def try_mutant(index: int, mutant: object, check: str, env: dict[str, str]) -> MutantTry:
+    key = getattr(mutant, "key")
+    file = getattr(mutant, "file")
+    src = (CORE / file).read_text()
+    core_dir = BUILD / f"mutant-{index}"
+    if core_dir.exists():
+        shutil.rmtree(core_dir)
+    shutil.copytree(CORE, core_dir)
+    (core_dir / file).write_text(getattr(mutant, "apply")(src))
+    if not compiles(core_dir, file):
+        return MutantTry(key, check, True, "does not compile (not a mutant)")
+    w = wp.run_wp(f"mutant-{index}", core_dir, wp_fcts(check), env, GOAL_TIMEOUT_S)
+    shutil.rmtree(core_dir, ignore_errors=True)
+    failed = w.failed + w.smoke_failed
+    if w.error:
+        return MutantTry(key, check, True, f"frama-c refuses it ({w.error[:80]})")
+    if failed:
+        return MutantTry(key, check, True, f"{len(failed)} goals fail, e.g. {failed[0]}")
+    return MutantTry(key, check, False, f"{w.proved}/{w.total} goals proved")

@@ -1,0 +1,161 @@
+"""WP runs: the ACSL contracts of firmware/core, per group of functions of prove/wp_groups.txt,
+proved by Qed (WP's own simplifier) and the SMT solvers through Why3; and the lemmas of the
+proof's logic, proved in a run of their own."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from pathlib import Path
+
+from .frama import BUILD, CORE, PROVE, ROOT, core_sources, cpp_args, frama_c
+
+PROVERS = "z3,cvc4"
+WP_TIMEOUT_S = 600
+# Caveat: WP's memory model in which the pointers a function receives are assumed separated
+# and valid. Those hypotheses are not checked (-wp-check-memory-model is not passed: some are
+# false, docs/PROOF.md "Known holes", issue 24).
+# A slot's fill is bounded by a quantified invariant (slots_ok): Qed instantiates it for the 8
+# slots. The timeout leaves the slowest goal (about 16 s on an idle 2-core machine) room on a
+# loaded one; a run on a machine busy with other work timed out at 20 s.
+WP_MODEL = "Caveat"
+# A run under Typed also checks the hypotheses of its model at every call and runs smoke tests
+# (a precondition that cannot hold or code the proof finds dead fails the run).
+MODEL_CHECKS = {"Typed": ["-wp-check-memory-model", "-wp-smoke-tests"]}
+MODEL_TAGS = {"Typed": "typed_", "Caveat": "typed_caveat_"}  # how WP names their goals
+WP_OPTS = ["-wp-prover", PROVERS, "-wp-par", "2",
+           "-wp-bound-forall-unfolding", "8"]
+GOAL_TIMEOUT_S = 40
+# A run that leaves goals unproved at GOAL_TIMEOUT_S (CI's machine, busy, timed one out at 40 s)
+# is run once more with this per-goal timeout; the output says so. Still a proof: only the
+# time the solvers get changes.
+GOAL_RETRY_TIMEOUT_S = 150
+WP_CACHE = BUILD / "wp-cache"
+# Per-run WP options of prove/wp_groups.txt ("%name").
+WP_FLAGS = {
+    "split": ["-wp-split"],  # conjunctions and branches as sub-goals (mostly Qed's then)
+}
+LEMMAS = "lemmas"  # the run that proves the lemmas of prove/*.h (-wp-fct runs skip them)
+
+
+@dataclasses.dataclass
+class WpResult:
+    name: str
+    proved: int
+    total: int
+    by_prover: dict[str, int]
+    failed: list[str]
+    log: Path
+    error: str = ""
+    smoke: int = 0  # smoke tests checked (Typed runs)
+    smoke_failed: list[str] = dataclasses.field(default_factory=list)
+    wrong_model: list[str] = dataclasses.field(default_factory=list)
+
+
+def wp_groups(path: Path = PROVE / "wp_groups.txt") -> list[tuple[str, list[str]]]:
+    """name: functions [%flag] [@Model]. A run proves every clause of its functions: an entry
+    that would leave a property out of a run (-prop) or restrict it to one (+prop) is refused."""
+    groups = []
+    for raw in path.read_text().splitlines():
+        line = raw.split("#", 1)[0].strip()
+        if line:
+            name, fcts = line.split(":", 1)
+            bad = [f for f in fcts.split() if f.startswith(("-", "+"))]
+            if bad:
+                raise SystemExit(f"prove: error: {path.name}: run {name.strip()} filters "
+                                 f"properties ({' '.join(bad)}); every clause is proved where "
+                                 "it is written")
+            groups.append((name.strip(), fcts.split()))
+    return groups
+
+
+def model_of(fcts: list[str]) -> str:
+    return next((f[1:] for f in fcts if f.startswith("@")), WP_MODEL)
+
+
+def inline_list() -> str:
+    names = []
+    for raw in (PROVE / "wp_inline.txt").read_text().splitlines():
+        names += raw.split("#", 1)[0].split()
+    return ",".join(names)
+
+
+def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
+           goal_timeout_s: int = GOAL_TIMEOUT_S, cache: bool = False,
+           only_prop: str = "") -> WpResult:
+    """One WP run. only_prop restricts it to one property: the self-test's planted faults
+    only (the planted goal costs its timeout), never a run of make prove's proof."""
+    log = BUILD / f"wp-{name}.log"
+    names = [f for f in fcts if not f.startswith(("@", "%"))]
+    flags = [opt for f in fcts if f.startswith("%") for opt in WP_FLAGS[f[1:]]]
+    model = model_of(fcts)
+    target = ["-wp-prop=@lemma"] if name == LEMMAS else ["-wp-fct", ",".join(names)]
+    args = [*cpp_args(core_dir, f"-include {PROVE / 'contracts.h'}"),
+            *map(str, core_sources(core_dir)),
+            "-inline-calls", inline_list(), "-wp", *target,
+            # One model a run: a second -wp-model is added to the first, not put in its place
+            # (Typed and Caveat together named the goals typed_caveat_*).
+            "-wp-model", model, *WP_OPTS, *MODEL_CHECKS.get(model, []),
+            "-wp-timeout", str(goal_timeout_s), *flags]
+    if cache:
+        # The solvers' verdicts by goal (a hash of the goal and the prover): a run again with
+        # a longer timeout re-tries only what timed out. Emptied by every make prove.
+        args += ["-wp-cache", "update", "-wp-cache-dir", str(WP_CACHE / name)]
+    if only_prop:
+        args.append("-wp-prop=" + only_prop)
+    rc, out = frama_c(args, log, WP_TIMEOUT_S, env)
+    res = WpResult(name, 0, 0, {}, [], log)
+    m = re.search(r"Proved goals:\s+(\d+)\s*/\s*(\d+)", out)
+    if rc != 0 or m is None:
+        res.error = f"frama-c failed (exit {rc}); see {log.relative_to(ROOT)}"
+        tail = [x for x in out.splitlines() if "Error" in x or "error" in x][:5]
+        if tail:
+            res.error += ": " + " | ".join(tail)
+        return res
+    res.proved, res.total = int(m.group(1)), int(m.group(2))
+    for pm in re.finditer(r"^\s+(Qed|Z3[^:]*|CVC4[^:]*|Alt-Ergo[^:]*|Terminating|Unreachable)"
+                          r":\s+(\d+)", out[m.end():], re.M):
+        prover = pm.group(1).split()[0]
+        res.by_prover[prover] = res.by_prover.get(prover, 0) + int(pm.group(2))
+    for fm in re.finditer(r"^\[wp\] \[(?:Timeout|Unknown|Failed|Stepout)[^\]]*\] Goal (\S+)",
+                          out, re.M):
+        res.failed.append(fm.group(1))
+    for fm in re.finditer(r"^\[wp\] Goal (\S+) : (?!Valid)", out, re.M):
+        res.failed.append(fm.group(1))
+    parse_checks(res, out, model)
+    return res
+
+
+def parse_checks(res: WpResult, out: str, model: str) -> None:
+    """The smoke tests of a run's log and the goals of another memory model than its own."""
+    # A smoke test fails when the solvers prove \false at a point: a precondition that can
+    # never hold, or code the proof finds dead (every goal after it would be proved vacuously).
+    smoke: dict[str, bool] = {}
+    for sm in re.finditer(r"^\[wp\] \[(Passed|Failed)\] Smoke-test (\S+)", out, re.M):
+        smoke[sm.group(2)] = smoke.get(sm.group(2), True) and sm.group(1) == "Passed"
+    res.smoke = len(smoke)
+    res.smoke_failed = sorted(g for g, passed in smoke.items() if not passed)
+    # Every goal carries the run's model and no other one (WP names them typed_* under Typed,
+    # typed_caveat_* under Caveat: Typed with Caveat's hypotheses, which a run under Typed
+    # alone must not get).
+    tag = MODEL_TAGS[model]
+    goals = set(re.findall(r"Goal (\w+)", out)) | set(smoke)
+    res.wrong_model = sorted(g for g in goals if not g.startswith(tag) or any(
+        g.startswith(tag + extra) for extra in ("caveat_", "ref_", "raw_")
+        if extra not in tag))
+
+
+def run_wp_retrying(name: str, fcts: list[str], env: dict[str, str]) -> tuple[list[str], WpResult]:
+    """A run of the core's group, and once more with GOAL_RETRY_TIMEOUT_S a goal when goals
+    were left unproved (the cache keeps what the first pass proved); the goals the first pass
+    left unproved, and the last pass's result."""
+    (WP_CACHE / name).mkdir(parents=True, exist_ok=True)
+    first = run_wp(name, CORE, fcts, env, GOAL_TIMEOUT_S, cache=True)
+    if not first.failed or first.error:
+        return [], first
+    return first.failed, run_wp(name, CORE, fcts, env, GOAL_RETRY_TIMEOUT_S, cache=True)
+
+
+def ok(w: WpResult) -> bool:
+    return not w.error and w.proved == w.total and w.total > 0 and not w.smoke_failed \
+        and not w.wrong_model

@@ -28,11 +28,10 @@ demo: setup
 
 test: setup
 	$(MAKE) check
-	$(MAKE) fuzz-smoke
-	# make prove beside the pytest suite (scripts/beside), its packages installed first: two
-	# apt-get runs at once would wait on each other's lock
-	scripts/ensure-debs prove mcu browser
-	scripts/beside '$(MAKE) prove' $(MAKE) mutants-changed coverage
+	# make prove beside the fuzzers and the pytest suite (scripts/beside), its packages
+	# installed first: two apt-get runs at once would wait on each other's lock
+	scripts/ensure-debs prove mcu browser fuzz
+	scripts/beside '$(MAKE) prove' $(MAKE) fuzz-smoke mutants-changed coverage
 	$(MAKE) hil
 	$(MAKE) gamepad-vm
 	$(MAKE) systemd-vm

@@ -33,7 +33,7 @@ from proof import assumed, eva, selftest, wp
 from proof.frama import BUILD, CORE, ROOT, TOOLS, core_functions, why3_env
 from proof.wp import MODEL_CHECKS, WpResult, parse_checks  # noqa: F401 - tests use them
 
-MUTANTS_IN_MAKE_PROVE = 4  # the fast subset; make prove-mutants runs them all
+MUTANTS_IN_MAKE_PROVE = 2  # the fast subset; make prove-mutants runs them all
 
 
 def report_eva(evas: list[concurrent.futures.Future[eva.EvaResult]]) -> bool:

@@ -253,18 +253,20 @@ int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, s
     estop_remote_t *place = (r != NULL) ? r : free_place(core); /* NULL: the table is full */
     /* A control packet's check comes out of its remote's allowance when it is one of the
      * remote's next counters, else out of the newcomers' (take_check). */
-    const int budgeted = (channel == CHANNEL_UDP) &&
-                         (core->cfg.tag_checks != ESTOP_TAG_CHECKS_ALL);
+    int budgeted = 0;
     estop_remote_t *payer = next_of(r, counter) ? r : NULL;
     int ok = 0;
     int failed = 1;
+    if ((channel == CHANNEL_UDP) && (core->cfg.tag_checks != ESTOP_TAG_CHECKS_ALL)) {
+        budgeted = 1;
+    }
     if (rd_u64le(&msg[ids_at + SESSION_AFTER_ID]) != core->cfg.session) {
         sat32_inc(&core->counters.auth_bad_session);
     } else if ((r != NULL) && ((r->seen & bit) != 0u) && (counter <= r->counter[channel])) {
         sat32_inc(&core->counters.auth_old_counter);
     } else if (place == NULL) {
         sat32_inc(&core->counters.auth_table_full);
-    } else if (budgeted && (can_check(core, payer) == 0)) {
+    } else if ((budgeted != 0) && (can_check(core, payer) == 0)) {
         sat32_inc(&core->counters.auth_unchecked);
         failed = 0; /* not looked at: invalid, but no authentication failure */
         if (r != NULL) {
@@ -276,7 +278,7 @@ int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, s
         /* The tag is checked before anything is written, so that what the check saw is what
          * the call was given (the proof's rule, auth_tag, speaks of the call's input). */
         const int right = tag_right(core, msg, tag_at);
-        if (budgeted) {
+        if (budgeted != 0) {
             (void)take_check(core, payer); /* the check is spent: can_check found it left */
         }
         if (right == 0) {

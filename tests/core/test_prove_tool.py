@@ -113,7 +113,7 @@ def test_a_listed_test_that_does_not_exist_is_an_error() -> None:
     assert not prove.assumed.test_exists("tests/core/no_such_file.py::test_x")
 
 
-REPORT = """[  Valid  ] Assertion 'rule_udp_never_leaves_stopped' (file prove/eva_driver.c, line 240)
+REPORT = """[  Valid  ] Assertion 'rule_udp_never_leaves_stopped' (file prove/eva_driver.c, line 24)
             by Eva.
 [    -    ] Assertion 'rule_null_never_leaves_stopped' (file prove/eva_driver.c, line 248)
             tried with Eva.
@@ -153,9 +153,9 @@ def test_the_mutant_sample_is_fixed_and_inside_the_scope() -> None:
     every = prove.selftest.mutants_in_scope()
     scope = prove.selftest.scope()
     assert len(every) > 100
-    assert all(getattr(m, "func") in scope for m, _ in every)
-    first = [getattr(m, "key") for m, _ in prove.selftest.sample(every, 4)]
-    again = [getattr(m, "key") for m, _ in prove.selftest.sample(every, 4)]
+    assert all(m.func in scope for m, _ in every)
+    first = [m.key for m, _ in prove.selftest.sample(every, 4)]
+    again = [m.key for m, _ in prove.selftest.sample(every, 4)]
     assert first == again and len(first) == 4
     assert prove.selftest.sample(every, -1) == []
     assert len(prove.selftest.sample(every, 0)) == len(every)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import re
+import signal
 import subprocess
 import time
 from pathlib import Path
@@ -51,6 +52,35 @@ def frama_c(args: list[str], log: Path, timeout: int, env: dict[str, str]) -> tu
     out = proc.stdout + proc.stderr
     log.write_text(out + f"\n[prove] wall time {time.monotonic() - t0:.0f} s\n")
     return proc.returncode, out + f"\n[prove] wall time {time.monotonic() - t0:.0f} s\n"
+
+
+def frama_c_until(args: list[str], log: Path, timeout: int, env: dict[str, str],
+                  stop: re.Pattern[str]) -> tuple[int, str, bool]:
+    """frama_c, stopped at the first line of its output that matches stop (the self-test's
+    mutants: one failed goal is enough, the rest of the run would only cost time). True when
+    it was stopped so."""
+    log.parent.mkdir(parents=True, exist_ok=True)
+    cwd = BUILD / "cwd"
+    cwd.mkdir(parents=True, exist_ok=True)
+    t0 = time.monotonic()
+    lines: list[str] = []
+    stopped = False
+    with subprocess.Popen(["frama-c", *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                          text=True, env=env, cwd=cwd, start_new_session=True) as proc:
+        assert proc.stdout is not None
+        try:
+            for line in proc.stdout:
+                lines.append(line)
+                if stop.search(line) or time.monotonic() - t0 > timeout:
+                    stopped = bool(stop.search(line))
+                    break
+        finally:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)  # frama-c and its solvers
+            rc = proc.wait()
+    out = "".join(lines) + f"\n[prove] wall time {time.monotonic() - t0:.0f} s\n"
+    log.write_text(out)
+    return rc, out, stopped
 
 
 def cpp_args(core_dir: Path, *defines: str) -> list[str]:

@@ -18,11 +18,13 @@ import re
 import shutil
 import subprocess
 from pathlib import Path
+from typing import Any
 
 from . import eva, wp
 from .frama import BUILD, CORE, PROVE
 
-GOAL_TIMEOUT_S = 40  # a planted goal costs this: it times out or fails at once
+GOAL_TIMEOUT_S = 40  # a mutant: the timeout of make prove, so a goal it fails would fail there
+PLANT_TIMEOUT_S = 20  # a planted goal is false: it fails at any timeout, and costs this one
 
 
 @dataclasses.dataclass
@@ -32,7 +34,8 @@ class Plant:
     old: str         # text replaced (must occur exactly once)
     new: str
     check: str       # "eva" or "wp:<group>[:<function>]"
-    expect: str      # an alarm, a rule, or a goal (its name or a part of it) that must fail
+    expect: str      # an alarm, a rule, or a goal (its name or a part of it) that must fail;
+                     # eva: "a|b", either
     prop: str = ""   # wp: only this property is tried (the planted goal costs its timeout)
     copy: str = ""   # plants of one check and one copy are planted and tried together
 
@@ -93,13 +96,13 @@ def run_plants(check: str, group: list[Plant], env: dict[str, str]
         r = eva.run_eva(f"planted-{tag}", core_dir, 0, env)
         found = r.alarms + r.invalid + r.rules_not_shown
         for p in group:
-            hits = [a for a in found if p.expect in a]
+            hits = [a for a in found if any(e in a for e in p.expect.split("|"))]
             out.append((p, bool(hits), hits[0] if hits else
                         f"{len(r.alarms)} alarms, none '{p.expect}'"
                         + (f" ({r.error})" if r.error else "")))
         return out
     props = ",".join(p.prop for p in group if p.prop)
-    w = wp.run_wp(f"planted-{tag}", core_dir, wp_fcts(check), env, GOAL_TIMEOUT_S,
+    w = wp.run_wp(f"planted-{tag}", core_dir, wp_fcts(check), env, PLANT_TIMEOUT_S,
                   only_prop=props)
     for p in group:
         hit = any(p.expect in g for g in w.failed + w.smoke_failed)
@@ -155,7 +158,7 @@ def equivalents(path: Path = PROVE / "mutants_equivalent.txt") -> dict[str, str]
     return out
 
 
-def mutants_in_scope() -> list[tuple[object, str]]:
+def mutants_in_scope() -> list[tuple[Any, str]]:
     """(mutant, check) for every mutant of tools/mutants.py in a function of the scope."""
     import mutants  # tools/mutants.py (tools/ is on the path of tools/prove.py)
     sc = scope()
@@ -167,7 +170,7 @@ def mutants_in_scope() -> list[tuple[object, str]]:
     return out
 
 
-def sample(items: list[tuple[object, str]], n: int) -> list[tuple[object, str]]:
+def sample(items: list[tuple[Any, str]], n: int) -> list[tuple[Any, str]]:
     """n mutants spread over the list, the same ones every run (a fixed choice: make test
     must not turn red on a commit that changed nothing of the core)."""
     if n < 0:
@@ -175,7 +178,7 @@ def sample(items: list[tuple[object, str]], n: int) -> list[tuple[object, str]]:
     if n == 0 or n >= len(items):
         return items
     ranked = sorted(items, key=lambda it: hashlib.sha256(
-        getattr(it[0], "key").encode()).hexdigest())
+        it[0].key.encode()).hexdigest())
     return ranked[:n]
 
 
@@ -185,18 +188,19 @@ def compiles(core_dir: Path, file: str) -> bool:
     return proc.returncode == 0
 
 
-def try_mutant(index: int, mutant: object, check: str, env: dict[str, str]) -> MutantTry:
-    key = getattr(mutant, "key")
-    file = getattr(mutant, "file")
+def try_mutant(index: int, mutant: Any, check: str, env: dict[str, str]) -> MutantTry:
+    key = mutant.key
+    file = mutant.file
     src = (CORE / file).read_text()
     core_dir = BUILD / f"mutant-{index}"
     if core_dir.exists():
         shutil.rmtree(core_dir)
     shutil.copytree(CORE, core_dir)
-    (core_dir / file).write_text(getattr(mutant, "apply")(src))
+    (core_dir / file).write_text(mutant.apply(src))
     if not compiles(core_dir, file):
         return MutantTry(key, check, True, "does not compile (not a mutant)")
-    w = wp.run_wp(f"mutant-{index}", core_dir, wp_fcts(check), env, GOAL_TIMEOUT_S)
+    w = wp.run_wp(f"mutant-{index}", core_dir, wp_fcts(check), env, GOAL_TIMEOUT_S,
+                  first_failure=True)
     shutil.rmtree(core_dir, ignore_errors=True)
     failed = w.failed + w.smoke_failed
     if w.error:

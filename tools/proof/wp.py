@@ -8,7 +8,7 @@ import dataclasses
 import re
 from pathlib import Path
 
-from .frama import BUILD, CORE, PROVE, ROOT, core_sources, cpp_args, frama_c
+from .frama import BUILD, CORE, PROVE, ROOT, core_sources, cpp_args, frama_c, frama_c_until
 
 PROVERS = "z3,cvc4"
 WP_TIMEOUT_S = 600
@@ -80,11 +80,17 @@ def inline_list() -> str:
     return ",".join(names)
 
 
+# A goal or smoke test that failed, as WP prints it: enough to catch a mutant.
+FIRST_FAILURE = re.compile(r"^\[wp\] \[(?:Timeout|Unknown|Failed|Stepout)[^\]]*\] "
+                           r"(?:Goal|Smoke-test) (\S+)|^\[wp\] Goal (\S+) : (?!Valid)")
+
+
 def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
            goal_timeout_s: int = GOAL_TIMEOUT_S, cache: bool = False,
-           only_prop: str = "") -> WpResult:
+           only_prop: str = "", first_failure: bool = False) -> WpResult:
     """One WP run. only_prop restricts it to one property: the self-test's planted faults
-    only (the planted goal costs its timeout), never a run of make prove's proof."""
+    only (the planted goal costs its timeout), never a run of make prove's proof.
+    first_failure stops it at the first goal that fails (the self-test's mutants)."""
     log = BUILD / f"wp-{name}.log"
     names = [f for f in fcts if not f.startswith(("@", "%"))]
     flags = [opt for f in fcts if f.startswith("%") for opt in WP_FLAGS[f[1:]]]
@@ -103,8 +109,15 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
         args += ["-wp-cache", "update", "-wp-cache-dir", str(WP_CACHE / name)]
     if only_prop:
         args.append("-wp-prop=" + only_prop)
-    rc, out = frama_c(args, log, WP_TIMEOUT_S, env)
     res = WpResult(name, 0, 0, {}, [], log)
+    if first_failure:
+        rc, out, stopped = frama_c_until(args, log, WP_TIMEOUT_S, env, FIRST_FAILURE)
+        if stopped:
+            m = FIRST_FAILURE.search(out)
+            res.failed.append((m.group(1) or m.group(2)) if m else "?")
+            return res
+    else:
+        rc, out = frama_c(args, log, WP_TIMEOUT_S, env)
     m = re.search(r"Proved goals:\s+(\d+)\s*/\s*(\d+)", out)
     if rc != 0 or m is None:
         res.error = f"frama-c failed (exit {rc}); see {log.relative_to(ROOT)}"

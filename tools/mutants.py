@@ -572,6 +572,10 @@ class Runner:
         os.environ["ESTOP_STATEFUL_EXAMPLES"] = str(examples)
         sys.path.insert(0, str(builder.work / "orig"))
         sys.path.insert(0, str(ROOT / "tests"))
+        # Each test imported by its module name from its own directory (tests/core/...): with
+        # tests/ alone on the path, none was found once the tests moved into tests/core.
+        for folder in sorted({str((ROOT / t).parent) for t in TESTS}):
+            sys.path.insert(0, folder)
         import importlib
 
         for test in TESTS:

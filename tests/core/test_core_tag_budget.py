@@ -303,3 +303,25 @@ def test_a_window_ends_after_an_idle_gap_of_2_to_the_32_us() -> None:
     u.wd.udp(u.genuine(), start + 2**32 + 5 * MS)  # the host feeds the gap in steps
     c = u.wd.status().counters
     assert (c.udp_valid, c.auth_unchecked) == (before.udp_valid + 1, before.auth_unchecked)
+
+
+def test_an_allowance_of_one_check_serves_the_first_packet_of_every_window() -> None:
+    """tag_checks 1 (issue 24: the budget is looked at before the tag and spent after it): a
+    window that has ended opens with the allowance whole, so the remote's first packet of
+    each window is checked and its second is not."""
+    u = Unit(Config(key=K, session=N, tag_checks=1))
+    counter = 0
+
+    def genuine() -> bytes:
+        nonlocal counter
+        counter += 1
+        return auth.AuthControlPacket(RID, N, counter, BODY).encode(K)
+
+    u.udp(genuine())  # the id's first packet: from the shared allowance; it gets a place
+    for _ in range(3):
+        u.wait(WINDOW_MS * MS)
+        before = u.wd.status().counters
+        u.udp(genuine())
+        u.udp(genuine())
+        c = u.wd.status().counters
+        assert (c.udp_valid - before.udp_valid, c.auth_unchecked - before.auth_unchecked) == (1, 1)

@@ -17,7 +17,8 @@
 Exit status 0 when all three hold.
 
   tools/prove.py                       the whole of make prove (a fixed sample of mutants)
-  tools/prove.py --only self-test --mutants 0    every mutant of the scope (make prove-mutants)
+  tools/prove.py --only mutants --mutants 0      every mutant of the scope (make prove-mutants)
+  tools/prove.py --only mutants --mutants 20     the first 20 of the fixed order
 """
 
 from __future__ import annotations
@@ -119,8 +120,9 @@ def report_assumed() -> bool:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--jobs", type=int, default=2, help="analyses run at once (default 2)")
-    ap.add_argument("--only", choices=["eva", "wp", "self-test"], action="append",
-                    help="run only these parts (repeatable)")
+    ap.add_argument("--only", choices=["eva", "wp", "self-test", "mutants"], action="append",
+                    help="run only these parts (repeatable; mutants: the self-test's mutants "
+                         "without its plants)")
     ap.add_argument("--group", action="append", metavar="NAME",
                     help="with wp: run only these groups of prove/wp_groups.txt (repeatable)")
     ap.add_argument("--mutants", type=int, default=MUTANTS_IN_MAKE_PROVE, metavar="N",
@@ -139,7 +141,7 @@ def main() -> int:
     t0 = time.monotonic()
     ok = report_assumed()
     muts = selftest.sample(selftest.mutants_in_scope(), args.mutants) \
-        if "self-test" in parts else []
+        if parts & {"self-test", "mutants"} else []
     equivalent = selftest.equivalents()
     with concurrent.futures.ThreadPoolExecutor(max_workers=args.jobs) as pool:
         evas = [pool.submit(eva.run_eva, n, CORE, k, env) for n, k in (("keyed", 1), ("plain", 0))

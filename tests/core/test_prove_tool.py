@@ -159,3 +159,10 @@ def test_the_mutant_sample_is_fixed_and_inside_the_scope() -> None:
     assert first == again and len(first) == 4
     assert prove.selftest.sample(every, -1) == []
     assert len(prove.selftest.sample(every, 0)) == len(every)
+
+
+def test_a_mutants_first_failure_is_named() -> None:
+    out = GOOD + "[wp] [Failed] Smoke-test typed_use_up_wp_smoke_dead_call_s254\n"
+    m = prove.wp.FIRST_FAILURE.search(out)
+    assert m is not None and (m.group(1) or m.group(2)) == "typed_use_up_wp_smoke_dead_call_s254"
+    assert prove.wp.FIRST_FAILURE.search(GOOD) is None  # passed smoke tests, valid goals

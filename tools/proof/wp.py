@@ -82,7 +82,7 @@ def inline_list() -> str:
 
 # A goal or smoke test that failed, as WP prints it: enough to catch a mutant.
 FIRST_FAILURE = re.compile(r"^\[wp\] \[(?:Timeout|Unknown|Failed|Stepout)[^\]]*\] "
-                           r"(?:Goal|Smoke-test) (\S+)|^\[wp\] Goal (\S+) : (?!Valid)")
+                           r"(?:Goal|Smoke-test) (\S+)|^\[wp\] Goal (\S+) : (?!Valid)", re.M)
 
 
 def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],

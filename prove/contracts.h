@@ -196,6 +196,7 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
     ensures next_call_ahead: \result == ESTOP_OK ==>
         1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
+    ensures fault_stops: \result == ESTOP_OK ==> core->state == 0;
  */
 estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 

@@ -295,6 +295,7 @@ static void state_changed(estop_core_t *core, estop_out_t *out)
             core->status_stops, out->state_changed, out->can[0 .. 2], out->n_can,
             core->brake_counter, core->brake_due_us;
     ensures inv_base(core) && core->state == 0 && out->n_can <= 3;
+    ensures stop_restarts_release_count: core->valid_run == 0;
     behavior moving:
       assumes core->state != 0;
       ensures out->state_changed == 1 && core->reason == reason;
@@ -701,6 +702,9 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
     ensures rel_frames: out->n_can <= 3;
     ensures rel_only_authenticated: \old(core->state) == 0 && core->state != 0 ==>
         authenticated != 0 && \result == 0;
+    ensures rel_only_live_neutral: \old(core->state) == 0 && core->state != 0 ==>
+        core->last_neutral != 0 && core->link_fresh != 0 &&
+        core->valid_run >= core->cfg.release_packets;
     ensures \result <= 4;
  */
 static uint8_t release(estop_core_t *core, int authenticated, estop_out_t *out)

@@ -28,10 +28,13 @@ demo: setup
 
 test: setup
 	$(MAKE) check
-	# make prove beside the fuzzers and the pytest suite (scripts/beside), its packages
-	# installed first: two apt-get runs at once would wait on each other's lock
-	scripts/ensure-debs prove mcu browser fuzz
-	scripts/beside '$(MAKE) prove' $(MAKE) fuzz-smoke mutants-changed coverage
+	# make prove beside the fuzzers and the mutants (scripts/beside), its packages installed
+	# first: two apt-get runs at once would wait on each other's lock. Not beside the pytest
+	# suite: its timing tests of estopd fail with provers on the other core (a CI run of
+	# 3236671: test_a_deadline_passed_during_a_stall_is_not_held_back_by_the_backlog).
+	scripts/ensure-debs prove fuzz
+	scripts/beside '$(MAKE) prove' $(MAKE) fuzz-smoke mutants-changed
+	$(MAKE) coverage
 	$(MAKE) hil
 	$(MAKE) gamepad-vm
 	$(MAKE) systemd-vm

@@ -140,8 +140,8 @@ def main() -> int:
     env = why3_env()
     t0 = time.monotonic()
     ok = report_assumed()
-    muts = selftest.sample(selftest.mutants_in_scope(), args.mutants) \
-        if parts & {"self-test", "mutants"} else []
+    in_scope = selftest.mutants_in_scope() if parts & {"self-test", "mutants"} else []
+    muts = selftest.sample(in_scope, args.mutants)
     equivalent = selftest.equivalents()
     with concurrent.futures.ThreadPoolExecutor(max_workers=args.jobs) as pool:
         evas = [pool.submit(eva.run_eva, n, CORE, k, env) for n, k in (("keyed", 1), ("plain", 0))
@@ -175,7 +175,7 @@ def main() -> int:
                 ok = False
         if mutated:
             print(f"prove: self-test mutants caught {caught_n}/{len(mutated)} "
-                  f"(of {len(selftest.mutants_in_scope())} in prove/mutants_scope.txt; "
+                  f"(of {len(in_scope)} in prove/mutants_scope.txt; "
                   f"{sum(1 for f in mutated if f.result().key in equivalent)} listed equivalent)")
     print(f"prove: {'ok' if ok else 'FAILED'} in {time.monotonic() - t0:.0f} s "
           f"(logs in {BUILD.relative_to(ROOT)}/)")

@@ -5,6 +5,7 @@ self-test plants faults in the core that only a smoke test catches)."""
 from __future__ import annotations
 
 import importlib.util
+import os
 import sys
 from pathlib import Path
 from types import ModuleType
@@ -166,3 +167,23 @@ def test_a_mutants_first_failure_is_named() -> None:
     m = prove.wp.FIRST_FAILURE.search(out)
     assert m is not None and (m.group(1) or m.group(2)) == "typed_use_up_wp_smoke_dead_call_s254"
     assert prove.wp.FIRST_FAILURE.search(GOOD) is None  # passed smoke tests, valid goals
+
+
+def test_a_frama_c_run_past_its_timeout_is_killed_with_its_children(tmp_path: Path) -> None:
+    import shutil
+    import time
+
+    import pytest
+    from proof import frama  # tools/ is on the path (load_prove)
+
+    if shutil.which("frama-c") is None:
+        pytest.skip("no frama-c here (scripts/ensure-debs prove)")
+    args = [*frama.cpp_args(frama.CORE, "-DDRIVER_KEYED=1"),
+            str(prove.eva.DRIVER), *map(str, frama.core_sources(frama.CORE)),
+            "-eva", *prove.eva.EVA_OPTS]  # about 90 s of Eva
+    t0 = time.monotonic()
+    rc, out, stopped = frama.frama_c_until(args, tmp_path / "eva.log", 2, {**os.environ}, None)
+    assert time.monotonic() - t0 < 15
+    assert (rc, stopped) == (-1, False)
+    assert "timed out after 2 s" in out
+    assert "timed out after 2 s" in (tmp_path / "eva.log").read_text()

@@ -6,6 +6,8 @@ import os
 import re
 import signal
 import subprocess
+import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -39,45 +41,50 @@ def core_functions(core_dir: Path) -> set[str]:
 
 
 def frama_c(args: list[str], log: Path, timeout: int, env: dict[str, str]) -> tuple[int, str]:
-    log.parent.mkdir(parents=True, exist_ok=True)
-    t0 = time.monotonic()
-    try:
-        cwd = BUILD / "cwd"  # empty: quoted includes of an -include file look here first
-        cwd.mkdir(parents=True, exist_ok=True)
-        proc = subprocess.run(["frama-c", *args], capture_output=True, text=True,
-                              timeout=timeout, env=env, cwd=cwd)
-    except subprocess.TimeoutExpired:
-        log.write_text(f"timed out after {timeout} s\n")
-        return -1, f"timed out after {timeout} s"
-    out = proc.stdout + proc.stderr
-    log.write_text(out + f"\n[prove] wall time {time.monotonic() - t0:.0f} s\n")
-    return proc.returncode, out + f"\n[prove] wall time {time.monotonic() - t0:.0f} s\n"
+    """Frama-C run to its end (or killed, with its solvers, after timeout s: exit -1)."""
+    rc, out, _ = frama_c_until(args, log, timeout, env, None)
+    return rc, out
 
 
 def frama_c_until(args: list[str], log: Path, timeout: int, env: dict[str, str],
-                  stop: re.Pattern[str]) -> tuple[int, str, bool]:
-    """frama_c, stopped at the first line of its output that matches stop (the self-test's
-    mutants: one failed goal is enough, the rest of the run would only cost time). True when
-    it was stopped so."""
+                  stop: re.Pattern[str] | None) -> tuple[int, str, bool]:
+    """Frama-C with its output in log (and the wall time after it), stopped at the first line
+    that matches stop (the self-test's mutants: one failed goal is enough, the rest of the run
+    would only cost time), and killed with its solvers after timeout s, output or not. The
+    exit status (-1 on the timeout), the output, and whether stop matched."""
     log.parent.mkdir(parents=True, exist_ok=True)
-    cwd = BUILD / "cwd"
+    cwd = BUILD / "cwd"  # empty: quoted includes of an -include file look here first
     cwd.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
     lines: list[str] = []
     stopped = False
-    with subprocess.Popen(["frama-c", *args], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                          text=True, env=env, cwd=cwd, start_new_session=True) as proc:
+    # stderr after stdout, as the parsers read it (an error line never splits an alarm's)
+    with tempfile.TemporaryFile("w+") as err, subprocess.Popen(
+            ["frama-c", *args], stdout=subprocess.PIPE, stderr=err, text=True, env=env,
+            cwd=cwd, start_new_session=True) as proc:
+
+        def kill() -> None:
+            if proc.poll() is None:
+                os.killpg(proc.pid, signal.SIGKILL)  # frama-c and its solvers
+
+        timer = threading.Timer(timeout, kill)
+        timer.start()
         assert proc.stdout is not None
         try:
             for line in proc.stdout:
                 lines.append(line)
-                if stop.search(line) or time.monotonic() - t0 > timeout:
-                    stopped = bool(stop.search(line))
+                if stop is not None and stop.search(line):
+                    stopped = True
                     break
         finally:
-            if proc.poll() is None:
-                os.killpg(proc.pid, signal.SIGKILL)  # frama-c and its solvers
+            timer.cancel()
+            kill()
             rc = proc.wait()
+        err.seek(0)
+        lines.append(err.read())
+    if not stopped and time.monotonic() - t0 >= timeout:
+        rc = -1
+        lines.append(f"timed out after {timeout} s\n")
     out = "".join(lines) + f"\n[prove] wall time {time.monotonic() - t0:.0f} s\n"
     log.write_text(out)
     return rc, out, stopped

@@ -36,6 +36,14 @@
           out->has_reply == 0 && out->close_slot == 0;
       ensures refused_keeps_state: \result != ESTOP_OK ==> core->state == \old(core->state);
       ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
+      ensures begin_room: \result == ESTOP_OK ==> out->n_can <= 2;
+      ensures begin_clock_stop: \result == ESTOP_OK && \old(core->state) != 0 &&
+          core->state == 0 ==> 1 <= out->n_can && emergency(out, 0, core);
+      ensures begin_keeps: \result == ESTOP_OK ==>
+          core->last_valid_us == \old(core->last_valid_us) &&
+          core->cfg.timeout_us == \old(core->cfg.timeout_us) &&
+          core->cfg.slow_us == \old(core->cfg.slow_us) &&
+          core->cfg.stop_id == \old(core->cfg.stop_id);
     complete behaviors; disjoint behaviors;
  */
 estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out);
@@ -72,6 +80,11 @@ uint8_t estop__current_flags(const estop_core_t *core);
     ensures msg_keeps_fills: fills_kept(Pre, Post, core);
     ensures leaves_stopped_only_by_release: \old(core->state) == 0 && core->state != 0 ==>
         msg_id == ESTOP_MSG_RELEASE && release_authenticated != 0 && \result == 0;
+    ensures msg_stops: msg_id == \old(core->cfg.stop_id) || msg_id == ESTOP_MSG_LIFT ==>
+        core->state == 0 && \result == 0;
+    ensures msg_stop_brakes: (msg_id == \old(core->cfg.stop_id) || msg_id == ESTOP_MSG_LIFT) &&
+        \old(core->state) != 0 && \old(out->n_can) <= 2 ==>
+        out->n_can == \old(out->n_can) + 1 && emergency(out, \old(out->n_can), core);
     ensures nak_code: \result <= 4;
  */
 uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authenticated,
@@ -175,6 +188,14 @@ estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t n
     ensures next_call_ahead: \result == ESTOP_OK ==>
         1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
+    ensures clock_stops: \result == ESTOP_OK &&
+        udiff(now_us, \old(core->last_valid_us)) >= \old(core->cfg.timeout_us) ==>
+        core->state == 0;
+    ensures clock_slows: \result == ESTOP_OK && \old(core->state) == 1 &&
+        udiff(now_us, \old(core->last_valid_us)) >= \old(core->cfg.slow_us) ==>
+        core->state != 1;
+    ensures stop_brakes: \result == ESTOP_OK && \old(core->state) != 0 && core->state == 0 ==>
+        1 <= out->n_can && emergency(out, 0, core);
  */
 estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 
@@ -197,6 +218,8 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
         1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
     ensures fault_stops: \result == ESTOP_OK ==> core->state == 0;
+    ensures stop_brakes: \result == ESTOP_OK && \old(core->state) != 0 ==>
+        1 <= out->n_can && (emergency(out, 0, core) || emergency(out, out->n_can - 1, core));
  */
 estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 

@@ -18,8 +18,10 @@
  * The rules (assertions rule_*, which tools/proof/eva.py requires Eva to show valid in both
  * runs): from STOPPED, estop_tick, estop_udp_rx (any bytes, or NULL), estop_tcp_open and
  * estop_tcp_close leave the unit STOPPED; estop_fault that returns ESTOP_OK leaves it
- * STOPPED from any state. Eva shows them for every state the loop reaches, whatever came
- * before; WP proves the same per function (never_leaves_stopped) under its memory model.
+ * STOPPED from any state; so does a stop datagram (LIFT, or the unit's stop ID where it is
+ * the default one) that returns ESTOP_OK. Eva shows them for every state the loop reaches,
+ * whatever came before; WP proves the first ones per function (never_leaves_stopped) under
+ * its memory model, and the stops of a TCP frame and of the clock (msg_stops, clock_stops).
  */
 #include <stddef.h>
 #include <stdint.h>
@@ -131,6 +133,22 @@ static void any_blake2s(void)
     (void)estop_ct_equal(key, NULL, Frama_C_unsigned_int_interval(0u, ESTOP_B2S_KEY_MAX));
 }
 
+/* A stop datagram (PROTOCOL.md section 1): a request frame with this ID, every other byte
+ * (session, counter, tag, ...) anything: anyone may stop. */
+static void stop_datagram(estop_core_t *core, uint32_t id, uint32_t now, estop_out_t *out)
+{
+    uint8_t d[ESTOP_REQ_FRAME_LEN];
+    uint32_t i;
+    any_bytes(d, sizeof d);
+    for (i = 0u; i < 4u; i++) {
+        d[i] = (uint8_t)(ESTOP_MAGIC_REQUEST >> (8u * i));
+        d[4u + i] = (uint8_t)(id >> (8u * i));
+    }
+    if (estop_udp_rx(core, d, sizeof d, now, out) == ESTOP_OK) {
+        /*@ assert rule_stop_datagram_stops: core->state == ESTOP_STATE_STOPPED; */
+    }
+}
+
 /* Calls before a successful init (the core zeroed by a refused one) must be refused. */
 static void refused_calls(void)
 {
@@ -232,7 +250,7 @@ int main(void)
         uint32_t now = any_u32();
         uint32_t slot = Frama_C_unsigned_int_interval(0u, ESTOP_MAX_SLOTS);
         estop_err_t err;
-        switch (Frama_C_interval(0, 7)) {
+        switch (Frama_C_interval(0, 8)) {
         case 0:
             if (core.state == ESTOP_STATE_STOPPED) {
                 (void)estop_tick(&core, now, &out);
@@ -288,6 +306,18 @@ int main(void)
                 uint8_t data[1] = {0u};
                 err = estop_tcp_rx(&core, slot, data, 1u, NULL, now, &out);
                 /*@ assert null_consumed_refused: err == ESTOP_ERR_NULL_ARG || err == ESTOP_ERR_SLOT; */
+            }
+            break;
+        case 7:
+            /* LIFT, whatever the configuration; the unit's stop ID where it is the default
+             * one (Eva cannot relate the bytes of a datagram to a stop ID of any value; WP's
+             * msg_stops covers every stop ID on the TCP path). */
+            if (Frama_C_nondet(0, 1) != 0) {
+                stop_datagram(&core, ESTOP_MSG_LIFT, now, &out);
+            } else if (core.cfg.stop_id == ESTOP_DEFAULT_STOP_ID) {
+                stop_datagram(&core, ESTOP_DEFAULT_STOP_ID, now, &out);
+            } else {
+                /* another stop ID: WP's msg_stops */
             }
             break;
         default:

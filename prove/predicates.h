@@ -47,6 +47,17 @@
     ensures tag##_times: status_due_ok(core); \
     ensures tag##_times: link_ok(core); \
     ensures tag##_times: armed_ok(core);
+/* The frames of out a step leaves as they were: the first n keep their ID, brake_request and
+ * state byte (what the stop rules read). */
+#define frame_kept(L1, L2, o, k) \
+    (\at((o)->can[k].id, L1) == \at((o)->can[k].id, L2) && \
+     \at((o)->can[k].data[0], L1) == \at((o)->can[k].data[0], L2) && \
+     \at((o)->can[k].data[2], L1) == \at((o)->can[k].data[2], L2))
+#define frames_kept(L1, L2, o, n) (\forall integer k; 0 <= k < (n) ==> frame_kept(L1, L2, o, k))
+/* Frame k of out is ESTOP_BRAKE with brake_request 1 (emergency) and the state STOPPED. */
+#define emergency(o, k, c) \
+    ((o)->can[k].id == (c)->cfg.brake_can_id && (o)->can[k].data[0] == 1 && \
+     (o)->can[k].data[2] == 0)
 #define core_ok(c) ((c)->magic == 0x45535450 ==> inv(c))
 #define host(c, o) (\valid(c) && \valid(o) && \separated(c, o) && core_ok(c))
 #define fills_kept(L1, L2, c) \

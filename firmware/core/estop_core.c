@@ -194,6 +194,7 @@ static int link_live(const estop_core_t *core)
 /*@ requires \valid(out) && \valid(counter) && \valid_read(payload + (0 .. 5));
     requires \separated(out, counter, payload + (0 .. 5));
     assigns out->can[0 .. 2], out->n_can, *counter;
+    ensures push_keeps: frames_kept(Pre, Post, out, \old(out->n_can));
     behavior room:
       assumes out->n_can < 3;
       ensures out->n_can == \old(out->n_can) + 1;
@@ -238,6 +239,7 @@ static void push_frame(estop_out_t *out, uint32_t id, uint16_t data_id, const ui
         out->can[\old(out->n_can)].data[2] == core->state &&
         brake_ok(out, \old(out->n_can), core->cfg.slow_level);
     ensures \old(out->n_can) >= 3 ==> out->n_can == \old(out->n_can);
+    ensures brake_keeps: frames_kept(Pre, Post, out, \old(out->n_can));
  */
 static void send_brake(estop_core_t *core, estop_out_t *out)
 {
@@ -296,6 +298,7 @@ static void state_changed(estop_core_t *core, estop_out_t *out)
             core->brake_counter, core->brake_due_us;
     ensures inv_base(core) && core->state == 0 && out->n_can <= 3;
     ensures stop_restarts_release_count: core->valid_run == 0;
+    ensures stop_keeps: frames_kept(Pre, Post, out, \old(out->n_can));
     behavior moving:
       assumes core->state != 0;
       ensures out->state_changed == 1 && core->reason == reason;
@@ -406,6 +409,9 @@ static void age_link(estop_core_t *core, uint32_t step)
     ensures clock_brake_due: out->state_changed != 0 ==>
         udiff(core->brake_due_us, core->now_us) == core->cfg.brake_period_us;
     ensures never_leaves_stopped: \old(core->state) == 0 ==> core->state == 0;
+    ensures clock_frame: out->n_can == out->state_changed && out->state_changed <= 1;
+    ensures clock_stop_frame: \old(core->state) != 0 && core->state == 0 ==>
+        out->n_can == 1 && emergency(out, 0, core);
  */
 static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
 {
@@ -462,7 +468,10 @@ static uint32_t next_due(uint32_t due, uint32_t period, uint32_t now)
     ensures due_brake: 1 <= udiff(core->brake_due_us, core->now_us) <= core->cfg.brake_period_us;
     ensures due_status:
         1 <= udiff(core->status_due_us, core->now_us) <= core->cfg.status_period_us;
-    ensures due_frames: out->n_can <= \old(out->n_can) + 2;
+    ensures due_frames: \old(out->n_can) <= out->n_can <= \old(out->n_can) + 2;
+    ensures due_room: \at(udiff(core->brake_due_us, core->now_us), Pre) ==
+        core->cfg.brake_period_us ==> out->n_can <= \old(out->n_can) + 1;
+    ensures due_keeps: frames_kept(Pre, Post, out, \old(out->n_can));
  */
 static void send_due_frames(estop_core_t *core, estop_out_t *out)
 {

@@ -162,6 +162,22 @@ def test_the_mutant_sample_is_fixed_and_inside_the_scope() -> None:
     assert len(prove.selftest.sample(every, 0)) == len(every)
 
 
+def test_make_proves_mutant_sample_comes_from_the_runs_under_the_default_model() -> None:
+    # a Typed run costs its smoke tests: about 100 s a mutant against about 45 s
+    every = prove.selftest.mutants_in_scope()
+    models = {g: prove.wp.model_of(fs) for g, fs in prove.wp.wp_groups()}
+    assert any(models[c.split(":")[1]] == "Typed" for _, c in every)
+    picked = prove.selftest.sample(every, 8)
+    assert len(picked) == 8
+    assert all(models[c.split(":")[1]] == prove.wp.WP_MODEL for _, c in picked)
+
+
+def test_smoke_tests_run_with_their_timeout_in_every_typed_run() -> None:
+    checks = prove.wp.MODEL_CHECKS["Typed"]
+    assert "-wp-smoke-tests" in checks
+    assert checks[checks.index("-wp-smoke-timeout") + 1] == str(prove.wp.SMOKE_TIMEOUT_S)
+
+
 def test_a_mutants_first_failure_is_named() -> None:
     out = GOOD + "[wp] [Failed] Smoke-test typed_use_up_wp_smoke_dead_call_s254\n"
     m = prove.wp.FIRST_FAILURE.search(out)

@@ -183,8 +183,10 @@ int estop_ct_equal(const uint8_t *a, const uint8_t *b, size_t n);
 estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t now_us);
 
 /*@ requires core == \null || out == \null || host(core, out);
+    requires core_given: core != \null ==> core_ok(core);
     assigns *core, *out;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures inv_always: core != \null ==> core_ok(core);
     ensures next_call_ahead: \result == ESTOP_OK ==>
         1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
@@ -200,10 +202,12 @@ estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t n
 estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 
 /*@ requires core == \null || out == \null || host(core, out);
+    requires core_given: core != \null ==> core_ok(core);
     requires data == \null || (\valid_read(data + (0 .. len - 1)) &&
         \separated(data + (0 .. len - 1), core, out));
     assigns *core, *out;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures inv_always: core != \null ==> core_ok(core);
     ensures next_call_ahead: \result == ESTOP_OK ==>
         1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
@@ -212,8 +216,10 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
                          estop_out_t *out);
 
 /*@ requires core == \null || out == \null || host(core, out);
+    requires core_given: core != \null ==> core_ok(core);
     assigns *core, *out;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures inv_always: core != \null ==> core_ok(core);
     ensures next_call_ahead: \result == ESTOP_OK ==>
         1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
@@ -224,8 +230,10 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
 estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 
 /*@ requires core == \null || out == \null || host(core, out);
+    requires core_given: core != \null ==> core_ok(core);
     assigns *core, *out;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures inv_always: core != \null ==> core_ok(core);
     ensures next_call_ahead: \result == ESTOP_OK ==>
         1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
@@ -233,8 +241,10 @@ estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 estop_err_t estop_tcp_open(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out);
 
 /*@ requires core == \null || out == \null || host(core, out);
+    requires core_given: core != \null ==> core_ok(core);
     assigns *core, *out;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures inv_always: core != \null ==> core_ok(core);
     ensures next_call_ahead: \result == ESTOP_OK ==>
         1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
@@ -242,11 +252,13 @@ estop_err_t estop_tcp_open(estop_core_t *core, uint32_t slot, uint32_t now_us, e
 estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out);
 
 /*@ requires core == \null || out == \null || host(core, out);
+    requires core_given: core != \null ==> core_ok(core);
     requires consumed == \null || (\valid(consumed) && \separated(consumed, core, out));
     requires data == \null || (\valid_read(data + (0 .. len - 1)) &&
         \separated(data + (0 .. len - 1), core, out, consumed));
     assigns *core, *out, *consumed;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
+    ensures inv_always: core != \null ==> core_ok(core);
     ensures next_call_ahead: \result == ESTOP_OK ==>
         1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures consumed_bound: \result == ESTOP_OK ==> *consumed <= len;

@@ -678,11 +678,14 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
         if (reason != ESTOP_REASON_NONE) {
             sat32_inc(&core->counters.udp_stops);
             stop(core, reason, out);
+            /*@ assert stopped_slots: slots_ok(core); */
         } else if (body != NULL) {
             take_valid(core, body, out);
+            /*@ assert taken_slots: slots_ok(core); */
         } else {
             sat32_inc(&core->counters.udp_invalid);
             core->status_invalid = sat8_inc(core->status_invalid);
+            /*@ assert dropped_slots: slots_ok(core); */
         }
         /* The invariant and the times, carried past the three branches here so that
          * inv_kept after estop__finish (which writes only out) is Qed's: left to the

@@ -165,11 +165,14 @@ def test_the_mutant_sample_is_fixed_and_inside_the_scope() -> None:
 def test_make_proves_mutant_sample_comes_from_the_runs_under_the_default_model() -> None:
     # a Typed run costs its smoke tests: about 100 s a mutant against about 45 s
     every = prove.selftest.mutants_in_scope()
-    models = {g: prove.wp.model_of(fs) for g, fs in prove.wp.wp_groups()}
-    assert any(models[c.split(":")[1]] == "Typed" for _, c in every)
+
+    def model(check: str) -> str:
+        return str(prove.wp.model_of(prove.selftest.wp_fcts(check)))
+
+    assert any(model(c) == "Typed" for _, c in every)
     picked = prove.selftest.sample(every, 8)
     assert len(picked) == 8
-    assert all(models[c.split(":")[1]] == prove.wp.WP_MODEL for _, c in picked)
+    assert all(model(c) == prove.wp.WP_MODEL for _, c in picked)
 
 
 def test_smoke_tests_run_with_their_timeout_in_every_typed_run() -> None:

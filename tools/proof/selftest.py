@@ -179,8 +179,7 @@ def sample(items: list[tuple[Any, str]], n: int) -> list[tuple[Any, str]]:
         return []
     if n == 0 or n >= len(items):
         return items
-    typed = {g for g, fs in wp.wp_groups() if wp.model_of(fs) != wp.WP_MODEL}
-    cheap = [it for it in items if it[1].split(":")[1] not in typed]
+    cheap = [it for it in items if wp.model_of(wp_fcts(it[1])) == wp.WP_MODEL]
     ranked = sorted(cheap or items, key=lambda it: hashlib.sha256(
         it[0].key.encode()).hexdigest())
     return ranked[:n]

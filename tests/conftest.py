@@ -6,7 +6,9 @@ other): ``unit`` (the Python package, mirroring src/estop), ``core`` (the C core
 cffi), ``daemon`` (estopd itself), ``browser`` (Debian's chromium), ``vm`` (kernel parts this
 host lacks: tools/vm-pytest), ``mcu`` (the Cortex-M toolchain), ``harness`` (hil/ and bench/
 code), ``docs``. A test anywhere that asks for the ``estopd`` fixture is a ``daemon`` test too.
-``make test-fast`` runs what is neither daemon, browser, vm nor mcu."""
+``make test-fast`` runs what is neither daemon, browser, vm nor mcu. A module that measures time
+with tests/stall_probe must be marked ``timing`` as well (refused otherwise): make test runs the
+timing tests alone, the others beside the provers."""
 
 from __future__ import annotations
 
@@ -44,11 +46,28 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         item.add_marker(kind)
         if "estopd" in getattr(item, "fixturenames", ()) and kind != "daemon":
             item.add_marker("daemon")
+    untimed = sorted({str(item.path.relative_to(HERE.parent)) for item in items
+                      if _uses_stall_probe(item) and item.get_closest_marker("timing") is None})
+    if untimed:
+        raise pytest.UsageError(
+            f"test modules that measure time with tests/stall_probe but are not marked timing: "
+            f"{', '.join(untimed)}; add pytest.mark.timing to their pytestmark (make test runs "
+            f"timing tests alone, not beside the provers)")
     if astray:
         raise pytest.UsageError(
             f"test files outside the folders of the test kinds: {', '.join(sorted(astray))}; "
             f"move each into tests/<kind>/ ({', '.join(KINDS)}; unit tests mirror "
             f"src/estop: tests/unit/<subpackage>/)")
+
+
+def _uses_stall_probe(item: pytest.Item) -> bool:
+    """Whether the test's module took anything from tests/stall_probe (a timing test's aid)."""
+    module = getattr(item, "module", None)
+    probe = sys.modules.get("stall_probe")
+    return module is not None and any(
+        (probe is not None and value is probe)
+        or getattr(value, "__module__", None) == "stall_probe"
+        for value in vars(module).values())
 
 
 def pytest_ignore_collect(collection_path: Path, config: pytest.Config) -> bool | None:

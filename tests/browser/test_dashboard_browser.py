@@ -37,7 +37,7 @@ except ImportError:  # said by the fixture: the test extra (make setup) installs
 SLOW_MS, TIMEOUT_MS = 300, 1800  # S < T, with time enough between them for a screenshot
 WITHIN_S = 0.300  # the page shows a state at most this long after its frame
 SHOTS = ROOT / "build" / "dashboard"
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.timing]
 
 
 def chromium_path() -> str:

@@ -37,7 +37,7 @@ RATE_HZ = 50
 SHOTS = ROOT / "build" / "touch"
 KEY = bytes(range(32))
 PHONE = {"width": 412, "height": 860}  # CSS pixels, a common Android phone
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.timing]
 
 
 def chromium_path() -> str:

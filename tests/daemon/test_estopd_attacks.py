@@ -41,6 +41,8 @@ from daemon_util import (
     udp_packet,
 )
 
+pytestmark = pytest.mark.timing
+
 LINGER_RST = struct.pack("ii", 1, 0)  # close() sends RST instead of FIN
 
 

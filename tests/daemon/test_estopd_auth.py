@@ -32,6 +32,8 @@ from estop.protocol import auth
 from estop.protocol.udp import ControlPacket
 from stall_probe import StallProbe
 
+pytestmark = pytest.mark.timing
+
 KEY = bytes(range(32))
 RID = 9
 

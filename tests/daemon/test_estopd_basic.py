@@ -20,7 +20,7 @@ from daemon_util import (
 )
 from stall_probe import StallProbe
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.timing]
 
 
 def test_start_line_then_boot_frames(tmp_path: Path) -> None:

@@ -35,7 +35,7 @@ from daemon_util import (
     udp_packet,
 )
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.timing]
 
 SHIM_C = r"""
 #define _GNU_SOURCE

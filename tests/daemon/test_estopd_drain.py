@@ -35,7 +35,7 @@ from daemon_util import (
 )
 from stall_probe import StallProbe
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.timing]
 
 SLOTS = 8
 

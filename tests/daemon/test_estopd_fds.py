@@ -35,7 +35,7 @@ from daemon_util import (
     tcp_frame,
 )
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.timing]
 
 
 @contextmanager

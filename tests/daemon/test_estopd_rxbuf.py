@@ -26,7 +26,7 @@ from estop.protocol import auth
 from estop.protocol.udp import ControlPacket
 from estop.unit.udpsocket import udp_socket
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.timing]
 
 KEY = bytes(range(32))
 WANTED = 8 * 1024 * 1024  # 4 MiB asked for, doubled by the kernel

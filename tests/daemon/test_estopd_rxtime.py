@@ -32,7 +32,7 @@ from estop.protocol import auth
 from estop.protocol.udp import ControlPacket
 from stall_probe import StallProbe
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.timing]
 
 T = 0.2  # the default timeout
 ATTEMPTS = 3

@@ -30,7 +30,7 @@ from daemon_util import (
 )
 from stall_probe import StallProbe
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.timing]
 
 
 class KeepAlive:

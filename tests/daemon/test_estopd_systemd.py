@@ -21,7 +21,7 @@ import pytest
 
 from daemon_util import ROOT, Daemon, find_estopd, run_estopd
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.timing]
 
 STALL_SHIM_C = r"""
 #define _GNU_SOURCE

@@ -27,7 +27,7 @@ from daemon_util import (
 )
 from stall_probe import StallProbe
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.timing]
 
 
 def _closed_by_peer(s: socket.socket, timeout: float = 2.0) -> bool:

@@ -32,7 +32,7 @@ from daemon_util import (
 )
 from estop.protocol import auth
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.timing]
 
 TWO_STAGE = ("--slow-ms", "100", "--timeout-ms", "1000")
 

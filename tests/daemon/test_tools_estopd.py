@@ -21,7 +21,7 @@ from estop.unit.canlog import stamp as canlog_stamp
 from estop.unit.daemon import Daemon
 from net_util import LOCAL, unused_tcp_port
 
-pytestmark = pytest.mark.timeout(120)
+pytestmark = [pytest.mark.timeout(120), pytest.mark.timing]
 
 
 @pytest.fixture

@@ -20,7 +20,7 @@ from estop.remote.touch.wire import decode_token, new_nonce, new_token, parse, s
 from touch_util import TouchRemote, UdpTap
 
 KEY = bytes(range(32))
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.timing]
 
 
 @pytest.fixture

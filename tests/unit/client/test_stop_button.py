@@ -26,7 +26,7 @@ from estop.protocol import auth, tcp
 from estop.remote.keys import handle_key
 from net_util import LOCAL, ScriptedStopPort, UdpSink, unused_tcp_port
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.timing]
 
 
 @pytest.fixture

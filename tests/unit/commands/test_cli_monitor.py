@@ -18,7 +18,7 @@ from estop.protocol.can import BrakeFrame, StatusFrame
 from estop.protocol.canlog import CanLogRecord, format_line
 from stall_probe import StallProbe
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.timing]
 
 
 

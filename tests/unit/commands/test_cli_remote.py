@@ -24,7 +24,7 @@ from estop.remote import keys as remoteterm
 from estop.remote.script import ScriptError, parse_script
 from net_util import LOCAL, wait_until
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.timing]
 
 
 

@@ -19,7 +19,7 @@ from estop.remote.script import ScriptError, parse_script
 from net_util import LOCAL, UdpSink, unused_tcp_port
 from stall_probe import StallProbe
 
-pytestmark = pytest.mark.timeout(60)
+pytestmark = [pytest.mark.timeout(60), pytest.mark.timing]
 
 
 def is_lift(data: bytes) -> bool:

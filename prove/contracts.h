@@ -44,6 +44,10 @@
           core->cfg.timeout_us == \old(core->cfg.timeout_us) &&
           core->cfg.slow_us == \old(core->cfg.slow_us) &&
           core->cfg.stop_id == \old(core->cfg.stop_id);
+      ensures begin_reports: \result == ESTOP_OK ==> out->clock_state == core->state &&
+          out->clock_reason == core->reason && out->changed_by_clock == out->state_changed;
+      ensures refused_reports: \result != ESTOP_OK ==>
+          out->changed_by_clock == 0 && out->state_changed == 0 && out->n_can == 0;
     complete behaviors; disjoint behaviors;
  */
 estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out);
@@ -182,7 +186,7 @@ int estop_ct_equal(const uint8_t *a, const uint8_t *b, size_t n);
  */
 estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t now_us);
 
-/*@ requires core == \null || out == \null || host(core, out);
+/*@ requires pointers_given: given(core, out);
     requires core_given: core != \null ==> core_ok(core);
     assigns *core, *out;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
@@ -201,7 +205,7 @@ estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t n
  */
 estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 
-/*@ requires core == \null || out == \null || host(core, out);
+/*@ requires pointers_given: given(core, out);
     requires core_given: core != \null ==> core_ok(core);
     requires data == \null || (\valid_read(data + (0 .. len - 1)) &&
         \separated(data + (0 .. len - 1), core, out));
@@ -215,7 +219,7 @@ estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
                          estop_out_t *out);
 
-/*@ requires core == \null || out == \null || host(core, out);
+/*@ requires pointers_given: given(core, out);
     requires core_given: core != \null ==> core_ok(core);
     assigns *core, *out;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
@@ -229,7 +233,7 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
  */
 estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 
-/*@ requires core == \null || out == \null || host(core, out);
+/*@ requires pointers_given: given(core, out);
     requires core_given: core != \null ==> core_ok(core);
     assigns *core, *out;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
@@ -240,7 +244,7 @@ estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out);
  */
 estop_err_t estop_tcp_open(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out);
 
-/*@ requires core == \null || out == \null || host(core, out);
+/*@ requires pointers_given: given(core, out);
     requires core_given: core != \null ==> core_ok(core);
     assigns *core, *out;
     ensures inv_kept: \result == ESTOP_OK ==> inv(core);
@@ -251,7 +255,7 @@ estop_err_t estop_tcp_open(estop_core_t *core, uint32_t slot, uint32_t now_us, e
  */
 estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out);
 
-/*@ requires core == \null || out == \null || host(core, out);
+/*@ requires pointers_given: given(core, out);
     requires core_given: core != \null ==> core_ok(core);
     requires consumed == \null || (\valid(consumed) && \separated(consumed, core, out));
     requires data == \null || (\valid_read(data + (0 .. len - 1)) &&

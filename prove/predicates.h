@@ -60,6 +60,12 @@
      (o)->can[k].data[2] == 0)
 #define core_ok(c) ((c)->magic == 0x45535450 ==> inv(c))
 #define host(c, o) (\valid(c) && \valid(o) && \separated(c, o) && core_ok(c))
+/* The pointers of an entry point's call: core and out each valid or NULL (the API refuses NULL
+ * with ESTOP_ERR_NULL_ARG), and apart when both are given. Each pointer on its own: a NULL out
+ * says nothing of core, and the reverse. */
+#define given(c, o) \
+    (((c) == \null || \valid(c)) && ((o) == \null || \valid(o)) && \
+     ((c) == \null || (o) == \null || \separated(c, o)))
 #define fills_kept(L1, L2, c) \
     (\at((c)->slots[0].fill, L1) == \at((c)->slots[0].fill, L2) && \
      \at((c)->slots[1].fill, L1) == \at((c)->slots[1].fill, L2) && \

@@ -273,6 +273,7 @@ static void enter_slowing(estop_core_t *core)
             core->brake_counter, core->brake_due_us;
     ensures inv_base(core) && core->state != 0 && out->state_changed == 1 &&
         out->n_can <= 3;
+    ensures arm_clears_reason: core->reason == 0;
     ensures arm_slows: core->state == 1 ==>
         udiff(core->now_us, core->last_valid_us) < core->cfg.slow_us;
     ensures core->brake_due_us == (uint32_t)(core->now_us + core->cfg.brake_period_us);
@@ -337,6 +338,10 @@ static void age_link(estop_core_t *core, uint32_t step)
     ensures clock_frame: out->n_can == out->state_changed && out->state_changed <= 1;
     ensures clock_stop_frame: \old(core->state) != 0 && core->state == 0 ==>
         out->n_can == 1 && emergency(out, 0, core);
+    ensures clock_stop_reason: \old(core->state) != 0 && core->state == 0 ==>
+        core->reason == (udiff(now_us, \old(core->now_us)) > ESTOP_MAX_STEP_US ? 4 : 3);
+    ensures clock_reported: out->clock_state == core->state &&
+        out->clock_reason == core->reason && out->changed_by_clock == out->state_changed;
  */
 static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
 {

@@ -11,6 +11,8 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+import pytest
+
 from repo import ROOT
 
 
@@ -186,6 +188,25 @@ def test_a_mutants_first_failure_is_named() -> None:
     m = prove.wp.FIRST_FAILURE.search(out)
     assert m is not None and (m.group(1) or m.group(2)) == "typed_use_up_wp_smoke_dead_call_s254"
     assert prove.wp.FIRST_FAILURE.search(GOOD) is None  # passed smoke tests, valid goals
+
+
+# The log of a WP run on a machine whose Why3 configuration lacks the solvers (as a mutant's run
+# got it with the user's own configuration): WP prints each goal Qed proved as "trivial".
+NO_SOLVER = """[wp] Running WP plugin...
+[wp] User Error: Prover 'cvc4' not found in why3.conf
+[wp] User Error: Prover 'z3' not found in why3.conf
+[wp] Goal typed_caveat_take_valid_ensures_valid_inv : trivial
+"""
+
+
+def test_a_goal_qed_proved_is_no_mutants_failure() -> None:
+    assert prove.wp.FIRST_FAILURE.search(NO_SOLVER.replace("User Error", "Note")) is None
+
+
+def test_a_missing_solver_stops_the_run() -> None:
+    with pytest.raises(SystemExit, match="Prover 'cvc4' not found"):
+        prove.wp.refuse_missing_solver(NO_SOLVER)
+    prove.wp.refuse_missing_solver(GOOD)  # a log with its solvers passes
 
 
 def test_a_frama_c_run_past_its_timeout_is_killed_with_its_children(tmp_path: Path) -> None:

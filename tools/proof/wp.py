@@ -87,8 +87,20 @@ def inline_list() -> str:
 
 
 # A goal or smoke test that failed, as WP prints it: enough to catch a mutant.
+# ("trivial" is a goal Qed proved: WP prints it so when it has no solver to report beside it.)
 FIRST_FAILURE = re.compile(r"^\[wp\] \[(?:Timeout|Unknown|Failed|Stepout)[^\]]*\] "
-                           r"(?:Goal|Smoke-test) (\S+)|^\[wp\] Goal (\S+) : (?!Valid)", re.M)
+                           r"(?:Goal|Smoke-test) (\S+)|^\[wp\] Goal (\S+) : (?!Valid|trivial)",
+                           re.M)
+# A solver WP cannot find: no goal of the run means anything (a mutant's run stopped at its
+# first goal would have counted as caught).
+MISSING_SOLVER = re.compile(r"^\[wp\] User Error: (Prover '[^']+' not found[^\n]*)", re.M)
+
+
+def refuse_missing_solver(out: str) -> None:
+    """Stops make prove when a WP run's log says a solver is missing."""
+    m = MISSING_SOLVER.search(out)
+    if m:
+        raise SystemExit(f"prove: error: {m.group(1)} (install it: scripts/ensure-debs prove)")
 
 
 def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
@@ -118,12 +130,14 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
     res = WpResult(name, 0, 0, {}, [], log)
     if first_failure:
         rc, out, stopped = frama_c_until(args, log, WP_TIMEOUT_S, env, FIRST_FAILURE)
+        refuse_missing_solver(out)
         if stopped:
             m = FIRST_FAILURE.search(out)
             res.failed.append((m.group(1) or m.group(2)) if m else "?")
             return res
     else:
         rc, out = frama_c(args, log, WP_TIMEOUT_S, env)
+        refuse_missing_solver(out)
     m = re.search(r"Proved goals:\s+(\d+)\s*/\s*(\d+)", out)
     if rc != 0 or m is None:
         res.error = f"frama-c failed (exit {rc}); see {log.relative_to(ROOT)}"
@@ -139,7 +153,7 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
     for fm in re.finditer(r"^\[wp\] \[(?:Timeout|Unknown|Failed|Stepout)[^\]]*\] Goal (\S+)",
                           out, re.M):
         res.failed.append(fm.group(1))
-    for fm in re.finditer(r"^\[wp\] Goal (\S+) : (?!Valid)", out, re.M):
+    for fm in re.finditer(r"^\[wp\] Goal (\S+) : (?!Valid|trivial)", out, re.M):
         res.failed.append(fm.group(1))
     parse_checks(res, out, model)
     return res

@@ -28,17 +28,17 @@ demo: setup
 
 test: setup
 	$(MAKE) check
-	# make prove beside the fuzzers, the mutants and the tests that time nothing
-	# (scripts/beside), the packages of both sides installed first: two apt-get runs at once
-	# would wait on each other's lock. The timing tests (marked timing) run after it, alone:
-	# they fail with provers on the other core (a CI run of 3236671:
+	# make prove (at low priority) beside what bounds no time tighter than a tenth of a second:
+	# the fuzzers, the mutants, the tests not marked timing, the gamepad and systemd VMs
+	# (scripts/beside); the packages of both sides installed first: two apt-get runs at once
+	# would wait on each other's lock. The timing tests and the HIL run (milliseconds) run
+	# after it, alone: they fail with provers on the other core (a CI run of 3236671:
 	# test_a_deadline_passed_during_a_stall_is_not_held_back_by_the_backlog).
-	scripts/ensure-debs prove fuzz mcu browser
-	scripts/beside '$(MAKE) prove' $(MAKE) fuzz-smoke mutants-changed coverage-untimed
+	scripts/ensure-debs prove fuzz mcu browser hil-vm systemd-vm
+	scripts/beside '$(MAKE) prove' $(MAKE) fuzz-smoke mutants-changed coverage-untimed \
+	  gamepad-vm systemd-vm
 	$(MAKE) coverage-timed
 	$(MAKE) hil
-	$(MAKE) gamepad-vm
-	$(MAKE) systemd-vm
 
 # What needs no daemon, browser, VM or MCU toolchain (the tests' kinds: tests/conftest.py), in
 # under a minute: the Python package (tests/unit), the core through cffi (tests/core), the

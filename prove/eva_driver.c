@@ -34,6 +34,13 @@
 #define DRIVER_KEYED 1
 #endif
 
+/* The calls of the loop below that this run makes, one bit per case: all of them, except in a
+ * self-test copy whose planted fault a few calls reach (prove/planted.txt, cases:). A fault
+ * Eva finds with fewer calls is there with all of them: fewer calls reach fewer states. */
+#ifndef DRIVER_CASES
+#define DRIVER_CASES 0x1FFu
+#endif
+
 /* The longest datagram or TCP chunk tried: every frame form (60 bytes at most) and bytes
  * after it. */
 #define DRIVER_MAX 64u
@@ -250,7 +257,11 @@ int main(void)
         uint32_t now = any_u32();
         uint32_t slot = Frama_C_unsigned_int_interval(0u, ESTOP_MAX_SLOTS);
         estop_err_t err;
-        switch (Frama_C_interval(0, 8)) {
+        int call = Frama_C_interval(0, 8);
+        if (((DRIVER_CASES >> (unsigned)call) & 1u) == 0u) {
+            continue; /* a call this run leaves out */
+        }
+        switch (call) {
         case 0:
             if (core.state == ESTOP_STATE_STOPPED) {
                 (void)estop_tick(&core, now, &out);

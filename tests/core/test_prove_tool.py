@@ -152,6 +152,20 @@ def test_the_plants_of_one_check_share_a_run_and_the_issues_faults_are_planted()
             assert src.count(p.old) == 1, p.name
 
 
+def test_an_eva_copy_makes_the_calls_of_its_plants_or_all_of_them() -> None:
+    plant = prove.selftest.Plant
+    few = [plant("a", "f", "o", "n", "eva", "x", calls="3 5"), plant("b", "f", "o", "n", "eva", "x",
+                                                                       calls="1")]
+    assert prove.selftest.driver_calls(few) == 0b101010
+    assert prove.selftest.driver_calls(few + [plant("c", "f", "o", "n", "eva", "x")]) == 0x1FF
+    with pytest.raises(SystemExit, match="no driver call 9"):
+        prove.selftest.driver_calls([plant("d", "f", "o", "n", "eva", "x", calls="9")])
+    # the driver honours the mask, and every plant of make prove's Eva copies names its calls
+    assert "DRIVER_CASES >> (unsigned)call" in (ROOT / "prove" / "eva_driver.c").read_text()
+    assert all(p.calls for (c, _), ps in prove.selftest.plant_checks().items() if c == "eva"
+               for p in ps)
+
+
 def test_the_mutant_sample_is_fixed_and_inside_the_scope() -> None:
     every = prove.selftest.mutants_in_scope()
     scope = prove.selftest.scope()

@@ -55,9 +55,12 @@ def rule_statuses(out: str, rules: list[str]) -> dict[str, str]:
     return found
 
 
-def run_eva(name: str, core_dir: Path, keyed: int, env: dict[str, str]) -> EvaResult:
+def run_eva(name: str, core_dir: Path, keyed: int, env: dict[str, str],
+            calls: int = 0x1FF) -> EvaResult:
+    """Eva over the driver; calls: the driver's calls it makes (a self-test copy's few)."""
     log = BUILD / f"eva-{name}.log"
-    args = [*cpp_args(core_dir, f"-DDRIVER_KEYED={keyed}"), str(DRIVER),
+    args = [*cpp_args(core_dir, f"-DDRIVER_KEYED={keyed}", f"-DDRIVER_CASES={calls:#x}u"),
+            str(DRIVER),
             *map(str, core_sources(core_dir)), "-eva", *EVA_OPTS,
             "-then", "-metrics", "-metrics-eva-cover", "-then", "-report"]
     rc, out = frama_c(args, log, EVA_TIMEOUT_S, env)

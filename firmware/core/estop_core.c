@@ -304,6 +304,7 @@ static void arm(estop_core_t *core, estop_out_t *out)
     ensures link_young: core->link_fresh != 0 ==>
         udiff(core->now_us, core->last_valid_us) < core->cfg.timeout_us;
     ensures link_latched: core->link_fresh != 0 ==> \old(core->link_fresh) != 0;
+    ensures link_run: core->valid_run == 0 || core->valid_run == \old(core->valid_run);
  */
 static void age_link(estop_core_t *core, uint32_t step)
 {
@@ -338,6 +339,8 @@ static void age_link(estop_core_t *core, uint32_t step)
     ensures clock_frame: out->n_can == out->state_changed && out->state_changed <= 1;
     ensures clock_stop_frame: \old(core->state) != 0 && core->state == 0 ==>
         out->n_can == 1 && emergency(out, 0, core);
+    ensures clock_backwards_stops: udiff(now_us, \old(core->now_us)) > ESTOP_MAX_STEP_US ==>
+        core->state == 0 && core->link_fresh == 0 && core->valid_run == 0;
     ensures clock_stop_reason: \old(core->state) != 0 && core->state == 0 ==>
         core->reason == (udiff(now_us, \old(core->now_us)) > ESTOP_MAX_STEP_US ? 4 : 3);
     ensures clock_reported: out->clock_state == core->state &&

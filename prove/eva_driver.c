@@ -35,7 +35,7 @@
 #endif
 
 /* The calls of the loop below that this run makes, one bit per case: all of them, except in a
- * self-test copy whose planted fault a few calls reach (prove/planted.txt, cases:). A fault
+ * self-test copy whose planted fault a few calls reach (prove/planted.txt, calls:). A fault
  * Eva finds with fewer calls is there with all of them: fewer calls reach fewer states. */
 #ifndef DRIVER_CASES
 #define DRIVER_CASES 0x1FFu

@@ -63,9 +63,6 @@ def plants(path: Path = PROVE / "planted.txt") -> list[Plant]:
     return out
 
 
-ALL_CALLS = 0x1FF  # the driver's loop has 9 calls (prove/eva_driver.c, DRIVER_CASES)
-
-
 def driver_calls(group: list[Plant]) -> int:
     """The calls of the Eva driver that a copy makes, one bit per case: every plant's, all of
     them when one plant names none. Fewer calls reach fewer states, so a fault Eva finds with
@@ -73,9 +70,9 @@ def driver_calls(group: list[Plant]) -> int:
     mask = 0
     for p in group:
         if not p.calls.split():
-            return ALL_CALLS
+            return eva.ALL_CALLS
         for c in p.calls.split():
-            if not 0 <= int(c) <= 8:
+            if not 0 <= int(c) < eva.ALL_CALLS.bit_length():
                 raise SystemExit(f"prove: error: self-test {p.name}: no driver call {c}")
             mask |= 1 << int(c)
     return mask

@@ -86,11 +86,12 @@ def inline_list() -> str:
     return ",".join(names)
 
 
+# A goal WP names without a solver's verdict and not as proved ("trivial" is a goal Qed proved:
+# WP prints it so when it has no solver to report beside it).
+GOAL_NOT_VALID = r"^\[wp\] Goal (\S+) : (?!Valid|trivial)"
 # A goal or smoke test that failed, as WP prints it: enough to catch a mutant.
-# ("trivial" is a goal Qed proved: WP prints it so when it has no solver to report beside it.)
 FIRST_FAILURE = re.compile(r"^\[wp\] \[(?:Timeout|Unknown|Failed|Stepout)[^\]]*\] "
-                           r"(?:Goal|Smoke-test) (\S+)|^\[wp\] Goal (\S+) : (?!Valid|trivial)",
-                           re.M)
+                           r"(?:Goal|Smoke-test) (\S+)|" + GOAL_NOT_VALID, re.M)
 # A solver WP cannot find: no goal of the run means anything (a mutant's run stopped at its
 # first goal would have counted as caught).
 MISSING_SOLVER = re.compile(r"^\[wp\] User Error: (Prover '[^']+' not found[^\n]*)", re.M)
@@ -153,7 +154,7 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
     for fm in re.finditer(r"^\[wp\] \[(?:Timeout|Unknown|Failed|Stepout)[^\]]*\] Goal (\S+)",
                           out, re.M):
         res.failed.append(fm.group(1))
-    for fm in re.finditer(r"^\[wp\] Goal (\S+) : (?!Valid|trivial)", out, re.M):
+    for fm in re.finditer(GOAL_NOT_VALID, out, re.M):
         res.failed.append(fm.group(1))
     parse_checks(res, out, model)
     return res

@@ -89,6 +89,19 @@ uint8_t estop__current_flags(const estop_core_t *core);
     ensures msg_stop_brakes: (msg_id == \old(core->cfg.stop_id) || msg_id == ESTOP_MSG_LIFT) &&
         \old(core->state) != 0 && \old(out->n_can) <= 2 ==>
         out->n_can == \old(out->n_can) + 1 && emergency(out, \old(out->n_can), core);
+    ensures msg_stopping_brakes: \old(core->state) != 0 && core->state == 0 &&
+        \old(out->n_can) <= 2 ==>
+        out->n_can == \old(out->n_can) + 1 && emergency(out, \old(out->n_can), core);
+    ensures msg_stop_keeps: stop_asked(msg_id, \old(core->cfg.stop_id)) ==>
+        \old(out->n_can) <= out->n_can && frames_kept(Pre, Post, out, \old(out->n_can));
+    ensures msg_release_acked: msg_id == ESTOP_MSG_RELEASE &&
+        !stop_asked(msg_id, \old(core->cfg.stop_id)) && \result == 0 ==> core->state != 0;
+    ensures msg_status: msg_id == ESTOP_MSG_STATUS &&
+        !stop_asked(msg_id, \old(core->cfg.stop_id)) ==>
+        \result == 0 && core->state == \old(core->state);
+    ensures msg_unknown: msg_id != ESTOP_MSG_RELEASE && msg_id != ESTOP_MSG_STATUS &&
+        !stop_asked(msg_id, \old(core->cfg.stop_id)) ==>
+        \result == ESTOP_NAK_UNKNOWN_ID && core->state == \old(core->state);
     ensures nak_code: \result <= 4;
  */
 uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authenticated,
@@ -202,6 +215,8 @@ estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t n
         core->state != 1;
     ensures stop_brakes: \result == ESTOP_OK && \old(core->state) != 0 && core->state == 0 ==>
         1 <= out->n_can && emergency(out, 0, core);
+    ensures ok_iff_given: \result == ESTOP_OK <==>
+        core != \null && out != \null && core->magic == 0x45535450;
  */
 estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 
@@ -230,6 +245,8 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
     ensures fault_stops: \result == ESTOP_OK ==> core->state == 0;
     ensures stop_brakes: \result == ESTOP_OK && \old(core->state) != 0 ==>
         1 <= out->n_can && (emergency(out, 0, core) || emergency(out, out->n_can - 1, core));
+    ensures ok_iff_given: \result == ESTOP_OK <==>
+        core != \null && out != \null && core->magic == 0x45535450;
  */
 estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 

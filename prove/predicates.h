@@ -58,6 +58,18 @@
 #define emergency(o, k, c) \
     ((o)->can[k].id == (c)->cfg.brake_can_id && (o)->can[k].data[0] == 1 && \
      (o)->can[k].data[2] == 0)
+/* A whole TCP frame in a slot's buffer b (estop_tcp.c) that asks the unit to stop: a request
+ * frame (its magic first) with the ID at byte 4, or a plain frame with the ID at byte 0. The
+ * request's ID is not RELEASE: estop_init refuses that stop ID (ESTOP_ERR_STOP_ID), and the
+ * invariant does not carry the configuration's check, so the proofs rule it out here (that
+ * path would authenticate the frame before stopping, which the solvers then chase). */
+#define request_asks_stop(b, stop_id) \
+    (rd_u32le_l(&(b)[0]) == ESTOP_MAGIC_REQUEST && rd_u32le_l(&(b)[4]) != ESTOP_MSG_RELEASE && \
+     stop_asked(rd_u32le_l(&(b)[4]), stop_id))
+#define plain_asks_stop(b, stop_id) \
+    (rd_u32le_l(&(b)[0]) != ESTOP_MAGIC_REQUEST && stop_asked(rd_u32le_l(&(b)[0]), stop_id))
+/* A message ID that asks the unit to stop: its stop ID (stop_id) or LIFT. */
+#define stop_asked(id, stop_id) ((id) == (stop_id) || (id) == ESTOP_MSG_LIFT)
 #define core_ok(c) ((c)->magic == 0x45535450 ==> inv(c))
 #define host(c, o) (\valid(c) && \valid(o) && \separated(c, o) && core_ok(c))
 /* The pointers of an entry point's call: core and out each valid or NULL (the API refuses NULL

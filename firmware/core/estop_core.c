@@ -650,6 +650,8 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
     ensures rel_only_live_neutral: \old(core->state) == 0 && core->state != 0 ==>
         core->last_neutral != 0 && core->link_fresh != 0 &&
         core->valid_run >= core->cfg.release_packets;
+    ensures rel_acked: \result == 0 ==> core->state != 0;
+    ensures rel_refused_keeps: \result != 0 ==> core->state == \old(core->state);
     ensures \result <= 4;
  */
 static uint8_t release(estop_core_t *core, int authenticated, estop_out_t *out)

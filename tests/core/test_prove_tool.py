@@ -178,6 +178,16 @@ def test_the_mutant_sample_is_fixed_and_inside_the_scope() -> None:
     assert len(prove.selftest.sample(every, 0)) == len(every)
 
 
+def test_every_mutant_listed_as_equivalent_is_one_of_the_scope() -> None:
+    # a listed name that no mutant has any more (its line edited) would excuse nothing and hide
+    # that the mutant of the new line was never judged
+    names = {m.key for m, _ in prove.selftest.mutants_in_scope()}
+    listed = prove.selftest.equivalents()
+    assert len(listed) >= 10
+    assert sorted(k for k in listed if k not in names) == []
+    assert all(why.startswith(("equivalent: ", "outside the proofs: ")) for why in listed.values())
+
+
 def test_make_proves_mutant_sample_comes_from_the_runs_under_the_default_model() -> None:
     # a Typed run costs its smoke tests: about 100 s a mutant against about 45 s
     every = prove.selftest.mutants_in_scope()

@@ -47,6 +47,14 @@
     ensures tag##_times: status_due_ok(core); \
     ensures tag##_times: link_ok(core); \
     ensures tag##_times: armed_ok(core);
+/* A step that answers a frame asking a stop (asks, a premise over its pre- and post-state):
+ * the unit STOPPED, the reply's NAK byte (out->reply[at]) the ACK, the frames already in out
+ * kept. Four clauses named tag, one goal each. */
+#define ENSURES_STOPS(tag, asks, at) \
+    ensures tag: (asks) ==> core->state == 0; \
+    ensures tag: (asks) ==> out->reply[at] == 0; \
+    ensures tag: (asks) ==> \old(out->n_can) <= out->n_can; \
+    ensures tag: (asks) && 1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
 /* The frames of out a step leaves as they were: the first n keep their ID, brake_request and
  * state byte (what the stop rules read). */
 #define frame_kept(L1, L2, o, k) \

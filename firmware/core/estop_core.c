@@ -345,6 +345,9 @@ static void age_link(estop_core_t *core, uint32_t step)
         core->reason == (udiff(now_us, \old(core->now_us)) > ESTOP_MAX_STEP_US ? 4 : 3);
     ensures clock_reported: out->clock_state == core->state &&
         out->clock_reason == core->reason && out->changed_by_clock == out->state_changed;
+    ensures clock_stop_cause: \old(core->state) != 0 && core->state == 0 ==>
+        core->link_fresh == 0;
+    ensures clock_changed: out->state_changed != 0 <==> core->state != \old(core->state);
  */
 static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
 {

@@ -121,14 +121,8 @@ static void reply_request(const estop_core_t *core, const uint8_t *req, uint8_t 
     ensures plain_release: \old(core->state) == 0 && core->state != 0 ==>
         out->has_reply == 1 && core->cfg.key_len == 0 && out->reply[11] == 0 &&
         rd_u32le_l(&core->slots[k].buf[0]) == ESTOP_MSG_RELEASE;
-    ensures plain_stops: stop_asked(rd_u32le_l(&core->slots[k].buf[0]), \old(core->cfg.stop_id)) ==>
-        core->state == 0;
-    ensures plain_stops: stop_asked(rd_u32le_l(&core->slots[k].buf[0]), \old(core->cfg.stop_id)) ==>
-        out->reply[11] == 0;
-    ensures plain_stops: stop_asked(rd_u32le_l(&core->slots[k].buf[0]), \old(core->cfg.stop_id)) ==>
-        \old(out->n_can) <= out->n_can;
-    ensures plain_stops: stop_asked(rd_u32le_l(&core->slots[k].buf[0]), \old(core->cfg.stop_id)) &&
-        1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
+    ENSURES_STOPS(plain_stops,
+                  stop_asked(rd_u32le_l(&core->slots[k].buf[0]), \old(core->cfg.stop_id)), 11)
     ensures plain_stop_brakes: \old(core->state) != 0 && core->state == 0 &&
         \old(out->n_can) <= 2 ==>
         out->n_can == \old(out->n_can) + 1 && emergency(out, \old(out->n_can), core);
@@ -160,14 +154,8 @@ static void handle_plain(estop_core_t *core, uint32_t k, estop_out_t *out)
     ensures request_release: \old(core->state) == 0 && core->state != 0 ==>
         out->has_reply == 1 && core->cfg.key_len != 0 && out->reply[15] == 0 &&
         rd_u32le_l(&core->slots[k].buf[4]) == ESTOP_MSG_RELEASE;
-    ensures request_stops: request_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)) ==>
-        core->state == 0;
-    ensures request_stops: request_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)) ==>
-        out->reply[15] == 0;
-    ensures request_stops: request_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)) ==>
-        \old(out->n_can) <= out->n_can;
-    ensures request_stops: request_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)) &&
-        1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
+    ENSURES_STOPS(request_stops, request_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)),
+                  15)
     ensures request_stop_brakes: \old(core->state) != 0 && core->state == 0 &&
         \old(out->n_can) <= 2 ==>
         out->n_can == \old(out->n_can) + 1 && emergency(out, \old(out->n_can), core);
@@ -262,24 +250,10 @@ static int take_frame(estop_slot_t *s, const uint8_t *data, size_t len, size_t *
          (core->cfg.key_len != 0 && out->reply[15] == 0 &&
           rd_u32le_l(&core->slots[k].buf[0]) == ESTOP_MAGIC_REQUEST &&
           rd_u32le_l(&core->slots[k].buf[4]) == ESTOP_MSG_RELEASE));
-    ensures frame_stops: \old(out->has_reply) == 0 && out->has_reply == 1 &&
-        request_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)) ==>
-        core->state == 0 && out->reply[15] == 0;
-    ensures frame_stops: \old(out->has_reply) == 0 && out->has_reply == 1 &&
-        request_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)) ==>
-        \old(out->n_can) <= out->n_can;
-    ensures frame_stops: \old(out->has_reply) == 0 && out->has_reply == 1 &&
-        request_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)) &&
-        1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
-    ensures frame_stops: \old(out->has_reply) == 0 && out->has_reply == 1 &&
-        plain_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)) ==>
-        core->state == 0 && out->reply[11] == 0;
-    ensures frame_stops: \old(out->has_reply) == 0 && out->has_reply == 1 &&
-        plain_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)) ==>
-        \old(out->n_can) <= out->n_can;
-    ensures frame_stops: \old(out->has_reply) == 0 && out->has_reply == 1 &&
-        plain_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)) &&
-        1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
+    ENSURES_STOPS(frame_stops, \old(out->has_reply) == 0 && out->has_reply == 1 &&
+                  request_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)), 15)
+    ENSURES_STOPS(frame_stops, \old(out->has_reply) == 0 && out->has_reply == 1 &&
+                  plain_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)), 11)
     ensures frame_stop_brakes: \old(core->state) != 0 && core->state == 0 &&
         \old(out->n_can) <= 2 ==>
         out->n_can == \old(out->n_can) + 1 && emergency(out, \old(out->n_can), core);

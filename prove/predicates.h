@@ -55,6 +55,10 @@
     ensures tag: (asks) ==> out->reply[at] == 0; \
     ensures tag: (asks) ==> \old(out->n_can) <= out->n_can; \
     ensures tag: (asks) && 1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
+/* A step that stops a moving unit (with room in out) appends one frame: the emergency one. */
+#define ENSURES_STOP_BRAKES(tag) \
+    ensures tag: \old(core->state) != 0 && core->state == 0 && \old(out->n_can) <= 2 ==> \
+        out->n_can == \old(out->n_can) + 1 && emergency(out, \old(out->n_can), core);
 /* The frames of out a step leaves as they were: the first n keep their ID, brake_request and
  * state byte (what the stop rules read). */
 #define frame_kept(L1, L2, o, k) \

@@ -123,9 +123,7 @@ static void reply_request(const estop_core_t *core, const uint8_t *req, uint8_t 
         rd_u32le_l(&core->slots[k].buf[0]) == ESTOP_MSG_RELEASE;
     ENSURES_STOPS(plain_stops,
                   stop_asked(rd_u32le_l(&core->slots[k].buf[0]), \old(core->cfg.stop_id)), 11)
-    ensures plain_stop_brakes: \old(core->state) != 0 && core->state == 0 &&
-        \old(out->n_can) <= 2 ==>
-        out->n_can == \old(out->n_can) + 1 && emergency(out, \old(out->n_can), core);
+    ENSURES_STOP_BRAKES(plain_stop_brakes)
  */
 static void handle_plain(estop_core_t *core, uint32_t k, estop_out_t *out)
 {
@@ -156,9 +154,7 @@ static void handle_plain(estop_core_t *core, uint32_t k, estop_out_t *out)
         rd_u32le_l(&core->slots[k].buf[4]) == ESTOP_MSG_RELEASE;
     ENSURES_STOPS(request_stops, request_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)),
                   15)
-    ensures request_stop_brakes: \old(core->state) != 0 && core->state == 0 &&
-        \old(out->n_can) <= 2 ==>
-        out->n_can == \old(out->n_can) + 1 && emergency(out, \old(out->n_can), core);
+    ENSURES_STOP_BRAKES(request_stop_brakes)
  */
 static void handle_request(estop_core_t *core, uint32_t k, estop_out_t *out)
 {
@@ -254,9 +250,7 @@ static int take_frame(estop_slot_t *s, const uint8_t *data, size_t len, size_t *
                   request_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)), 15)
     ENSURES_STOPS(frame_stops, \old(out->has_reply) == 0 && out->has_reply == 1 &&
                   plain_asks_stop(core->slots[k].buf, \old(core->cfg.stop_id)), 11)
-    ensures frame_stop_brakes: \old(core->state) != 0 && core->state == 0 &&
-        \old(out->n_can) <= 2 ==>
-        out->n_can == \old(out->n_can) + 1 && emergency(out, \old(out->n_can), core);
+    ENSURES_STOP_BRAKES(frame_stop_brakes)
  */
 static int handle_frame(estop_core_t *core, uint32_t k, estop_out_t *out)
 {

@@ -194,7 +194,7 @@ def sample(items: list[tuple[Any, str]], n: int) -> list[tuple[Any, str]]:
     """n mutants spread over the list, the same ones every run (a fixed choice: make test
     must not turn red on a commit that changed nothing of the core). The sample is drawn from
     the mutants of runs under the default model: a run under Typed costs its smoke tests
-    (about 100 s a mutant against about 50 s), and make test has 20 minutes."""
+    (about 100 s a mutant against about 40 s), and make test has 20 minutes."""
     if n < 0:
         return []
     if n == 0 or n >= len(items):

@@ -160,6 +160,7 @@ uint32_t estop_crc32(const uint8_t *data, size_t len);
 
 /*@ requires \valid(k) && \valid_read(key + (0 .. keylen - 1)) && \separated(k, key + (0 .. keylen - 1));
     assigns *k;
+    ensures key_outlen: 1 <= keylen <= 32 && 1 <= outlen <= 32 ==> k->outlen == outlen;
  */
 int estop_b2s_key_init(estop_b2s_key_t *k, const uint8_t *key, size_t keylen, size_t outlen);
 
@@ -191,9 +192,36 @@ int estop_ct_equal(const uint8_t *a, const uint8_t *b, size_t n);
 
 /* ---- the entry points (estop_core.h) ------------------------------------------------------- */
 
+/*@ requires cfg == \null || \valid_read(cfg);
+    assigns \nothing;
+    ensures config_null: cfg == \null ==> \result == ESTOP_ERR_NULL_ARG;
+    ensures config_accepted: \result == ESTOP_OK <==> (cfg != \null && config_valid(*cfg));
+ */
+estop_err_t estop_config_check(const estop_config_t *cfg);
+
+/* The base case of the invariant: a core estop_init made is STOPPED (the boot), its
+ * configuration one the check accepted; a refused one is unusable (magic 0). Either way
+ * core_ok holds, which every entry point requires. */
 /*@ requires core == \null || \valid(core);
     requires cfg == \null || (\valid_read(cfg) && \separated(core, cfg));
     assigns *core;
+    ensures init_null: core == \null ==> \result == ESTOP_ERR_NULL_ARG;
+    ensures init_refused: core != \null && \result != ESTOP_OK ==> core->magic == 0;
+    ensures init_boots_stopped: \result == ESTOP_OK ==>
+        core->magic == 0x45535450 && core->state == 0 && core->reason == 1;
+    ensures init_clock: \result == ESTOP_OK ==>
+        core->now_us == now_us && core->brake_due_us == now_us && core->status_due_us == now_us;
+    ensures init_counts: \result == ESTOP_OK ==>
+        core->counters.stops[1] == 1 && core->link_fresh == 0 && core->valid_run == 0;
+    ensures init_tag_window: \result == ESTOP_OK ==>
+        core->tag_window_us == now_us && core->tag_window_open == 1;
+    ensures init_key: \result == ESTOP_OK ==>
+        core->mac.outlen == (cfg->key_len == ESTOP_KEY_LEN ? ESTOP_TAG_LEN : 0);
+    ensures init_inv: \result == ESTOP_OK ==> cfg_ok(core);
+    ensures init_inv: \result == ESTOP_OK ==> known_ok(core);
+    ensures init_inv: \result == ESTOP_OK ==> slots_ok(core);
+    ensures init_inv: \result == ESTOP_OK ==> fresh_ok(core);
+    ensures init_always: core != \null ==> core_ok(core);
  */
 estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t now_us);
 

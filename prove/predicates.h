@@ -12,12 +12,28 @@
 /* Written as macros, not ACSL predicates: Qed then sees each field read on its own and drops
  * the memory updates that cannot touch it (a predicate is opaque to Qed, and the solvers
  * time out on the separation of every field behind every havoc). */
-#define cfg_ok(c) \
-    (1000 <= (c)->cfg.timeout_us <= 60000000 && 1 <= (c)->cfg.slow_us <= (c)->cfg.timeout_us && \
-     1 <= (c)->cfg.warn_us <= (c)->cfg.slow_us && 1 <= (c)->cfg.slow_level <= 99 && \
-     (c)->cfg.brake_can_id != (c)->cfg.status_can_id && \
-     1000 <= (c)->cfg.brake_period_us <= 25000 && \
-     10000 <= (c)->cfg.status_period_us <= 1000000)
+/* What the invariant keeps of a configuration that estop_config_check accepted (g: the
+ * configuration itself, not a pointer to it). */
+#define config_ok(g) \
+    (1000 <= (g).timeout_us <= 60000000 && 1 <= (g).slow_us <= (g).timeout_us && \
+     1 <= (g).warn_us <= (g).slow_us && 1 <= (g).slow_level <= 99 && \
+     (g).brake_can_id != (g).status_can_id && \
+     1000 <= (g).brake_period_us <= 25000 && \
+     10000 <= (g).status_period_us <= 1000000)
+#define cfg_ok(c) config_ok((c)->cfg)
+/* Everything estop_config_check asks of a configuration (estop_core.h's limits). */
+#define config_valid(g) \
+    (config_ok(g) && ESTOP_TIMEOUT_MIN_US <= (g).timeout_us <= ESTOP_TIMEOUT_MAX_US && \
+     ESTOP_SLOW_LEVEL_MIN <= (g).slow_level <= ESTOP_SLOW_LEVEL_MAX && \
+     (g).stop_id != 0 && (g).stop_id != ESTOP_MSG_STATUS && (g).stop_id != ESTOP_MSG_RELEASE && \
+     (g).stop_id != ESTOP_MSG_LIFT && (g).stop_id != ESTOP_MAGIC_REQUEST && \
+     (g).brake_can_id <= ESTOP_CAN_ID_MAX && (g).status_can_id <= ESTOP_CAN_ID_MAX && \
+     (g).brake_data_id != (g).status_data_id && (g).release_packets != 0 && \
+     ESTOP_BRAKE_PERIOD_MIN_US <= (g).brake_period_us <= ESTOP_BRAKE_PERIOD_MAX_US && \
+     ESTOP_STATUS_PERIOD_MIN_US <= (g).status_period_us <= ESTOP_STATUS_PERIOD_MAX_US && \
+     (g).brake_period_us <= (g).status_period_us && (g).tag_checks <= ESTOP_TAG_CHECKS_MAX && \
+     ESTOP_TAG_WINDOW_MIN_US <= (g).tag_window_us <= ESTOP_TAG_WINDOW_MAX_US && \
+     ((g).key_len == 0 || (g).key_len == ESTOP_KEY_LEN) && (g).session != 0)
 #define slots_ok(c) (\forall integer i; 0 <= i < 8 ==> (c)->slots[i].fill < 48)
 #define known_ok(c) ((c)->state <= 2 && (c)->reason <= 5 && (c)->mac.outlen <= 16)
 #define fresh_ok(c) ((c)->state != 0 ==> (c)->link_fresh != 0)

@@ -392,6 +392,22 @@ def test_init_over_a_used_core_starts_afresh_and_writes_only_the_core() -> None:
     assert guards_intact(buf, size)
 
 
+def test_refused_init_wipes_every_byte_of_the_core() -> None:
+    """prove/assumed.txt's core_wiped: estop_init first zeroes the whole core (magic 0, no slot
+    fill, no MAC state), so that a refused configuration leaves nothing of an old core behind
+    and every entry point refuses it (ESTOP_ERR_NOT_INIT)."""
+    size = ffi.sizeof("estop_core_t")
+    core, buf = guarded("estop_core_t")
+    cfg = ffi.new("estop_config_t *")
+    lib.estop_config_default(cfg)  # session 0: refused
+    for junk in (b"\x5a", b"\xff"):
+        ffi.memmove(core, junk * size, size)
+        assert lib.estop_init(core, cfg, 0) == lib.ESTOP_ERR_SESSION
+        assert bytes(ffi.buffer(core, size)) == bytes(size)
+        assert guards_intact(buf, size)
+    assert lib.estop_tick(core, 0, ffi.new("estop_out_t *")) == lib.ESTOP_ERR_NOT_INIT
+
+
 def test_status_read_out_writes_only_the_status() -> None:
     size = ffi.sizeof("estop_status_t")
     status, buf = guarded("estop_status_t")

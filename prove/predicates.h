@@ -35,6 +35,11 @@
      ESTOP_TAG_WINDOW_MIN_US <= (g).tag_window_us <= ESTOP_TAG_WINDOW_MAX_US && \
      ((g).key_len == 0 || (g).key_len == ESTOP_KEY_LEN) && (g).session != 0)
 #define slots_ok(c) (\forall integer i; 0 <= i < 8 ==> (c)->slots[i].fill < 48)
+/* The length of the frame in a slot's buffer, once its first 4 bytes are in (estop_tcp.c's
+ * frame_len: a request frame starts with its magic), and a slot holding part of a frame: fewer
+ * bytes than that length (the reassembly keeps it; slots_ok asks only for fewer than 48). */
+#define slot_need(s) (rd_u32le_l(&(s)->buf[0]) == ESTOP_MAGIC_REQUEST ? 48 : 16)
+#define slot_partial(s) ((s)->fill < 4 || (s)->fill < slot_need(s))
 #define known_ok(c) ((c)->state <= 2 && (c)->reason <= 5 && (c)->mac.outlen <= 16)
 #define fresh_ok(c) ((c)->state != 0 ==> (c)->link_fresh != 0)
 #define inv_base(c) (cfg_ok(c) && known_ok(c) && slots_ok(c))

@@ -184,7 +184,9 @@ static uint32_t frame_len(const estop_slot_t *s)
 /* Appends bytes to a slot, up to one whole frame: first its 4 magic bytes, which decide its
  * length, then the rest of it. Each loop bounds both indexes itself (fill below the frame's
  * length, at most 48; take below len). Returns 1, with the slot empty again and the frame in
- * its buffer, when the frame is whole; *took is how many bytes it took. */
+ * its buffer, when the frame is whole; *took is how many bytes it took. Whole exactly when
+ * the frame's last byte came in: a slot holding part of a frame that completes none takes
+ * every byte of the call (take_rest), so no whole frame is left behind unanswered. */
 /*@ requires \valid(s) && \valid(took) && s->fill < 48 && \valid_read(data + (0 .. len - 1));
     requires \separated(s, took, data + (0 .. len - 1));
     assigns s->fill, s->buf[0 .. 47], *took;
@@ -192,6 +194,10 @@ static uint32_t frame_len(const estop_slot_t *s)
     ensures \result == 0 || \result == 1;
     ensures \result == 1 ==> s->fill == 0;
     ensures s->fill < 48;
+    ensures take_kept: \forall integer i; 0 <= i < \old(s->fill) ==> s->buf[i] == \old(s->buf[i]);
+    ensures take_bytes: \forall integer i; 0 <= i < *took ==> s->buf[\old(s->fill) + i] == data[i];
+    ensures take_partial: \result == 0 ==> s->fill == \old(s->fill) + *took;
+    ensures take_rest: \old(slot_partial(s)) && \result == 0 ==> *took == len && slot_partial(s);
  */
 static int take_frame(estop_slot_t *s, const uint8_t *data, size_t len, size_t *took)
 {
@@ -199,6 +205,13 @@ static int take_frame(estop_slot_t *s, const uint8_t *data, size_t len, size_t *
     uint32_t need;
     int whole = 0;
     /*@ loop invariant 0 <= take <= len && s->fill <= 47;
+        loop invariant fill_took: s->fill == \at(s->fill, Pre) + take;
+        loop invariant kept: \forall integer i; 0 <= i < \at(s->fill, Pre) ==>
+            s->buf[i] == \at(s->buf[i], Pre);
+        loop invariant copied: \forall integer i; 0 <= i < take ==>
+            s->buf[\at(s->fill, Pre) + i] == data[i];
+        loop invariant head: \at(s->fill, Pre) >= 4 ==> take == 0;
+        loop invariant head_only: \at(s->fill, Pre) < 4 ==> s->fill <= 4;
         loop assigns take, s->fill, s->buf[0 .. 47];
         loop variant len - take;
      */
@@ -208,7 +221,21 @@ static int take_frame(estop_slot_t *s, const uint8_t *data, size_t len, size_t *
         take++;
     }
     need = frame_len(s);
+    /* A frame's first 4 bytes, already in before the call, are as they were: its length too
+     * (the solvers do not find this through the logic function on their own). */
+    /*@ assert head_kept: \at(s->fill, Pre) >= 4 ==>
+            s->buf[0] == \at(s->buf[0], Pre) && s->buf[1] == \at(s->buf[1], Pre) &&
+            s->buf[2] == \at(s->buf[2], Pre) && s->buf[3] == \at(s->buf[3], Pre); */
+    /*@ assert head_need: \at(s->fill, Pre) >= 4 ==> slot_need(s) == \at(slot_need(s), Pre); */
     /*@ loop invariant 0 <= take <= len && need <= 48 && (s->fill <= 47 || s->fill == need);
+        loop invariant fill_took: s->fill == \at(s->fill, Pre) + take;
+        loop invariant kept: \forall integer i; 0 <= i < \at(s->fill, Pre) ==>
+            s->buf[i] == \at(s->buf[i], Pre);
+        loop invariant copied: \forall integer i; 0 <= i < take ==>
+            s->buf[\at(s->fill, Pre) + i] == data[i];
+        loop invariant headed: take < len ==> s->fill >= 4;
+        loop invariant need_form: s->fill >= 4 ==> need == slot_need(s);
+        loop invariant partial: \at(slot_partial(s), Pre) ==> s->fill < 4 || s->fill <= need;
         loop assigns take, s->fill, s->buf[0 .. 47];
         loop variant len - take;
      */

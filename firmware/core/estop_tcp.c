@@ -184,9 +184,9 @@ static uint32_t frame_len(const estop_slot_t *s)
 /* Appends bytes to a slot, up to one whole frame: first its 4 magic bytes, which decide its
  * length, then the rest of it. Each loop bounds both indexes itself (fill below the frame's
  * length, at most 48; take below len). Returns 1, with the slot empty again and the frame in
- * its buffer, when the frame is whole; *took is how many bytes it took. Whole exactly when
- * the frame's last byte came in: a slot holding part of a frame that completes none takes
- * every byte of the call (take_rest), so no whole frame is left behind unanswered. */
+ * its buffer, when the frame is whole; *took is how many bytes it took. A slot holding part
+ * of a frame that this call does not complete takes every byte of the call (take_rest), so
+ * no whole frame is left behind in the call's bytes. */
 /*@ requires \valid(s) && \valid(took) && s->fill < 48 && \valid_read(data + (0 .. len - 1));
     requires \separated(s, took, data + (0 .. len - 1));
     assigns s->fill, s->buf[0 .. 47], *took;

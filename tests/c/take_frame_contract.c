@@ -10,15 +10,9 @@
 
 #include "estop_tcp.c"
 
-static uint32_t rd(const uint8_t *p)
-{
-    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) |
-           ((uint32_t)p[3] << 24);
-}
-
 static uint32_t need_of(const estop_slot_t *s)
 {
-    return (rd(s->buf) == ESTOP_MAGIC_REQUEST) ? 48u : 16u;
+    return (rd_u32le(s->buf) == ESTOP_MAGIC_REQUEST) ? 48u : 16u;
 }
 
 int main(void)

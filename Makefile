@@ -7,7 +7,7 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 COVDIR := build/cov
 
-.PHONY: setup demo test test-fast check coverage coverage-untimed coverage-timed hil gamepad-vm systemd-vm bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install prove prove-mutants
+.PHONY: setup demo test test-debs test-fast check coverage coverage-untimed coverage-timed hil gamepad-vm systemd-vm bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install prove prove-mutants
 setup: $(STAMP) $(VENV)/bin/estopd
 
 $(STAMP): pyproject.toml setup.py pyext/build_core.py pyext/estop_build_backend.py deps/debian-packages.txt $(wildcard firmware/core/*)
@@ -26,19 +26,25 @@ $(VENV)/bin/estopd: $(STAMP) $(wildcard firmware/core/* firmware/estopd/*)
 demo: setup
 	$(VENV)/bin/estop demo $(DEMO_ARGS)
 
-test: setup
-	$(MAKE) check
+test:
 	# make prove (at low priority) beside what bounds no time tighter than a tenth of a second:
-	# the fuzzers, the mutants, the tests not marked timing, the gamepad and systemd VMs
-	# (scripts/beside); the packages of both sides installed first: two apt-get runs at once
-	# would wait on each other's lock. The timing tests and the HIL run (milliseconds) run
-	# after it, alone: they fail with provers on the other core (a CI run of 3236671:
+	# the set-up, the static checks, the fuzzers, the mutants, the tests not marked timing, the
+	# gamepad and systemd VMs (scripts/beside). The provers' packages are installed first and
+	# the others by the foreground while they run (on a fresh machine the apt-get run of all of
+	# them took 96 s before the provers could start; two apt-get runs at once would wait on
+	# each other's lock). A failed step of the foreground stops the provers at once. The timing
+	# tests and the HIL run (milliseconds) run after it, alone: they fail with provers on the
+	# other core (a CI run of 3236671:
 	# test_a_deadline_passed_during_a_stall_is_not_held_back_by_the_backlog).
-	scripts/ensure-debs prove fuzz mcu browser hil-vm systemd-vm
-	scripts/beside '$(MAKE) prove' $(MAKE) fuzz-smoke mutants-changed coverage-untimed \
-	  gamepad-vm systemd-vm
+	scripts/ensure-debs build prove
+	scripts/beside '$(MAKE) prove' $(MAKE) setup check test-debs fuzz-smoke mutants-changed \
+	  coverage-untimed gamepad-vm systemd-vm
 	$(MAKE) coverage-timed
 	$(MAKE) hil
+
+# The packages of what make test runs beside the provers, in one apt-get run.
+test-debs:
+	scripts/ensure-debs fuzz mcu browser hil-vm systemd-vm
 
 # What needs no daemon, browser, VM or MCU toolchain (the tests' kinds: tests/conftest.py), in
 # under a minute: the Python package (tests/unit), the core through cffi (tests/core), the

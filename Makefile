@@ -7,7 +7,7 @@ VPY    := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 COVDIR := build/cov
 
-.PHONY: setup demo test test-debs test-fast check coverage coverage-untimed coverage-timed hil gamepad-vm systemd-vm bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install prove prove-mutants
+.PHONY: setup demo test fuzz-beside-debs test-fast check coverage coverage-untimed coverage-timed hil gamepad-vm systemd-vm bench mutants mutants-changed mcu fuzz fuzz-smoke fuzz-build clean install prove prove-mutants
 setup: $(STAMP) $(VENV)/bin/estopd
 
 $(STAMP): pyproject.toml setup.py pyext/build_core.py pyext/estop_build_backend.py deps/debian-packages.txt $(wildcard firmware/core/*)
@@ -29,22 +29,25 @@ demo: setup
 test:
 	# make prove (at low priority) beside what bounds no time tighter than a tenth of a second:
 	# the set-up, the static checks, the fuzzers, the mutants, the tests not marked timing, the
-	# gamepad and systemd VMs (scripts/beside). The provers' packages are installed first and
-	# the others by the foreground while they run (on a fresh machine the apt-get run of all of
-	# them took 96 s before the provers could start; two apt-get runs at once would wait on
-	# each other's lock). A failed step of the foreground stops the provers at once. The timing
-	# tests and the HIL run (milliseconds) run after it, alone: they fail with provers on the
-	# other core (a CI run of 3236671:
-	# test_a_deadline_passed_during_a_stall_is_not_held_back_by_the_backlog).
-	scripts/ensure-debs build prove
-	scripts/beside '$(MAKE) prove' $(MAKE) setup check test-debs fuzz-smoke mutants-changed \
-	  coverage-untimed gamepad-vm systemd-vm
+	# gamepad and systemd VMs (scripts/beside). The packages of the provers, the checks and the
+	# fuzzers are installed first; the others (the browser, the MCU toolchain, the VMs: a fresh
+	# machine downloads them for about 3 minutes) beside the fuzzers and the mutants, which do
+	# not need them. Before, one apt-get run of all of them held the provers back 96 s. Two
+	# apt-get runs at once would wait on each other's lock, so no other step installs one. A
+	# failed step of the foreground stops the provers at once. The timing tests and the HIL run
+	# (milliseconds) run after it, alone: they fail with provers on the other core (a CI run of
+	# 3236671: test_a_deadline_passed_during_a_stall_is_not_held_back_by_the_backlog).
+	scripts/ensure-debs build prove check fuzz
+	scripts/beside '$(MAKE) prove' $(MAKE) setup check fuzz-beside-debs coverage-untimed \
+	  gamepad-vm systemd-vm
 	$(MAKE) coverage-timed
 	$(MAKE) hil
 
-# The packages of what make test runs beside the provers, in one apt-get run.
-test-debs:
-	scripts/ensure-debs fuzz mcu browser hil-vm systemd-vm
+# make test's fuzzers and changed-line mutants, beside the apt-get run of the packages the
+# steps after them need (--keep: a failed fuzzer waits for apt-get rather than stop it).
+fuzz-beside-debs:
+	scripts/beside --keep 'scripts/ensure-debs mcu browser hil hil-vm systemd-vm' \
+	  $(MAKE) fuzz-smoke mutants-changed
 
 # What needs no daemon, browser, VM or MCU toolchain (the tests' kinds: tests/conftest.py), in
 # under a minute: the Python package (tests/unit), the core through cffi (tests/core), the

@@ -65,3 +65,23 @@ def test_usage_error(tmp_path: Path) -> None:
     r = beside(tmp_path, "true")
     assert r.returncode == 2
     assert "usage" in r.stderr
+
+
+def test_keep_waits_for_the_background_when_the_foreground_fails(tmp_path: Path) -> None:
+    # --keep (make test's apt-get run): the background is let finish, not stopped halfway
+    r = subprocess.run([str(BESIDE), "--keep", "sleep 1; echo bg-finished > done", "false"],
+                       cwd=tmp_path, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 1
+    assert (tmp_path / "done").read_text().strip() == "bg-finished"
+    assert "stopping" not in r.stdout
+
+
+def test_nested_runs_keep_both_outputs(tmp_path: Path) -> None:
+    # make test nests them (the provers beside the fuzzers, which run beside apt-get): each
+    # keeps its own log
+    inner = f"{BESIDE} 'sleep 0.5; echo inner-bg' echo inner-fg"
+    r = beside(tmp_path, "sleep 1; echo outer-bg", "bash", "-c", inner)
+    assert r.returncode == 0, r.stdout + r.stderr
+    for word in ("inner-fg", "inner-bg", "outer-bg"):
+        assert r.stdout.splitlines().count(word) == 1, r.stdout
+    assert not list((tmp_path / "build").glob("beside*.log"))

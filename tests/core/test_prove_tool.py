@@ -166,6 +166,21 @@ def test_an_eva_copy_makes_the_calls_of_its_plants_or_all_of_them() -> None:
                for p in ps)
 
 
+def test_an_eva_copy_tries_whole_chunks_only_when_all_its_plants_say_so() -> None:
+    plant = prove.selftest.Plant
+    whole = plant("a", "f", "o", "n", "eva", "x", chunks="whole")
+    every = plant("b", "f", "o", "n", "eva", "x")
+    assert prove.selftest.whole_chunks([whole, whole])
+    assert not prove.selftest.whole_chunks([whole, every])
+    with pytest.raises(SystemExit, match="chunks: some"):
+        prove.selftest.whole_chunks([plant("c", "f", "o", "n", "eva", "x", chunks="some")])
+    # the driver honours it, and make prove's copies use it (the oob-write and stop plants)
+    assert "#if DRIVER_TCP_WHOLE" in (ROOT / "prove" / "eva_driver.c").read_text()
+    copies = {copy: prove.selftest.whole_chunks(ps)
+              for (c, copy), ps in prove.selftest.plant_checks().items() if c == "eva"}
+    assert copies["whole"] and not copies[""]
+
+
 def test_the_mutant_sample_is_fixed_and_inside_the_scope() -> None:
     every = prove.selftest.mutants_in_scope()
     scope = prove.selftest.scope()

@@ -58,10 +58,12 @@ def rule_statuses(out: str, rules: list[str]) -> dict[str, str]:
 
 
 def run_eva(name: str, core_dir: Path, keyed: int, env: dict[str, str],
-            calls: int = ALL_CALLS) -> EvaResult:
-    """Eva over the driver; calls: the driver's calls it makes (a self-test copy's few)."""
+            calls: int = ALL_CALLS, whole_chunks: bool = False) -> EvaResult:
+    """Eva over the driver; calls: the driver's calls it makes (a self-test copy's few);
+    whole_chunks: TCP chunks of one whole frame only (a self-test copy's)."""
     log = BUILD / f"eva-{name}.log"
-    args = [*cpp_args(core_dir, f"-DDRIVER_KEYED={keyed}", f"-DDRIVER_CASES={calls:#x}u"),
+    args = [*cpp_args(core_dir, f"-DDRIVER_KEYED={keyed}", f"-DDRIVER_CASES={calls:#x}u",
+                           f"-DDRIVER_TCP_WHOLE={int(whole_chunks)}"),
             str(DRIVER),
             *map(str, core_sources(core_dir)), "-eva", *EVA_OPTS,
             "-then", "-metrics", "-metrics-eva-cover", "-then", "-report"]

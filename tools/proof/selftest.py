@@ -45,6 +45,8 @@ class Plant:
     copy: str = ""   # plants of one check and one copy are planted and tried together
     calls: str = ""  # eva: the driver's calls (its loop's case numbers) the copy needs; all
                      # when empty. A copy makes the calls of all its plants.
+    chunks: str = ""  # eva: "whole" when the fault needs TCP chunks of whole frames only; a
+                      # copy tries every length unless all its plants say so
 
 
 def plants(path: Path = PROVE / "planted.txt") -> list[Plant]:
@@ -55,7 +57,7 @@ def plants(path: Path = PROVE / "planted.txt") -> list[Plant]:
         for raw in block.splitlines():
             if raw.startswith("#"):
                 continue
-            m = re.match(r"^(name|file|check|expect|prop|copy|calls|old|new):\s?(.*)$", raw)
+            m = re.match(r"^(name|file|check|expect|prop|copy|calls|chunks|old|new):\s?(.*)$", raw)
             if m:
                 key = m.group(1)
                 fields[key] = m.group(2)
@@ -64,7 +66,8 @@ def plants(path: Path = PROVE / "planted.txt") -> list[Plant]:
         if fields:
             out.append(Plant(fields["name"], fields["file"], fields["old"], fields["new"],
                              fields["check"], fields["expect"], fields.get("prop", ""),
-                             fields.get("copy", ""), fields.get("calls", "")))
+                             fields.get("copy", ""), fields.get("calls", ""),
+                             fields.get("chunks", "")))
     return out
 
 
@@ -81,6 +84,16 @@ def driver_calls(group: list[Plant]) -> int:
                 raise SystemExit(f"prove: error: self-test {p.name}: no driver call {c}")
             mask |= 1 << int(c)
     return mask
+
+
+def whole_chunks(group: list[Plant]) -> bool:
+    """A copy's TCP chunks are whole frames only when every plant of it says so (chunks:
+    whole): fewer lengths reach fewer states, as fewer calls do."""
+    for p in group:
+        if p.chunks not in ("", "whole"):
+            raise SystemExit(f"prove: error: self-test {p.name}: chunks: {p.chunks} "
+                             "(want whole, or no such line)")
+    return all(p.chunks == "whole" for p in group)
 
 
 def planted_copy(name: str, edits: list[tuple[str, str, str]]) -> Path:
@@ -115,7 +128,8 @@ def run_plants(check: str, group: list[Plant], env: dict[str, str]
     core_dir = planted_copy(tag, [(p.file, p.old, p.new) for p in group])
     out = []
     if check == "eva":
-        r = eva.run_eva(f"planted-{tag}", core_dir, 0, env, driver_calls(group))
+        r = eva.run_eva(f"planted-{tag}", core_dir, 0, env, driver_calls(group),
+                        whole_chunks(group))
         found = r.alarms + r.invalid + r.rules_not_shown
         for p in group:
             hits = [a for a in found if any(e in a for e in p.expect.split("|"))]

@@ -253,18 +253,16 @@ static void tcp_exact(estop_core_t *core, uint32_t slot, size_t len, size_t *con
 }
 
 #if DRIVER_TCP_WHOLE
-/* A TCP chunk of one whole frame, plain (16 bytes) or a request (48), any bytes. */
+/* A TCP chunk of one whole frame, plain (16 bytes) or a request (48), any bytes, in an
+ * array of exactly its length (EXACT, as tcp_exact). */
 static void tcp_whole(estop_core_t *core, uint32_t slot, size_t *consumed, uint32_t now,
                       estop_out_t *out)
 {
-    if (Frama_C_nondet(0, 1) != 0) {
-        uint8_t plain[ESTOP_TCP_FRAME_LEN];
-        any_bytes(plain, sizeof plain);
-        (void)estop_tcp_rx(core, slot, plain, sizeof plain, consumed, now, out);
-    } else {
-        uint8_t request[ESTOP_REQ_FRAME_LEN];
-        any_bytes(request, sizeof request);
-        (void)estop_tcp_rx(core, slot, request, sizeof request, consumed, now, out);
+    switch ((Frama_C_nondet(0, 1) != 0) ? ESTOP_TCP_FRAME_LEN : ESTOP_REQ_FRAME_LEN) {
+    EXACT(16, TCP_CALL)
+    EXACT(48, TCP_CALL)
+    default:
+        break;
     }
 }
 #endif

@@ -18,11 +18,10 @@
 
 /* ---- the state machine's steps (estop_core.c) --------------------------------------------- */
 
-/*@ requires c_ok: core == \null || \valid(core);
-    requires o_ok: out == \null || \valid(out);
-    requires \separated(core, out);
+/*@ requires begin_given: given(core, out);
     requires core != \null ==> core_ok(core);
     assigns *core, *out;
+    ensures begin_always: core != \null ==> core_ok(core);
     behavior bad_args:
       assumes core == \null || out == \null;
       ensures \result == ESTOP_ERR_NULL_ARG;
@@ -63,6 +62,11 @@ estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out);
     assigns out->next_call_us, out->state, out->reason, out->flags;
     ensures out->state == core->state && out->reason == core->reason;
     ensures next_call_ahead: 1 <= udiff(out->next_call_us, core->now_us) <= core->cfg.brake_period_us;
+    ensures finish_keeps: core->magic == \old(core->magic) && core->now_us == \old(core->now_us) &&
+        core->state == \old(core->state) &&
+        core->cfg.brake_period_us == \old(core->cfg.brake_period_us) &&
+        core->cfg.brake_can_id == \old(core->cfg.brake_can_id);
+    ensures finish_keeps_inv: \at(inv(core), Pre) ==> inv(core);
  */
 void estop__finish(const estop_core_t *core, estop_out_t *out);
 
@@ -256,6 +260,11 @@ estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out);
     ensures next_call_ahead: \result == ESTOP_OK ==>
         1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
+    ensures datagram_stops: \result == ESTOP_OK && data != \null &&
+        \at(datagram_asks_stop(data, len, core->cfg.stop_id), Pre) ==> core->state == 0;
+    ensures datagram_brakes: \result == ESTOP_OK && data != \null && \old(core->state) != 0 &&
+        \at(datagram_asks_stop(data, len, core->cfg.stop_id), Pre) ==>
+        1 <= out->n_can && (emergency(out, 0, core) || emergency(out, out->n_can - 1, core));
  */
 estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
                          estop_out_t *out);

@@ -99,6 +99,12 @@
      stop_asked(rd_u32le_l(&(b)[4]), stop_id))
 #define plain_asks_stop(b, stop_id) \
     (rd_u32le_l(&(b)[0]) != ESTOP_MAGIC_REQUEST && stop_asked(rd_u32le_l(&(b)[0]), stop_id))
+/* A datagram of len bytes at d that asks the unit to stop (PROTOCOL.md section 1): a request
+ * frame, 48 bytes with its magic first, with the stop ID or LIFT at byte 4. Its tag, session
+ * and counter are never looked at: anyone may stop. */
+#define datagram_asks_stop(d, len, stop_id) \
+    ((len) == 48 && rd_u32le_l(&(d)[0]) == ESTOP_MAGIC_REQUEST && \
+     stop_asked(rd_u32le_l(&(d)[4]), stop_id))
 /* A message ID that asks the unit to stop: its stop ID (stop_id) or LIFT. */
 #define stop_asked(id, stop_id) ((id) == (stop_id) || (id) == ESTOP_MSG_LIFT)
 #define core_ok(c) ((c)->magic == 0x45535450 ==> inv(c))

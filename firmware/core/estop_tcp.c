@@ -37,6 +37,7 @@ static estop_err_t set_slot(estop_core_t *core, uint32_t slot, uint8_t open, uin
     if (err == ESTOP_OK) {
         core->slots[slot].open = open;
         core->slots[slot].fill = 0u;
+        /*@ assert slot_set: slots_ok(core); */
         estop__finish(core, out);
     }
     return err;

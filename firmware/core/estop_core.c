@@ -585,6 +585,24 @@ static uint8_t stop_datagram(const estop_core_t *core, const uint8_t *d, size_t 
     return reason;
 }
 
+/* Section 3: a SLOWING unit's way back to ARMED, at its third valid packet in a row (a step of
+ * its own: its contract carries the core past the frame's write to out). */
+/*@ requires \valid(core) && \valid(out) && \separated(core, out) && inv(core) && times_ok(core);
+    requires core->state == 2 && core->last_valid_us == core->now_us && out->n_can <= 3;
+    assigns core->counters.rearms, core->state, out->state_changed, out->can[0 .. 2],
+            out->n_can, core->brake_counter, core->brake_due_us;
+    ENSURES_KEPT(rearm)
+    ensures rearm_arms: core->state == 1 && out->state_changed == 1;
+    ensures rearm_frames: out->n_can <= 3;
+    ensures rearm_keeps_clock: core->now_us == \old(core->now_us);
+ */
+static void rearm(estop_core_t *core, estop_out_t *out)
+{
+    sat32_inc(&core->counters.rearms);
+    core->state = (uint8_t)ESTOP_STATE_ARMED;
+    state_changed(core, out);
+}
+
 /* Section 3: a valid packet makes the link fresh from now; while SLOWING it counts toward the
  * way back to ARMED. */
 /*@ requires \valid(core) && \valid(out) && \separated(core, out) && inv(core) && times_ok(core);
@@ -599,6 +617,11 @@ static uint8_t stop_datagram(const estop_core_t *core, const uint8_t *d, size_t 
     ensures valid_frames: out->n_can <= 3;
     ensures valid_never_leaves_stopped: \old(core->state) == 0 ==> core->state == 0;
     ensures valid_keeps_clock: core->now_us == \old(core->now_us);
+    ensures valid_rearms: \old(core->state) == 2 &&
+        ESTOP_REARM_PACKETS <= \old(core->slow_run) + 1 <= 255 ==> core->state == 1;
+    ensures valid_slowing: \old(core->state) == 2 &&
+        \old(core->slow_run) + 1 < ESTOP_REARM_PACKETS ==> core->state == 2;
+    ensures valid_keeps_state: \old(core->state) != 2 ==> core->state == \old(core->state);
  */
 static void take_valid(estop_core_t *core, const uint8_t *body, estop_out_t *out)
 {
@@ -612,9 +635,7 @@ static void take_valid(estop_core_t *core, const uint8_t *body, estop_out_t *out
     if (core->state == ESTOP_STATE_SLOWING) {
         core->slow_run++;
         if (core->slow_run >= ESTOP_REARM_PACKETS) {
-            sat32_inc(&core->counters.rearms);
-            core->state = (uint8_t)ESTOP_STATE_ARMED;
-            state_changed(core, out);
+            rearm(core, out);
         }
     }
 }

@@ -115,6 +115,10 @@
 #define given(c, o) \
     (((c) == \null || \valid(c)) && ((o) == \null || \valid(o)) && \
      ((c) == \null || (o) == \null || \separated(c, o)))
+/* An entry point's call that the unit answers (ESTOP_OK): both pointers given, the core
+ * initialised. Every stop rule is stated for an ESTOP_OK return (ok_iff_given), so a call that
+ * returned anything else for such a call would escape them. */
+#define usable(c, o) ((c) != \null && (o) != \null && (c)->magic == 0x45535450)
 #define fills_kept(L1, L2, c) \
     (\at((c)->slots[0].fill, L1) == \at((c)->slots[0].fill, L2) && \
      \at((c)->slots[1].fill, L1) == \at((c)->slots[1].fill, L2) && \

@@ -241,7 +241,7 @@ static void state_changed(estop_core_t *core, estop_out_t *out)
     ensures stop_keeps: frames_kept(Pre, Post, out, \old(out->n_can));
     ensures stop_times: \at(times_ok(core), Pre) ==> times_ok(core);
     ensures stop_keeps_clock: core->now_us == \old(core->now_us) &&
-        core->cfg.brake_can_id == \old(core->cfg.brake_can_id);
+        core->cfg.brake_can_id == \old(core->cfg.brake_can_id) && core->magic == \old(core->magic);
     ensures stop_brakes: \old(out->n_can) <= 2 && (\old(core->state) != 0 ||
         (1 <= \old(out->n_can) && \at(emergency(out, 0, core), Pre))) ==>
         1 <= out->n_can && (emergency(out, 0, core) || emergency(out, out->n_can - 1, core));
@@ -594,7 +594,9 @@ static uint8_t stop_datagram(const estop_core_t *core, const uint8_t *d, size_t 
     ENSURES_KEPT(rearm)
     ensures rearm_arms: core->state == 1 && out->state_changed == 1;
     ensures rearm_frames: out->n_can <= 3;
-    ensures rearm_keeps_clock: core->now_us == \old(core->now_us);
+    ensures rearm_keeps_clock: core->now_us == \old(core->now_us) &&
+        core->magic == \old(core->magic) && core->link_fresh == \old(core->link_fresh) &&
+        core->last_valid_us == \old(core->last_valid_us);
  */
 static void rearm(estop_core_t *core, estop_out_t *out)
 {
@@ -616,7 +618,8 @@ static void rearm(estop_core_t *core, estop_out_t *out)
     ENSURES_KEPT(valid)
     ensures valid_frames: out->n_can <= 3;
     ensures valid_never_leaves_stopped: \old(core->state) == 0 ==> core->state == 0;
-    ensures valid_keeps_clock: core->now_us == \old(core->now_us);
+    ensures valid_keeps_clock: core->now_us == \old(core->now_us) && core->magic == \old(core->magic);
+    ensures valid_fresh: core->link_fresh == 1 && core->last_valid_us == core->now_us;
     ensures valid_rearms: \old(core->state) == 2 &&
         ESTOP_REARM_PACKETS <= \old(core->slow_run) + 1 <= 255 ==> core->state == 1;
     ensures valid_slowing: \old(core->state) == 2 &&
@@ -696,7 +699,10 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
         /*@ assert handled_times: times_ok(core); */
         /*@ assert handled_stopped: \at(core->state, Pre) == 0 ==> core->state == 0; */
         /*@ assert handled_now: core->now_us == now_us; */
+        /*@ assert handled_magic: core->magic == 0x45535450; */
         /*@ assert handled_stop: reason != 0 ==> core->state == 0; */
+        /*@ assert handled_valid: reason == 0 && body != \null ==>
+                core->link_fresh != 0 && core->last_valid_us == now_us; */
         /*@ assert handled_brake: reason != 0 && \at(core->state, Pre) != 0 ==> 1 <= out->n_can &&
                 (emergency(out, 0, core) || emergency(out, out->n_can - 1, core)); */
         estop__finish(core, out);

@@ -263,7 +263,7 @@ estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out);
         \at(datagram_asks_stop(data, len, core->cfg.stop_id), Pre) ==> core->state == 0;
     ensures datagram_brakes: \result == ESTOP_OK && data != \null && \old(core->state) != 0 &&
         \at(datagram_asks_stop(data, len, core->cfg.stop_id), Pre) ==>
-        1 <= out->n_can && (emergency(out, 0, core) || emergency(out, out->n_can - 1, core));
+        emergency_sent(out, core);
     ensures ok_iff_given: \result == ESTOP_OK <==> usable(core, out);
  */
 estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, uint32_t now_us,
@@ -279,7 +279,7 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
     ensures fault_stops: \result == ESTOP_OK ==> core->state == 0;
     ensures stop_brakes: \result == ESTOP_OK && \old(core->state) != 0 ==>
-        1 <= out->n_can && (emergency(out, 0, core) || emergency(out, out->n_can - 1, core));
+        emergency_sent(out, core);
     ensures ok_iff_given: \result == ESTOP_OK <==> usable(core, out);
  */
 estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out);

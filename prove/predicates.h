@@ -89,6 +89,10 @@
 #define emergency(o, k, c) \
     ((o)->can[k].id == (c)->cfg.brake_can_id && (o)->can[k].data[0] == 1 && \
      (o)->can[k].data[2] == 0)
+/* The emergency frame of a call that stopped a moving unit: out's first frame (the clock's
+ * stop) or its last (the input's stop, appended after the frames already due). */
+#define emergency_sent(o, c) \
+    (1 <= (o)->n_can && (emergency(o, 0, c) || emergency(o, (o)->n_can - 1, c)))
 /* A whole TCP frame in a slot's buffer b (estop_tcp.c) that asks the unit to stop: a request
  * frame (its magic first) with the ID at byte 4, or a plain frame with the ID at byte 0. The
  * request's ID is not RELEASE: estop_init refuses that stop ID (ESTOP_ERR_STOP_ID), and the

@@ -244,7 +244,7 @@ static void state_changed(estop_core_t *core, estop_out_t *out)
         core->cfg.brake_can_id == \old(core->cfg.brake_can_id) && core->magic == \old(core->magic);
     ensures stop_brakes: \old(out->n_can) <= 2 && (\old(core->state) != 0 ||
         (1 <= \old(out->n_can) && \at(emergency(out, 0, core), Pre))) ==>
-        1 <= out->n_can && (emergency(out, 0, core) || emergency(out, out->n_can - 1, core));
+        emergency_sent(out, core);
     behavior moving:
       assumes core->state != 0;
       ensures out->state_changed == 1 && core->reason == reason;
@@ -618,7 +618,8 @@ static void rearm(estop_core_t *core, estop_out_t *out)
     ENSURES_KEPT(valid)
     ensures valid_frames: out->n_can <= 3;
     ensures valid_never_leaves_stopped: \old(core->state) == 0 ==> core->state == 0;
-    ensures valid_keeps_clock: core->now_us == \old(core->now_us) && core->magic == \old(core->magic);
+    ensures valid_keeps_clock: core->now_us == \old(core->now_us) &&
+        core->magic == \old(core->magic);
     ensures valid_fresh: core->link_fresh == 1 && core->last_valid_us == core->now_us;
     ensures valid_rearms: \old(core->state) == 2 &&
         ESTOP_REARM_PACKETS <= \old(core->slow_run) + 1 <= 255 ==> core->state == 1;
@@ -673,8 +674,7 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
             /*@ assert counted_keeps: \at(core->state, Pre) != 0 ==> out->n_can <= 2 &&
                     (core->state != 0 || (1 <= out->n_can && emergency(out, 0, core))); */
             stop(core, reason, out);
-            /*@ assert stop_brakes: \at(core->state, Pre) != 0 ==> 1 <= out->n_can &&
-                    (emergency(out, 0, core) || emergency(out, out->n_can - 1, core)); */
+            /*@ assert stopped_brakes: \at(core->state, Pre) != 0 ==> emergency_sent(out, core); */
         } else if (body != NULL) {
             take_valid(core, body, out);
         } else {
@@ -703,8 +703,8 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
         /*@ assert handled_stop: reason != 0 ==> core->state == 0; */
         /*@ assert handled_valid: reason == 0 && body != \null ==>
                 core->link_fresh != 0 && core->last_valid_us == now_us; */
-        /*@ assert handled_brake: reason != 0 && \at(core->state, Pre) != 0 ==> 1 <= out->n_can &&
-                (emergency(out, 0, core) || emergency(out, out->n_can - 1, core)); */
+        /*@ assert handled_brake: reason != 0 && \at(core->state, Pre) != 0 ==>
+                emergency_sent(out, core); */
         estop__finish(core, out);
     }
     return err;

@@ -50,8 +50,10 @@
  * to 96: tests/c/take_frame_contract.c). The lengths past 49 were 40 % of Eva's time. */
 #define DRIVER_TCP_MAX 49u
 /* 1: a TCP chunk is one whole frame (16 or 48 bytes) in an array of exactly its length, and
- * no other length is tried. Only a self-test copy whose planted fault needs no partial frame
- * (prove/planted.txt, chunks: whole): the lengths are most of Eva's time. */
+ * no other length is tried: the run of a unit without a key (take_frame, the only code a
+ * chunk's length reaches, reads no key: the keyed run tries every length; tools/proof/eva.py
+ * RUNS), and a self-test copy whose planted fault needs no partial frame (prove/planted.txt,
+ * chunks: whole). The lengths are most of Eva's time. */
 #ifndef DRIVER_TCP_WHOLE
 #define DRIVER_TCP_WHOLE 0
 #endif

@@ -20,6 +20,13 @@ EVA_TIMEOUT_S = 600
 EVA_OPTS = ["-eva-precision", "2", "-eva-auto-loop-unroll", "1024", "-eva-split-return", "auto",
             "-eva-print-callstacks"]
 DRIVER = PROVE / "eva_driver.c"
+# make prove's two runs: (name, keyed, whole_chunks). Only the keyed run tries TCP chunks of
+# every length 0..49: a chunk's length reaches take_frame alone (the reassembly into the
+# slot's buffer), which reads no key and no configuration, so the keyed run shows it for both
+# units; what differs without a key (handle_plain's CRC release, the plain replies) reads the
+# reassembled frame, which whole frames of any bytes reach as well. The same statements
+# reached (1,003/1,050), 0 alarms, every rule shown, in 49 s instead of 149 s (idle machine).
+RUNS = (("keyed", 1, False), ("plain", 0, True))
 # The driver's loop makes 9 calls (its case numbers 0..8), one bit each (DRIVER_CASES there).
 ALL_CALLS = 0x1FF
 

@@ -242,7 +242,6 @@ static void state_changed(estop_core_t *core, estop_out_t *out)
     ensures stop_times: \at(times_ok(core), Pre) ==> times_ok(core);
     ensures stop_keeps_clock: core->now_us == \old(core->now_us) &&
         core->cfg.brake_can_id == \old(core->cfg.brake_can_id) && core->magic == \old(core->magic);
-    ensures stop_keeps_fills: fills_kept(Pre, Post, core);
     ensures stop_brakes: \old(out->n_can) <= 2 && (\old(core->state) != 0 ||
         (1 <= \old(out->n_can) && \at(emergency(out, 0, core), Pre))) ==>
         emergency_sent(out, core);
@@ -296,7 +295,6 @@ static void enter_slowing(estop_core_t *core)
     ensures inv_base(core) && core->state != 0 && out->state_changed == 1 &&
         out->n_can <= 3;
     ensures arm_clears_reason: core->reason == 0;
-    ensures arm_keeps_fills: fills_kept(Pre, Post, core);
     ensures arm_slows: core->state == 1 ==>
         udiff(core->now_us, core->last_valid_us) < core->cfg.slow_us;
     ensures core->brake_due_us == (uint32_t)(core->now_us + core->cfg.brake_period_us);
@@ -731,7 +729,6 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
         core->valid_run >= core->cfg.release_packets;
     ensures rel_acked: \result == 0 ==> core->state != 0;
     ensures rel_refused_keeps: \result != 0 ==> core->state == \old(core->state);
-    ensures rel_keeps_fills: fills_kept(Pre, Post, core);
     ensures \result <= 4;
  */
 static uint8_t release(estop_core_t *core, int authenticated, estop_out_t *out)
@@ -777,13 +774,6 @@ uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
     } else {
         /* STATUS: answered with ACK, changes nothing */
     }
-    /* The slots' fills past the merge of the branches, one branch at a time (as one goal,
-     * CVC4 took 28 s of the 90 under Typed). */
-    /*@ assert msg_fills: reason != 0 ==> fills_kept(Pre, Here, core); */
-    /*@ assert msg_fills: reason == 0 && msg_id == ESTOP_MSG_RELEASE ==>
-            fills_kept(Pre, Here, core); */
-    /*@ assert msg_fills: reason == 0 && msg_id != ESTOP_MSG_RELEASE ==>
-            fills_kept(Pre, Here, core); */
     return nak;
 }
 

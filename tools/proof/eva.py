@@ -13,7 +13,7 @@ from pathlib import Path
 
 from .frama import BUILD, PROVE, ROOT, core_functions, core_sources, cpp_args, frama_c
 
-EVA_TIMEOUT_S = 600
+EVA_TIMEOUT_S = 1200  # the keyed run took 322 s beside make test's other steps (149 s idle)
 # Eva's precision: meta-option level 2, and loops up to 1024 iterations unrolled (the
 # zeroing of estop_core_t in estop_init is ~1000 byte stores; merged iterations would make
 # every field "maybe uninitialised").

@@ -222,6 +222,21 @@ def test_smoke_tests_run_with_their_timeout_in_every_typed_run() -> None:
     assert checks[checks.index("-wp-smoke-timeout") + 1] == str(prove.wp.SMOKE_TIMEOUT_S)
 
 
+def test_a_goal_one_solver_left_is_a_failure_and_goes_to_the_retry() -> None:
+    """A Caveat run's first pass asks CVC4 alone; WP then prints the verdict after the goal.
+    Such a timeout failed the fresh-machine run of ddecf41 instead of going to the retry."""
+    line = ("[wp] [CVC4 1.8] Goal typed_caveat_advance_clock_ensures_clock_brake_due : "
+            "Timeout (Qed:837ms) (1'30s)\n")
+    assert prove.wp.failed_goals(GOOD) == []
+    assert prove.wp.failed_goals(GOOD + line) == [
+        "typed_caveat_advance_clock_ensures_clock_brake_due"]
+    both = "[wp] [Timeout] Goal typed_x\n[wp] Goal typed_y : Unknown\n"
+    assert prove.wp.failed_goals(GOOD + both + line) == [
+        "typed_x", "typed_y", "typed_caveat_advance_clock_ensures_clock_brake_due"]
+    m = prove.wp.FIRST_FAILURE.search(GOOD + line)
+    assert m is not None and "typed_caveat_advance_clock_ensures_clock_brake_due" in m.groups()
+
+
 def test_a_mutants_first_failure_is_named() -> None:
     out = GOOD + "[wp] [Failed] Smoke-test typed_use_up_wp_smoke_dead_call_s254\n"
     m = prove.wp.FIRST_FAILURE.search(out)

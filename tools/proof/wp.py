@@ -101,9 +101,15 @@ def inline_list() -> str:
 # A goal WP names without a solver's verdict and not as proved ("trivial" is a goal Qed proved:
 # WP prints it so when it has no solver to report beside it).
 GOAL_NOT_VALID = r"^\[wp\] Goal (\S+) : (?!Valid|trivial)"
+# A goal one solver alone left (a Caveat run's first pass asks CVC4 alone): WP names the
+# solver in the brackets and its verdict after the goal, "[wp] [CVC4 1.8] Goal g : Timeout".
+# Missed until the fresh-machine run of ddecf41, where such a goal failed the run instead of
+# going to the retry (clock_brake_due, 90 s under load, 26 s idle).
+SOLVER_NOT_VALID = r"^\[wp\] \[[^\]]+\] Goal (\S+) : (?!Valid)"
 # A goal or smoke test that failed, as WP prints it: enough to catch a mutant.
 FIRST_FAILURE = re.compile(r"^\[wp\] \[(?:Timeout|Unknown|Failed|Stepout)[^\]]*\] "
-                           r"(?:Goal|Smoke-test) (\S+)|" + GOAL_NOT_VALID, re.M)
+                           r"(?:Goal|Smoke-test) (\S+)|" + GOAL_NOT_VALID + "|"
+                           + SOLVER_NOT_VALID, re.M)
 # A solver WP cannot find: no goal of the run means anything (a mutant's run stopped at its
 # first goal would have counted as caught).
 MISSING_SOLVER = re.compile(r"^\[wp\] User Error: (Prover '[^']+' not found[^\n]*)", re.M)
@@ -114,6 +120,17 @@ def refuse_missing_solver(out: str) -> None:
     m = MISSING_SOLVER.search(out)
     if m:
         raise SystemExit(f"prove: error: {m.group(1)} (install it: scripts/ensure-debs prove)")
+
+
+def failed_goals(out: str) -> list[str]:
+    """The goals a run's log names as not proved, in either of WP's forms (several solvers, or
+    one), each once."""
+    failed: list[str] = []
+    for pattern in (r"^\[wp\] \[(?:Timeout|Unknown|Failed|Stepout)[^\]]*\] Goal (\S+)",
+                    GOAL_NOT_VALID, SOLVER_NOT_VALID):
+        failed += [m.group(1) for m in re.finditer(pattern, out, re.M)
+                   if m.group(1) not in failed]
+    return failed
 
 
 def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
@@ -147,7 +164,7 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
         refuse_missing_solver(out)
         if stopped:
             m = FIRST_FAILURE.search(out)
-            res.failed.append((m.group(1) or m.group(2)) if m else "?")
+            res.failed.append(next((g for g in m.groups() if g), "?") if m else "?")
             return res
     else:
         rc, out = frama_c(args, log, WP_TIMEOUT_S, env)
@@ -164,11 +181,7 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
                           r":\s+(\d+)", out[m.end():], re.M):
         prover = pm.group(1).split()[0]
         res.by_prover[prover] = res.by_prover.get(prover, 0) + int(pm.group(2))
-    for fm in re.finditer(r"^\[wp\] \[(?:Timeout|Unknown|Failed|Stepout)[^\]]*\] Goal (\S+)",
-                          out, re.M):
-        res.failed.append(fm.group(1))
-    for fm in re.finditer(GOAL_NOT_VALID, out, re.M):
-        res.failed.append(fm.group(1))
+    res.failed += failed_goals(out)
     parse_checks(res, out, model)
     return res
 

@@ -41,8 +41,9 @@ MUTANTS_IN_MAKE_PROVE = 2  # the fast subset; make prove-mutants runs them all
 # The order make prove starts its analyses in on its two workers: the longest first, so that
 # the short ones fill both workers at the end (in file order, the two-minute loops run was
 # among the last to start while the plants waited). The figures are each analysis's seconds in
-# the fresh-machine run of 09bd4ca (beside the other steps of make test); only the order
-# depends on them. One not named here counts as DEFAULT_COST_S.
+# the fresh-machine run of 09bd4ca (beside the other steps of make test; steps, under Typed
+# there, from a later run under Caveat); only the order depends on them. One not named here
+# counts as DEFAULT_COST_S.
 COST_S = {"wp:datagram": 533, "eva:keyed": 275, "wp:init": 227, "wp:loops": 195,
           "wp:tcp": 192, "wp:auth": 180, "wp:clock": 141, "mutant": 90, "wp:entry": 84,
           "eva:plain": 80, "plant:eva": 60, "wp:steps": 32, "plant:wp": 30, "wp:link": 22,

@@ -230,7 +230,8 @@ def test_a_goal_one_solver_left_is_a_failure_and_goes_to_the_retry() -> None:
     assert prove.wp.failed_goals(GOOD) == []
     assert prove.wp.failed_goals(GOOD + line) == [
         "typed_caveat_advance_clock_ensures_clock_brake_due"]
-    both = "[wp] [Timeout] Goal typed_x\n[wp] Goal typed_y : Unknown\n"
+    both = ("[wp] [Timeout] Goal typed_x\n[wp] [Timeout] Goal typed_x\n"
+            "[wp] Goal typed_y : Unknown\n")
     assert prove.wp.failed_goals(GOOD + both + line) == [
         "typed_x", "typed_y", "typed_caveat_advance_clock_ensures_clock_brake_due"]
     m = prove.wp.FIRST_FAILURE.search(GOOD + line)

@@ -106,10 +106,11 @@ GOAL_NOT_VALID = r"^\[wp\] Goal (\S+) : (?!Valid|trivial)"
 # Missed until the fresh-machine run of ddecf41, where such a goal failed the run instead of
 # going to the retry (clock_brake_due, 90 s under load, 26 s idle).
 SOLVER_NOT_VALID = r"^\[wp\] \[[^\]]+\] Goal (\S+) : (?!Valid)"
+# The verdict that opens a line of a goal several solvers left, "[wp] [Timeout] Goal g".
+VERDICT_NOT_VALID = r"^\[wp\] \[(?:Timeout|Unknown|Failed|Stepout)[^\]]*\] "
 # A goal or smoke test that failed, as WP prints it: enough to catch a mutant.
-FIRST_FAILURE = re.compile(r"^\[wp\] \[(?:Timeout|Unknown|Failed|Stepout)[^\]]*\] "
-                           r"(?:Goal|Smoke-test) (\S+)|" + GOAL_NOT_VALID + "|"
-                           + SOLVER_NOT_VALID, re.M)
+FIRST_FAILURE = re.compile(VERDICT_NOT_VALID + r"(?:Goal|Smoke-test) (\S+)|" + GOAL_NOT_VALID
+                           + "|" + SOLVER_NOT_VALID, re.M)
 # A solver WP cannot find: no goal of the run means anything (a mutant's run stopped at its
 # first goal would have counted as caught).
 MISSING_SOLVER = re.compile(r"^\[wp\] User Error: (Prover '[^']+' not found[^\n]*)", re.M)
@@ -126,10 +127,10 @@ def failed_goals(out: str) -> list[str]:
     """The goals a run's log names as not proved, in either of WP's forms (several solvers, or
     one), each once."""
     failed: list[str] = []
-    for pattern in (r"^\[wp\] \[(?:Timeout|Unknown|Failed|Stepout)[^\]]*\] Goal (\S+)",
-                    GOAL_NOT_VALID, SOLVER_NOT_VALID):
-        failed += [m.group(1) for m in re.finditer(pattern, out, re.M)
-                   if m.group(1) not in failed]
+    for pattern in (VERDICT_NOT_VALID + r"Goal (\S+)", GOAL_NOT_VALID, SOLVER_NOT_VALID):
+        for m in re.finditer(pattern, out, re.M):
+            if m.group(1) not in failed:  # WP may print a goal's verdict twice
+                failed.append(m.group(1))
     return failed
 
 

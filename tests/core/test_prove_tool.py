@@ -282,3 +282,89 @@ def test_a_frama_c_run_past_its_timeout_is_killed_with_its_children(tmp_path: Pa
     assert (rc, stopped) == (-1, False)
     assert "timed out after 2 s" in out
     assert "timed out after 2 s" in (tmp_path / "eva.log").read_text()
+
+
+# -- the first pass with CVC4 alone, the retry over the functions it left (issue 24) ----------
+
+LOOPS = ["take_frame", "estop_crc32", "estop_crc8_e2e", "crc8_byte", "estop_ct_equal", "@Typed"]
+
+
+def test_a_goal_is_its_functions_and_a_lemma_is_no_functions() -> None:
+    fcts = ["estop__begin", "estop_crc8_e2e", "estop_crc32", "crc8_byte", "@Typed"]
+    goal = prove.wp.goal_function
+    assert goal("typed_estop_crc8_e2e_ensures_crc", "Typed", fcts) == "estop_crc8_e2e"
+    assert goal("typed_crc8_byte_assigns", "Typed", fcts) == "crc8_byte"
+    assert goal("typed_caveat_estop__begin_ensures_x", "Caveat", fcts) == "estop__begin"
+    assert goal("typed_lemma_eq_bit", "Typed", fcts) is None
+    assert goal("typed_estop_crc8_ensures", "Typed", fcts) is None  # a prefix, not a function
+
+
+def test_the_retry_runs_the_functions_of_the_goals_left_or_the_whole_group() -> None:
+    retry = prove.wp.retry_fcts
+    assert retry("loops", LOOPS, ["typed_estop_ct_equal_assert_equal_bit"]) == [
+        "@Typed", "estop_ct_equal"]
+    assert retry("loops", LOOPS, ["typed_crc8_byte_x", "typed_estop_ct_equal_y",
+                                  "typed_crc8_byte_z"]) == ["@Typed", "crc8_byte", "estop_ct_equal"]
+    assert retry("loops", LOOPS, ["typed_lemma_eq_bit"]) == LOOPS  # no function: all of them
+    assert retry("lemmas", ["@Typed"], ["typed_lemma_eq_bit"]) == ["@Typed"]
+
+
+def result(proved: int, total: int, failed: list[str], log: Path, **kw: Any) -> Any:
+    return prove.WpResult("loops", proved, total, {"Qed": 1}, failed, log, **kw)
+
+
+def test_a_retry_counts_by_wps_own_count_not_by_the_failures_it_names(tmp_path: Path) -> None:
+    log = tmp_path / "wp-loops-retry.log"
+    log.write_text("[wp] [Z3 4.8.12] Goal typed_estop_ct_equal_assert_equal_bit : Valid "
+                   "(Qed:37ms) (30ms) (176125)\n")
+    first = result(275, 276, ["typed_estop_ct_equal_assert_equal_bit"], tmp_path / "x", smoke=82,
+                   wall_s=38.0)
+    merged = prove.wp.merge_retry(first, result(26, 26, [], log, wall_s=8.0))
+    assert (merged.proved, merged.total, merged.failed, merged.smoke) == (276, 276, [], 82)
+    assert merged.by_prover == {"Qed": 1, "Z3": 1} and merged.wall_s == 46.0
+    assert prove.wp.ok(merged)
+    # a goal the retry left without naming it (a verdict the parser does not know) still fails
+    unnamed = prove.wp.merge_retry(first, result(25, 26, [], log))
+    assert unnamed.proved == 275 and not prove.wp.ok(unnamed)
+    # a retry frama-c refused counts nothing; its smoke failures are the run's
+    broken = prove.wp.merge_retry(first, result(0, 0, [], log, error="frama-c failed"))
+    assert broken.proved == 0 and not prove.wp.ok(broken)
+    dead = prove.wp.merge_retry(first, result(26, 26, [], log, smoke_failed=["typed_s"]))
+    assert dead.smoke_failed == ["typed_s"] and not prove.wp.ok(dead)
+
+
+def test_every_first_pass_asks_one_solver_and_the_retry_both() -> None:
+    assert prove.wp.FIRST_PASS_PROVERS == "cvc4"
+    assert set(prove.wp.PROVERS.split(",")) == {"z3", "cvc4"}
+
+
+def test_a_mutant_is_tried_as_make_prove_tries_the_core(monkeypatch: pytest.MonkeyPatch,
+                                                        tmp_path: Path) -> None:
+    """CVC4 alone first (its failed smoke test catches the mutant), then both solvers over the
+    function of a goal it left (a goal only Z3 proves does not catch it)."""
+    calls: list[tuple[str, list[str]]] = []
+    answers: list[Any] = []
+
+    def fake(name: str, core_dir: Path, fcts: list[str], env: dict[str, str], *a: Any,
+             provers: str = prove.wp.PROVERS, **kw: Any) -> Any:
+        calls.append((provers, fcts))
+        return answers.pop(0)
+
+    monkeypatch.setattr(prove.wp, "run_wp", fake)
+    monkeypatch.setattr(prove.wp, "WP_CACHE", tmp_path)
+    run = prove.selftest.run_mutant
+    answers[:] = [result(0, 0, ["typed_estop_ct_equal_wp_smoke_dead_code_s1"], tmp_path)]
+    assert run("mutant-0", tmp_path, LOOPS, {}).failed and calls == [("cvc4", LOOPS)]
+    calls.clear()
+    answers[:] = [result(0, 0, ["typed_estop_ct_equal_assert_equal_bit"], tmp_path),
+                  result(28, 28, [], tmp_path)]
+    assert not run("mutant-0", tmp_path, LOOPS, {}).failed
+    assert calls == [("cvc4", LOOPS), (prove.wp.PROVERS, ["@Typed", "estop_ct_equal"])]
+    calls.clear()
+    answers[:] = [result(276, 276, [], tmp_path)]
+    assert not run("mutant-0", tmp_path, LOOPS, {}).failed and len(calls) == 1
+    # no smoke tests under Caveat: one pass, with both solvers
+    calls.clear()
+    answers[:] = [result(0, 0, ["typed_caveat_release_ensures_x"], tmp_path)]
+    assert run("mutant-0", tmp_path, ["release"], {}).failed
+    assert calls == [(prove.wp.PROVERS, ["release"])]

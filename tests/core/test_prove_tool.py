@@ -214,6 +214,7 @@ def test_make_proves_mutant_sample_comes_from_the_runs_under_the_default_model()
     picked = prove.selftest.sample(every, 8)
     assert len(picked) == 8
     assert all(model(c) == prove.wp.WP_MODEL for _, c in picked)
+    assert all(c.split(":")[1] in prove.selftest.SAMPLE_RUNS for _, c in picked)
 
 
 def test_smoke_tests_run_with_their_timeout_in_every_typed_run() -> None:

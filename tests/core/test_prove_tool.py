@@ -332,6 +332,11 @@ def test_a_retry_counts_by_wps_own_count_not_by_the_failures_it_names(tmp_path: 
     assert broken.proved == 0 and not prove.wp.ok(broken)
     dead = prove.wp.merge_retry(first, result(26, 26, [], log, smoke_failed=["typed_s"]))
     assert dead.smoke_failed == ["typed_s"] and not prove.wp.ok(dead)
+    # a retry of the whole group (the lemmas) counts every goal, the first pass's Qed ones too
+    log.write_text("[wp] [Z3 4.8.12] Goal typed_lemma_eq_bit : Valid (170ms) (386998)\n")
+    lemmas = prove.wp.merge_retry(result(2, 3, ["typed_lemma_eq_bit"], tmp_path / "x"),
+                                  result(3, 3, [], log))
+    assert (lemmas.proved, lemmas.failed, lemmas.by_prover) == (3, [], {"Qed": 1, "Z3": 1})
 
 
 def test_every_first_pass_asks_one_solver_and_the_retry_both() -> None:

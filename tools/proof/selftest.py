@@ -140,10 +140,10 @@ def run_plants(check: str, group: list[Plant], env: dict[str, str]
     props = ",".join(p.prop for p in group if p.prop)
     # A planted goal must fail both solvers (make prove's retry asks both); a planted dead
     # branch must fail a smoke test of CVC4 alone (make prove's first pass asks it alone).
-    smoke = any("_wp_smoke_" in p.expect for p in group)
-    w = wp.run_wp(f"planted-{tag}", core_dir, wp_fcts(check), env, PLANT_TIMEOUT_S,
-                  only_prop=props, provers=wp.first_pass_provers(wp_fcts(check)) if smoke
-                  else wp.PROVERS)
+    fcts = wp_fcts(check)
+    smoke = any(wp.SMOKE_TAG in p.expect for p in group)
+    w = wp.run_wp(f"planted-{tag}", core_dir, fcts, env, PLANT_TIMEOUT_S, only_prop=props,
+                  provers=wp.first_pass_provers(fcts) if smoke else wp.PROVERS)
     for p in group:
         hit = any(p.expect in g for g in w.failed + w.smoke_failed)
         out.append((p, hit and not w.error, (f"{p.expect} not proved" if hit else
@@ -249,7 +249,7 @@ def run_mutant(name: str, core_dir: Path, fcts: list[str], env: dict[str, str]) 
         return wp.run_wp(name, core_dir, fcts, env, GOAL_TIMEOUT_S, first_failure=True)
     first = wp.run_wp(name, core_dir, fcts, env, GOAL_TIMEOUT_S, cache=True,
                       first_failure=True, provers=wp.first_pass_provers(fcts))
-    if first.error or not first.failed or any("_wp_smoke_" in g for g in first.failed):
+    if first.error or not first.failed or any(wp.SMOKE_TAG in g for g in first.failed):
         return first
     return wp.run_wp(name, core_dir, wp.retry_fcts(name, fcts, first.failed), env,
                      GOAL_TIMEOUT_S, cache=True, first_failure=True, log_name=f"{name}-retry")

@@ -21,13 +21,6 @@ PROVERS = "z3,cvc4"
 # its function's smoke tests: each function's smoke tests are asked of every solver that
 # proved one of its goals. The plants and the mutants try the same two passes (selftest.py).
 FIRST_PASS_PROVERS = "cvc4"
-
-
-def first_pass_provers(fcts: list[str]) -> str:
-    """CVC4 alone, or both solvers for a run marked %both: take_valid's valid_times_4 took
-    CVC4 alone 78 s idle (past the first pass's 90 s under load), Z3 23 s; each assertion
-    tried to make it CVC4's slowed another of its goals (valid_inv_3, 22 to 41 s)."""
-    return PROVERS if "%both" in fcts else FIRST_PASS_PROVERS
 # A whole WP run's bound (a hung frama-c fails the run, not CI's 90 minutes). make test runs
 # make prove at low priority beside the busiest steps: the datagram run took 533 s there (the
 # fresh-machine run of 09bd4ca, 176 s idle), and the steps run under Typed reached 600 s.
@@ -100,6 +93,13 @@ def wp_groups(path: Path = PROVE / "wp_groups.txt") -> list[tuple[str, list[str]
     return groups
 
 
+def first_pass_provers(fcts: list[str]) -> str:
+    """CVC4 alone, or both solvers for a run marked %both: take_valid's valid_times_4 took
+    CVC4 alone 78 s idle (past the first pass's 90 s under load), Z3 23 s; each assertion
+    tried to make it CVC4's slowed another of its goals (valid_inv_3, 22 to 41 s)."""
+    return PROVERS if "%both" in fcts else FIRST_PASS_PROVERS
+
+
 def model_of(fcts: list[str]) -> str:
     return next((f[1:] for f in fcts if f.startswith("@")), WP_MODEL)
 
@@ -121,6 +121,8 @@ GOAL_NOT_VALID = r"^\[wp\] Goal (\S+) : (?!Valid|trivial)"
 SOLVER_NOT_VALID = r"^\[wp\] \[[^\]]+\] Goal (\S+) : (?!Valid)"
 # The verdict that opens a line of a goal several solvers left, "[wp] [Timeout] Goal g".
 VERDICT_NOT_VALID = r"^\[wp\] \[(?:Timeout|Unknown|Failed|Stepout)[^\]]*\] "
+# WP's name of a smoke test's goal has this in it (its function's name before).
+SMOKE_TAG = "_wp_smoke_"
 # A goal or smoke test that failed, as WP prints it: enough to catch a mutant.
 FIRST_FAILURE = re.compile(VERDICT_NOT_VALID + r"(?:Goal|Smoke-test) (\S+)|" + GOAL_NOT_VALID
                            + "|" + SOLVER_NOT_VALID, re.M)
@@ -242,7 +244,7 @@ def retry_fcts(name: str, fcts: list[str], failed: list[str]) -> list[str]:
 
 
 def merge_retry(first: WpResult, retry: WpResult) -> WpResult:
-    """The first pass's result with a retry over some of its functions: the goals those
+    """The first pass's result with a retry over some or all of its functions: the goals those
     functions have are counted by the retry (WP's own count, not the failures parsed), the
     others by the first pass, which proved them all; the smoke tests of the first pass, and
     the retry's failed ones."""
@@ -276,10 +278,6 @@ def run_wp_retrying(name: str, fcts: list[str], env: dict[str, str]) -> tuple[li
         again = fcts  # a goal left that the log does not name: its function is not known
     retry = run_wp(name, CORE, again, env, GOAL_RETRY_TIMEOUT_S, cache=True,
                    log_name=f"{name}-retry")
-    if again == fcts:
-        return first.failed, dataclasses.replace(retry, wall_s=first.wall_s + retry.wall_s,
-                                                 smoke_failed=sorted(set(first.smoke_failed)
-                                                                     | set(retry.smoke_failed)))
     return first.failed, merge_retry(first, retry)
 
 

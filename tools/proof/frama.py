@@ -15,6 +15,7 @@ ROOT = Path(__file__).resolve().parents[2]
 CORE = ROOT / "firmware" / "core"
 PROVE = ROOT / "prove"
 BUILD = ROOT / "build" / "prove"
+SOLVERS = ROOT / "tools" / "proof" / "solvers"  # the solvers as Why3 runs them (cpu-limited)
 TOOLS = ("frama-c", "why3", "z3", "cvc4")
 
 
@@ -107,6 +108,12 @@ def why3_env() -> dict[str, str]:
         # No memory limit: the goals are small, and a limit turns a solver's large virtual
         # reservation into a failure.
         conf.write_text(re.sub(r"(?m)^memlimit = \d+", "memlimit = 0", conf.read_text()))
+    # Each solver through its CPU-time bound (tools/proof/solvers/cpu-limited), which runs the
+    # solver of that name from PATH: a conf detected before it was there is mended too.
+    text = conf.read_text()
+    for name in ("cvc4", "z3"):
+        text = re.sub(r'(?m)^path = "[^"]*/' + name + '"$', f'path = "{SOLVERS / name}"', text)
+    conf.write_text(text)
     env = dict(os.environ)
     env["WHY3CONFIG"] = str(conf)
     return env

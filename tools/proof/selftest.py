@@ -25,10 +25,14 @@ from .frama import BUILD, CORE, PROVE
 
 # A mutant's goals get 40 s, less than make prove's own (90 s, then 150 s): a caught mutant
 # usually fails by running out of time, and at 90 s the two of make prove added 50 s to its
-# tail (CI run of 017436c). So "caught" means a goal the solvers did not prove in 40 s.
+# tail (CI run of 017436c). So "caught" means a goal the solvers did not prove in 40 s of CPU
+# time each (wp.run_wp: bounded by wall time, a solver starved beside make test's other steps
+# could count a mutant caught that an idle one proves).
 GOAL_TIMEOUT_S = 40
 # A planted goal is false: it fails at any timeout, and costs this one of both solvers. At 20 s
-# the plants' nine false goals took about 360 s of the two workers (the CI run of efe87a5).
+# the plants' nine false goals took about 360 s of the two workers (the CI run of efe87a5). Wall
+# time (wp.run_wp's cpu_limited): a false goal fails at any limit, and a starved solver costs
+# the other steps less.
 PLANT_TIMEOUT_S = 10
 
 
@@ -143,7 +147,8 @@ def run_plants(check: str, group: list[Plant], env: dict[str, str]
     fcts = wp_fcts(check)
     smoke = any(wp.SMOKE_TAG in p.expect for p in group)
     w = wp.run_wp(f"planted-{tag}", core_dir, fcts, env, PLANT_TIMEOUT_S, only_prop=props,
-                  provers=wp.first_pass_provers(fcts) if smoke else wp.PROVERS)
+                  provers=wp.first_pass_provers(fcts) if smoke else wp.PROVERS,
+                  cpu_limited=False)
     for p in group:
         hit = any(p.expect in g for g in w.failed + w.smoke_failed)
         out.append((p, hit and not w.error, (f"{p.expect} not proved" if hit else

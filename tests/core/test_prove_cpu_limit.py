@@ -1,0 +1,110 @@
+"""make prove bounds a solver by the CPU time it uses, not the wall time it waits
+(tools/proof/solvers/cpu-limited, tools/proof/wp.py): beside make test's other steps a starved
+solver ran out of wall time on a goal it proves idle (take_valid's valid_inv_3 on a slower
+machine), so the load decided the verdict. Frama-C and the solvers do not run here: a solver of
+our own stands in for CVC4, and WP's command line is caught before it starts."""
+
+from __future__ import annotations
+
+import importlib
+import os
+import subprocess
+from pathlib import Path
+from typing import Any
+
+import pytest
+from test_prove_tool import prove
+
+from repo import ROOT
+
+frama = importlib.import_module("proof.frama")  # tools/ is on sys.path since prove loaded
+SOLVERS = ROOT / "tools" / "proof" / "solvers"
+
+
+def stand_in(tmp_path: Path, name: str) -> dict[str, str]:
+    """A PATH whose `name` prints the CPU-time limit it runs under, and its arguments."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    solver = bin_dir / name
+    solver.write_text('#!/bin/sh\necho "cpu=$(ulimit -t) args=$*"\n')
+    solver.chmod(0o755)
+    return dict(os.environ, PATH=f"{bin_dir}:/usr/bin:/bin")
+
+
+@pytest.mark.parametrize("name", ["cvc4", "z3"])
+def test_the_solver_runs_under_the_cpu_time_it_is_given(tmp_path: Path, name: str) -> None:
+    env = stand_in(tmp_path, name)
+    run = subprocess.run([str(SOLVERS / name), "--lang=smt2", "goal.smt2"], capture_output=True,
+                         text=True, timeout=10, env=dict(env, ESTOP_SOLVER_CPU_S="7"))
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "cpu=7 args=--lang=smt2 goal.smt2"
+    unbounded = subprocess.run([str(SOLVERS / name)], capture_output=True, text=True,
+                               timeout=10, env=env)
+    assert unbounded.stdout.strip() == "cpu=unlimited args="
+
+
+def test_a_missing_solver_is_one_line_and_no_loop(tmp_path: Path) -> None:
+    run = subprocess.run([str(SOLVERS / "cvc4")], capture_output=True, text=True, timeout=10,
+                         env=dict(os.environ, PATH=str(tmp_path)))
+    assert run.returncode == 127
+    assert run.stderr.strip() == "cpu-limited: no cvc4 on PATH"
+
+
+def test_why3_runs_the_bounded_solvers(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    """The configuration detected on this machine names the solvers' own paths; why3_env
+    points both at the bounded ones, also in a configuration detected before they existed."""
+    conf = tmp_path / "why3.conf"
+    conf.write_text('[main]\nmemlimit = 0\n\n[partial_prover]\nname = "CVC4"\n'
+                    'path = "/usr/bin/cvc4"\nversion = "1.8"\n\n[partial_prover]\n'
+                    'name = "Z3"\npath = "/usr/bin/z3"\nversion = "4.8.12"\n')
+    monkeypatch.setattr(frama, "BUILD", tmp_path)
+    env = frama.why3_env()
+    assert env["WHY3CONFIG"] == str(conf)
+    paths = [line for line in conf.read_text().splitlines() if line.startswith("path")]
+    assert paths == [f'path = "{SOLVERS / "cvc4"}"', f'path = "{SOLVERS / "z3"}"']
+    frama.why3_env()  # again: unchanged
+    assert [x for x in conf.read_text().splitlines() if x.startswith("path")] == paths
+
+
+def caught_run(monkeypatch: pytest.MonkeyPatch,
+               **kw: Any) -> tuple[list[str], dict[str, str]]:
+    """WP's command line and environment for one run of the link group."""
+    seen: dict[str, Any] = {}
+
+    def fake(args: list[str], log: Path, timeout: int, env: dict[str, str]) -> tuple[int, str]:
+        seen.update(args=args, env=env)
+        return 1, ""
+
+    monkeypatch.setattr(prove.wp, "frama_c", fake)  # writes no log
+    prove.wp.run_wp("link", frama.CORE, ["estop_gap_bin", "@Typed"], {"A": "1"}, 90,
+                    log_name="cpu-limit-test", **kw)
+    return seen["args"], seen["env"]
+
+
+def option(args: list[str], name: str) -> str:
+    return args[args.index(name) + 1]
+
+
+def test_a_goal_gets_cpu_time_and_a_longer_wall_time(monkeypatch: pytest.MonkeyPatch,
+                                                     tmp_path: Path) -> None:
+    args, env = caught_run(monkeypatch)
+    assert env["ESTOP_SOLVER_CPU_S"] == "90" and env["A"] == "1"
+    assert option(args, "-wp-timeout") == str(90 * prove.wp.WALL_GUARD)
+    assert prove.wp.WALL_GUARD >= 10
+    # a smoke test keeps its second of wall time (it passes when the solver gives up)
+    assert option(args, "-wp-smoke-timeout") == str(prove.wp.SMOKE_TIMEOUT_S)
+
+
+def test_a_planted_goal_gets_wall_time(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
+    args, env = caught_run(monkeypatch, cpu_limited=False)
+    assert "ESTOP_SOLVER_CPU_S" not in env
+    assert option(args, "-wp-timeout") == "90"
+
+
+def test_no_run_asks_cvc4_alone_a_goal_only_z3_proves() -> None:
+    """CVC4 runs its whole CPU time out on the two goals of bit 8 of a byte minus one: the runs
+    that hold them ask both solvers from the start."""
+    groups = dict(prove.wp.wp_groups())
+    assert "%both" in groups["lemmas"]
+    holding = [name for name, fcts in groups.items() if "estop_ct_equal" in fcts]
+    assert holding == ["ct"] and "%both" in groups["ct"]

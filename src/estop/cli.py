@@ -26,33 +26,32 @@ errors are one line ``estop: error: ...``.
 from __future__ import annotations
 
 import argparse
+import importlib
 import sys
 from collections.abc import Sequence
+from types import ModuleType
 
 from estop import __version__
-from estop.commands import (
-    dashboard,
-    demo,
-    keygen,
-    lift,
-    link,
-    monitor,
-    release,
-    remote,
-    status,
-    stop,
-)
 from estop.commands.configfile import CONFIG_ENV
 from estop.commands.options import ErrorOnlyParser
 from estop.commands.output import err, exit_code_table
 from estop.commands.settings import resolve_settings
 from estop.errors import EXIT_FILE, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_USAGE, CliError
 
-__all__ = ["COMMANDS", "build_parser", "main"]
+__all__ = ["COMMANDS", "build_parser", "command_module", "main"]
 
-# The sub-commands in the order of ``estop --help``: each module adds its parser(s), whose
-# ``handler`` runs the command. ``estop demo`` parses its own options (see main).
-COMMANDS = (remote, stop, lift, release, status, monitor, keygen, link, dashboard, demo)
+# The sub-commands in the order of ``estop --help``, each the module of estop.commands of its
+# name, which adds its parser, whose ``handler`` runs the command. ``estop demo`` parses its
+# own options (see main). A command imports its own module only: ``estop stop`` loaded the
+# dashboard's asyncio server and the demo as well, 120 of its 155 ms of imports (seconds in a
+# VM under TCG, where the systemd and gamepad checks run the command line).
+COMMANDS = ("remote", "stop", "lift", "release", "status", "monitor", "keygen", "link",
+            "dashboard", "demo")
+
+
+def command_module(name: str) -> ModuleType:
+    """The module of the sub-command ``name`` (one of COMMANDS)."""
+    return importlib.import_module(f"estop.commands.{name}")
 
 _EPILOG = f"""\
 settings: command line > environment (ESTOP_HOST, ESTOP_UDP_PORT, ESTOP_TCP_PORT,
@@ -65,14 +64,15 @@ exit codes (every command):
 {exit_code_table()}"""
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The ``estop`` parser with every sub-command, or with the one named ``only``."""
     parser = ErrorOnlyParser(prog="estop", description="Tools for the estop emergency-stop "
                              "unit (wire contract: docs/PROTOCOL.md).", epilog=_EPILOG,
                              formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"estop {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for command in COMMANDS:
-        command.add_parser(sub)
+    for name in COMMANDS if only is None else (only,):
+        command_module(name).add_parser(sub)
     return parser
 
 
@@ -84,8 +84,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if args_list[:1] == ["demo"]:
             # everything after `demo` belongs to the demo's own parser (argparse.REMAINDER
             # would not pass options such as --help through a sub-parser)
-            return int(demo.main(args_list[1:]) or 0)
-        args = build_parser().parse_args(args_list)
+            return int(command_module("demo").main(args_list[1:]) or 0)
+        # the named command's parser alone; --help, --version or a wrong name: all of them
+        named = args_list[0] if args_list and args_list[0] in COMMANDS else None
+        args = build_parser(named).parse_args(args_list)
         resolve_settings(args)
         return int(args.handler(args))
     except CliError as exc:

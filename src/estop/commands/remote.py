@@ -45,11 +45,8 @@ from estop.commands.settings import add_settings, key_from_args
 from estop.errors import EXIT_OK, EXIT_REFUSED, ConnectionFailure, FileFailure, UsageError
 from estop.model.wifi import IDEAL, WIFI, LinkConfig
 from estop.protocol import tcp
-from estop.remote.gamepad import run_gamepad
-from estop.remote.keys import run_interactive
 from estop.remote.script import ExpectFailed, ScriptError, ScriptRunner, Step, parse_script
-from estop.remote.touch.run import DEFAULT_LISTEN as TOUCH_LISTEN
-from estop.remote.touch.run import run_touch
+from estop.remote.touch import DEFAULT_LISTEN as TOUCH_LISTEN
 
 __all__ = ["DESCRIPTION", "EPILOG", "add_parser", "link_config", "rate_arg", "run"]
 
@@ -245,11 +242,15 @@ def run(args: argparse.Namespace) -> int:
 
     with remote:
         try:
+            # each mode's module when it runs (the touch page's server loads asyncio)
             if args.gamepad is not None:
+                from estop.remote.gamepad import run_gamepad
                 code = run_gamepad(remote, args.gamepad or None, args.deadman, log)
             elif listen is not None:
+                from estop.remote.touch.run import run_touch
                 code = run_touch(remote, *listen, log=log, say=out, warn=err)
             elif steps is None:
+                from estop.remote.keys import run_interactive
                 run_interactive(remote, out)
             else:
                 code = _run_script(remote, steps, log)

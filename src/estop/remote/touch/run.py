@@ -27,11 +27,11 @@ from estop.client.channel import StopChannel, StopChannelError, format_reply
 from estop.client.sender import Remote
 from estop.errors import ConnectionFailure
 from estop.extras import require_extra
+from estop.remote.touch import DEFAULT_LISTEN
 from estop.remote.touch.wire import encode_token, new_token
 
 __all__ = ["DEFAULT_LISTEN", "LOOPBACK", "page_url", "qr_text", "run_touch"]
 
-DEFAULT_LISTEN = "127.0.0.1:8081"
 LOOPBACK = ("127.0.0.1", "localhost", "::1")
 Log = Callable[[str], None]
 

@@ -85,20 +85,45 @@ def option(args: list[str], name: str) -> str:
     return args[args.index(name) + 1]
 
 
-def test_a_goal_gets_cpu_time_and_a_longer_wall_time(monkeypatch: pytest.MonkeyPatch,
-                                                     tmp_path: Path) -> None:
+def test_a_goal_gets_cpu_time_and_a_longer_wall_time(monkeypatch: pytest.MonkeyPatch) -> None:
     args, env = caught_run(monkeypatch)
     assert env["ESTOP_SOLVER_CPU_S"] == "90" and env["A"] == "1"
     assert option(args, "-wp-timeout") == str(90 * prove.wp.WALL_GUARD)
     assert prove.wp.WALL_GUARD >= 10
-    # a smoke test keeps its second of wall time (it passes when the solver gives up)
+    # a smoke test: CVC4's resource units, Z3's second of wall time, and a longer wall limit
+    # for WP (Why3 stops a call at about twice it)
+    assert env["ESTOP_SMOKE_RLIMIT"] == str(prove.wp.SMOKE_RLIMIT)
+    assert env["ESTOP_SMOKE_Z3_MS"] == str(prove.wp.SMOKE_TIMEOUT_S * 1000)
+    assert option(args, "-wp-smoke-timeout") == str(prove.wp.SMOKE_WALL_GUARD_S)
+    assert prove.wp.SMOKE_WALL_GUARD_S * 1000 < 40 * 1000  # below every goal's CPU limit
+
+
+def test_a_planted_goal_gets_wall_time(monkeypatch: pytest.MonkeyPatch) -> None:
+    args, env = caught_run(monkeypatch, cpu_limited=False)
+    assert "ESTOP_SOLVER_CPU_S" not in env and "ESTOP_SMOKE_RLIMIT" not in env
+    assert option(args, "-wp-timeout") == "90"
     assert option(args, "-wp-smoke-timeout") == str(prove.wp.SMOKE_TIMEOUT_S)
 
 
-def test_a_planted_goal_gets_wall_time(monkeypatch: pytest.MonkeyPatch, tmp_path: Path) -> None:
-    args, env = caught_run(monkeypatch, cpu_limited=False)
-    assert "ESTOP_SOLVER_CPU_S" not in env
-    assert option(args, "-wp-timeout") == "90"
+SMOKE_ENV = {"ESTOP_SOLVER_CPU_S": "90", "ESTOP_SMOKE_RLIMIT": "20000",
+             "ESTOP_SMOKE_Z3_MS": "1000"}
+SMOKE = "--stats --tlimit=10000 --lang=smt2 g.smt2"
+
+
+@pytest.mark.parametrize(("name", "given", "run_as"), [
+    # a smoke test (a wall limit below the goals' CPU limit): CVC4's resource units, Z3's second
+    ("cvc4", SMOKE, "--stats --rlimit=20000 --lang=smt2 g.smt2"),
+    ("z3", "-smt2 -t:10000 -st g.smt2", "-smt2 -t:1000 -st g.smt2"),
+    # a goal: as given (its CPU time bounds it)
+    ("cvc4", "--stats --tlimit=900000 g.smt2", "--stats --tlimit=900000 g.smt2"),
+    ("z3", "-smt2 -t:900000 -st g.smt2", "-smt2 -t:900000 -st g.smt2"),
+])
+def test_a_smoke_test_gets_resource_units_not_wall_time(tmp_path: Path, name: str, given: str,
+                                                        run_as: str) -> None:
+    env = dict(stand_in(tmp_path, name), **SMOKE_ENV)
+    run = subprocess.run([str(SOLVERS / name), *given.split()], capture_output=True, text=True,
+                         timeout=10, env=env)
+    assert run.stdout.strip() == f"cpu=90 args={run_as}", run.stderr
 
 
 def test_no_run_asks_cvc4_alone_a_goal_only_z3_proves() -> None:

@@ -37,8 +37,16 @@ WP_MODEL = "Caveat"
 # A smoke test passes when neither solver proves \false at its point in the time it gets, so
 # each one that passes costs that time of both: 1 s (WP's default is 2 s) halves the cost of
 # the Typed runs' 137 smoke tests (about 140 s of make prove's 2 workers). Still able to fail:
-# the self-test's dead-branch plant is caught at 1 s.
+# the self-test's dead-branch plant is caught at 1 s. In a run bounded by CPU time (run_wp's
+# cpu_limited) CVC4 gets SMOKE_RLIMIT resource units instead of that second of wall time, and
+# WP's wall limit is SMOKE_WALL_GUARD_S, against a hang (Why3 stops a call at about twice its
+# limit: a starved CVC4 ran out of its second, and the smoke test passed, where an idle one
+# could have proved \false). 20,000 units are about 1 s of CPU on the slower 2-core machine
+# of issue 24's thirteenth round; the dead-branch plant is caught at 1,000. Z3 keeps its
+# second of wall time (tools/proof/solvers/cpu-limited).
 SMOKE_TIMEOUT_S = 1
+SMOKE_RLIMIT = 20000
+SMOKE_WALL_GUARD_S = 10
 MODEL_CHECKS = {"Typed": ["-wp-check-memory-model", "-wp-smoke-tests",
                           "-wp-smoke-timeout", str(SMOKE_TIMEOUT_S)]}
 MODEL_TAGS = {"Typed": "typed_", "Caveat": "typed_caveat_"}  # how WP names their goals
@@ -162,7 +170,8 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
            provers: str = PROVERS, log_name: str = "", cpu_limited: bool = True) -> WpResult:
     """One WP run. goal_timeout_s is the CPU time a solver gets on a goal (cpu_limited), or
     the wall time (not cpu_limited: the self-test's planted goals, false at any limit, whose
-    solvers run their limit out). A smoke test gets SMOKE_TIMEOUT_S of wall time. only_prop
+    solvers run their limit out). A smoke test gets SMOKE_RLIMIT of CVC4's resource units and
+    SMOKE_TIMEOUT_S of Z3's wall time (cpu_limited), or SMOKE_TIMEOUT_S of wall time. only_prop
     restricts it to one property: the self-test's planted faults only (the planted goal costs
     its timeout), never a run of make prove's proof. first_failure stops it at the first goal
     that fails (the self-test's mutants). The cache is kept by name; the log is
@@ -181,7 +190,10 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
             "-wp-model", model, "-wp-prover", provers, *WP_OPTS, *MODEL_CHECKS.get(model, []),
             "-wp-timeout", str(goal_timeout_s * (WALL_GUARD if cpu_limited else 1)), *flags]
     if cpu_limited:
-        env = dict(env, ESTOP_SOLVER_CPU_S=str(goal_timeout_s))
+        env = dict(env, ESTOP_SOLVER_CPU_S=str(goal_timeout_s), ESTOP_SMOKE_RLIMIT=str(
+            SMOKE_RLIMIT), ESTOP_SMOKE_Z3_MS=str(SMOKE_TIMEOUT_S * 1000))
+        if "-wp-smoke-timeout" in args:
+            args[args.index("-wp-smoke-timeout") + 1] = str(SMOKE_WALL_GUARD_S)
     if cache:
         # The solvers' verdicts by goal (a hash of the goal and the prover): a run again with
         # a longer timeout re-tries only what timed out. Emptied by every make prove.

@@ -133,3 +133,13 @@ def test_no_run_asks_cvc4_alone_a_goal_only_z3_proves() -> None:
     assert "%both" in groups["lemmas"]
     holding = [name for name, fcts in groups.items() if "estop_ct_equal" in fcts]
     assert holding == ["ct"] and "%both" in groups["ct"]
+
+
+def test_without_the_smoke_budgets_a_smoke_test_keeps_its_limit(tmp_path: Path) -> None:
+    """A solver stopped on a missing budget would pass every smoke test: the call runs as
+    given instead."""
+    env = dict(stand_in(tmp_path, "cvc4"), ESTOP_SOLVER_CPU_S="90")
+    run = subprocess.run([str(SOLVERS / "cvc4"), *SMOKE.split()], capture_output=True,
+                         text=True, timeout=10, env=env)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == f"cpu=90 args={SMOKE}"

@@ -3,6 +3,10 @@ a stall stretched, late frames and enough frames."""
 
 from __future__ import annotations
 
+import json
+import random
+from pathlib import Path
+
 import pytest
 
 import hilcheck
@@ -104,6 +108,58 @@ def test_periods_status_period_ignores_short_stalls() -> None:
     late_ts[10] += 0.008  # delayed by a stall that ends right before it
     p2 = hilcheck.periods(late_ts, [*stalls[:9], (50.995, 51.007), *stalls[10:]], 0.100)
     assert p2.mean_judged == pytest.approx(0.100, abs=1e-3)
+
+
+def _boot_tcg_run() -> tuple[list[float], list[tuple[float, float]]]:
+    data = json.loads((Path(__file__).parent / "data" / "hil_boot_tcg_fe6fa73.json").read_text())
+    return ([t / 1e6 for t in data["brake_us"]],
+            [(a / 1e6, b / 1e6) for a, b in data["stalls_us"]])
+
+
+def test_the_grid_period_of_a_tcg_run_whose_stretch_mean_failed() -> None:
+    # The boot row of a HIL run of fe6fa73 failed on the mean of the stall-free stretches,
+    # 9.22 ms: 22 gaps in 8 stretches of 1 to 5, whose first frames a vCPU delay the stall
+    # monitor did not see had made late (a late start shortens a short stretch's mean).
+    ts, stalls = _boot_tcg_run()
+    p = hilcheck.periods(ts, stalls, 0.010)
+    assert p.mean_judged == pytest.approx(0.00922, abs=1e-5)
+    assert p.grid == pytest.approx(0.010, abs=5e-5)
+    assert p.grid_gaps >= 20
+
+
+def _delayed(ts: list[float], seed: int, most_s: float) -> list[float]:
+    rng = random.Random(seed)
+    out = [t + (rng.uniform(0.0, most_s) if rng.random() < 0.4 else 0.0) for t in ts]
+    return sorted(out)
+
+
+@pytest.mark.parametrize("period", [0.0095, 0.010, 0.0106, 0.011])
+def test_the_grid_period_under_delays_unseen(period: float) -> None:
+    # frames delayed by up to 0.8 of a period, without any stall recorded: the grid's period
+    # is found, a wrong one too (a daemon off by 0.6 ms fails the row's 0.5 ms)
+    ts = _delayed(_grid(10.0, 200, period), 7, 0.8 * period)
+    p = hilcheck.periods(ts, [], 0.010)
+    assert p.grid == pytest.approx(period, abs=2e-5)
+    assert p.grid_gaps > 100
+
+
+def test_the_grid_period_across_a_restarted_grid() -> None:
+    # after a stall the daemon starts its grid over, 4 ms later in phase: two runs, each with
+    # its own line, one period
+    ts = _delayed(_grid(20.0, 60), 3, 0.004)
+    ts += _delayed(_grid(20.0 + 60 * 0.010 + 0.034, 60), 4, 0.004)
+    p = hilcheck.periods(ts, [(20.59, 20.63)], 0.010)
+    assert p.grid == pytest.approx(0.010, abs=2e-5)
+    # unseen, the restart is still a gap of 1.5 periods or more: a run of its own
+    q = hilcheck.periods(ts, [], 0.010)
+    assert q.grid == pytest.approx(0.010, abs=2e-5)
+
+
+def test_the_grid_period_wants_runs_of_three_frames() -> None:
+    assert hilcheck.grid_period([[1.0, 1.01]], 0.010) == (None, 0)
+    assert hilcheck.grid_period([], 0.010) == (None, 0)
+    period, gaps = hilcheck.grid_period([[1.0, 1.01, 1.02], [2.0, 2.011]], 0.010)
+    assert period == pytest.approx(0.010, abs=1e-6) and gaps == 2
 
 
 def test_late_and_enough_frames() -> None:

@@ -132,14 +132,15 @@ def periods(ts: Sequence[float], stalls: Sequence[tuple[float, float]], period_s
         if len(clean) >= 2:
             judged += [run[k + 1] - run[k] for k in range(clean[0], clean[-1])]
             stretches += 1
-    grid_runs = [r for run in runs for r in split_late(run, period_s)]
-    grid, grid_gaps = grid_period(grid_runs, period_s)
+    grid, grid_gaps = grid_period(split_late(ts, period_s), period_s)
     return Periods(gaps, judged, stretches, max(0, len(runs) - 1), grid, grid_gaps)
 
 
 # A gap this many periods long ends a run that grid_period fits: the frame after it may be
-# the first of a grid the daemon started over (it does so a whole period late), which no
-# recorded stall need explain (a TCG guest's vCPU is delayed by the host unseen).
+# the first of a grid the daemon started over (it does so a whole period late). The CPU
+# stalls do not cut the runs: they can only delay frames, which the fit allows for, and runs
+# cut at every stall of half a period were too short to fit (a heavily loaded TCG run: 9.59 ms
+# on 26 gaps in 60 runs, against 10.01 ms on 80 gaps in 11 runs cut at the long gaps only).
 RESTART_GAP_PERIODS = 1.5
 
 
@@ -162,8 +163,9 @@ def grid_period(runs: Sequence[Sequence[float]], nominal_s: float) -> tuple[floa
     the least delay above it: P minimises the sum over the runs (each with its own ``a``, the
     least ``t_i - i * P`` of the run) of each frame's delay. Unlike the mean gap of a short
     stretch, it is not shortened by a first frame that came late unseen: the boot row failed
-    on a mean of 9.22 ms over stretches of two to five gaps in a TCG guest, where this gives
-    10.00 ms (tests/harness/test_hil_timing.py). The sum is convex in P (a sum of linear terms
+    on a mean of 9.22 ms over stretches of one to five gaps in a TCG guest, where this gives
+    10.01 ms over the runs between the gaps of 1.5 periods (split_late;
+    tests/harness/test_hil_timing.py). The sum is convex in P (a sum of linear terms
     and maxima of linear terms), so a ternary search over half to twice the nominal period
     finds its minimum. Runs of fewer than three frames say nothing of P and are left out."""
     use = [r for r in runs if len(r) >= 3]

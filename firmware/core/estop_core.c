@@ -86,10 +86,14 @@ estop_err_t estop_init(estop_core_t *core, const estop_config_t *cfg, uint32_t n
         err = estop_config_check(cfg);
         if (err == ESTOP_OK) {
             copy_config(&core->cfg, cfg); /* core->cfg.key stays zero */
+            /*@ assert init_step: cfg_ok(core) && slots_ok(core) && core->link_fresh == 0 &&
+                    core->mac.outlen == 0; */
             if (cfg->key_len == ESTOP_KEY_LEN) {
                 /* (a key of valid length cannot fail here) */
                 (void)estop_b2s_key_init(&core->mac, cfg->key, ESTOP_KEY_LEN, ESTOP_TAG_LEN);
             }
+            /*@ assert init_step: cfg_ok(core) && slots_ok(core) && core->link_fresh == 0 &&
+                    core->mac.outlen == (cfg->key_len == ESTOP_KEY_LEN ? ESTOP_TAG_LEN : 0); */
             core->now_us = now_us;
             core->state = (uint8_t)ESTOP_STATE_STOPPED;
             core->reason = (uint8_t)ESTOP_REASON_BOOT;
@@ -629,13 +633,19 @@ static void rearm(estop_core_t *core, estop_out_t *out)
  */
 static void take_valid(estop_core_t *core, const uint8_t *body, estop_out_t *out)
 {
+    /* The valid_step assertions hand the solvers the slots and the link's age a step at a
+     * time: with them CVC4 alone proves every goal of take_valid (28 s idle); without, CVC4
+     * took 49 s on valid_inv_3 and ran out of 90 s on valid_times_4 (Z3: 28 s). */
     estop__record_gap(core); /* core->now_us is now_us from here on */
+    /*@ assert valid_step: slots_ok(core); */
     sat32_inc(&core->counters.udp_valid);
     core->status_valid = sat8_inc(core->status_valid);
     sat32_inc(&core->valid_run);
+    /*@ assert valid_step: slots_ok(core); */
     core->last_valid_us = core->now_us;
     core->link_fresh = 1u;
     core->last_neutral = non_positive_bits(rd_u32le(body)) ? 1u : 0u;
+    /*@ assert valid_step: slots_ok(core) && udiff(core->now_us, core->last_valid_us) == 0; */
     if (core->state == ESTOP_STATE_SLOWING) {
         core->slow_run++;
         if (core->slow_run >= ESTOP_REARM_PACKETS) {

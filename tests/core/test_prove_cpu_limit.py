@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import importlib
 import os
+import shutil
 import subprocess
+import time
 from pathlib import Path
 from typing import Any
 
@@ -90,10 +92,10 @@ def test_a_goal_gets_cpu_time_and_a_longer_wall_time(monkeypatch: pytest.MonkeyP
     assert env["ESTOP_SOLVER_CPU_S"] == "90" and env["A"] == "1"
     assert option(args, "-wp-timeout") == str(90 * prove.wp.WALL_GUARD)
     assert prove.wp.WALL_GUARD >= 10
-    # a smoke test: CVC4's resource units, Z3's second of wall time, and a longer wall limit
-    # for WP (Why3 stops a call at about twice it)
+    # a smoke test: each solver's resource units, and a longer wall limit for WP (Why3 stops a
+    # call at about twice it)
     assert env["ESTOP_SMOKE_RLIMIT"] == str(prove.wp.SMOKE_RLIMIT)
-    assert env["ESTOP_SMOKE_Z3_MS"] == str(prove.wp.SMOKE_TIMEOUT_S * 1000)
+    assert env["ESTOP_SMOKE_Z3_RLIMIT"] == str(prove.wp.SMOKE_Z3_RLIMIT)
     assert option(args, "-wp-smoke-timeout") == str(prove.wp.SMOKE_WALL_GUARD_S)
     assert prove.wp.SMOKE_WALL_GUARD_S * 1000 < 40 * 1000  # below every goal's CPU limit
 
@@ -106,14 +108,14 @@ def test_a_planted_goal_gets_wall_time(monkeypatch: pytest.MonkeyPatch) -> None:
 
 
 SMOKE_ENV = {"ESTOP_SOLVER_CPU_S": "90", "ESTOP_SMOKE_RLIMIT": "20000",
-             "ESTOP_SMOKE_Z3_MS": "1000"}
+             "ESTOP_SMOKE_Z3_RLIMIT": "1000000"}
 SMOKE = "--stats --tlimit=10000 --lang=smt2 g.smt2"
 
 
 @pytest.mark.parametrize(("name", "given", "run_as"), [
-    # a smoke test (a wall limit below the goals' CPU limit): CVC4's resource units, Z3's second
+    # a smoke test (a wall limit below the goals' CPU limit): each solver's resource units
     ("cvc4", SMOKE, "--stats --rlimit=20000 --lang=smt2 g.smt2"),
-    ("z3", "-smt2 -t:10000 -st g.smt2", "-smt2 -t:1000 -st g.smt2"),
+    ("z3", "-smt2 -t:10000 -st g.smt2", "-smt2 rlimit=1000000 -st g.smt2"),
     # a goal: as given (its CPU time bounds it)
     ("cvc4", "--stats --tlimit=900000 g.smt2", "--stats --tlimit=900000 g.smt2"),
     ("z3", "-smt2 -t:900000 -st g.smt2", "-smt2 -t:900000 -st g.smt2"),
@@ -124,6 +126,47 @@ def test_a_smoke_test_gets_resource_units_not_wall_time(tmp_path: Path, name: st
     run = subprocess.run([str(SOLVERS / name), *given.split()], capture_output=True, text=True,
                          timeout=10, env=env)
     assert run.stdout.strip() == f"cpu=90 args={run_as}", run.stderr
+
+
+def _pigeons(n: int) -> str:
+    """n + 1 pigeons in n holes: unsatisfiable, and hard enough to outlast a small budget."""
+    lines = ["(set-logic QF_UF)"]
+    lines += [f"(declare-const p{i}_{j} Bool)" for i in range(n + 1) for j in range(n)]
+    lines += ["(assert (or " + " ".join(f"p{i}_{j}" for j in range(n)) + "))"
+              for i in range(n + 1)]
+    lines += [f"(assert (not (and p{a}_{j} p{b}_{j})))"
+              for j in range(n) for a in range(n + 1) for b in range(a + 1, n + 1)]
+    return "\n".join([*lines, "(check-sat)", ""])
+
+
+@pytest.mark.parametrize(("name", "given"), [
+    ("cvc4", "--stats --tlimit=10000 --lang=smt2"),  # as Why3 calls them for a smoke test
+    ("z3", "-smt2 -t:10000 -st"),
+])
+def test_each_real_solver_answers_a_smoke_test_within_its_units(tmp_path: Path, name: str,
+                                                                given: str) -> None:
+    """The solver takes the budget the wrapper gives it: \\false is still found where the
+    hypotheses contradict each other (a solver that refused the option would pass every smoke
+    test), and a problem beyond the budget is given up."""
+    if not shutil.which(name):
+        pytest.skip(f"{name} is not installed (scripts/ensure-debs prove)")
+    contra = tmp_path / "contra.smt2"
+    contra.write_text("(set-logic QF_LIA)\n(declare-const x Int)\n(assert (> x 0))\n"
+                      "(assert (< x 0))\n(check-sat)\n")
+    hard = tmp_path / "hard.smt2"
+    hard.write_text(_pigeons(9))
+    env = dict(os.environ, **SMOKE_ENV)
+
+    def answer(f: Path, **budget: str) -> str:
+        run = subprocess.run([str(SOLVERS / name), *given.split(), str(f)], capture_output=True,
+                             text=True, timeout=60, env=dict(env, **budget))
+        return run.stdout.split()[0] if run.stdout.split() else f"(none: {run.stderr!r})"
+
+    assert answer(contra) == "unsat"
+    t0 = time.monotonic()
+    assert answer(hard, ESTOP_SMOKE_RLIMIT="1000", ESTOP_SMOKE_Z3_RLIMIT="1000") == "unknown"
+    # given up on its units, not on the call's wall limit of 10 s
+    assert time.monotonic() - t0 < 5.0
 
 
 def test_no_run_asks_cvc4_alone_a_goal_only_z3_proves() -> None:

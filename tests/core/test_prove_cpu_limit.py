@@ -64,8 +64,10 @@ def test_why3_runs_the_bounded_solvers(monkeypatch: pytest.MonkeyPatch, tmp_path
     assert env["WHY3CONFIG"] == str(conf)
     paths = [line for line in conf.read_text().splitlines() if line.startswith("path")]
     assert paths == [f'path = "{SOLVERS / "cvc4"}"', f'path = "{SOLVERS / "z3"}"']
-    frama.why3_env()  # again: unchanged
+    inode = conf.stat().st_ino
+    frama.why3_env()  # again: unchanged, and not written (the same file, not a new one)
     assert [x for x in conf.read_text().splitlines() if x.startswith("path")] == paths
+    assert conf.stat().st_ino == inode
 
 
 def caught_run(monkeypatch: pytest.MonkeyPatch,

@@ -110,10 +110,16 @@ def why3_env() -> dict[str, str]:
         conf.write_text(re.sub(r"(?m)^memlimit = \d+", "memlimit = 0", conf.read_text()))
     # Each solver through its CPU-time bound (tools/proof/solvers/cpu-limited), which runs the
     # solver of that name from PATH: a conf detected before it was there is mended too.
-    text = conf.read_text()
+    # Written only when it changes, and whole (a rename): make prove's workers call this while
+    # other runs' frama-c read the file.
+    before = conf.read_text()
+    text = before
     for name in ("cvc4", "z3"):
         text = re.sub(r'(?m)^path = "[^"]*/' + name + '"$', f'path = "{SOLVERS / name}"', text)
-    conf.write_text(text)
+    if text != before:
+        tmp = conf.with_name(conf.name + ".tmp")
+        tmp.write_text(text)
+        tmp.replace(conf)
     env = dict(os.environ)
     env["WHY3CONFIG"] = str(conf)
     return env

@@ -30,8 +30,12 @@ from guestlib import (
 RESTART_SEC = 1.0
 WATCHDOG_SEC = 1.0
 # systemd's slack on its timers under TCG: a restart is scheduled within RestartSec + this of
-# the death, the watchdog fires within WatchdogSec + this of the last ping.
-TIMER_SLACK = 0.5
+# the death, the watchdog fires within WatchdogSec + this of the last ping. 0.5 s until a
+# fresh-machine run of 8e6ae75 (issue 24), where Debian 13's guest beside make prove scheduled
+# the watchdog's restart 3.09 s after SIGSTOP, against 3.00 s allowed, with no freeze its
+# kernel saw. A restart that is too slow by a unit's setting still fails (the restart-slow
+# plant: RestartSec=5s against kill -9's 2 s), and one too early always does.
+TIMER_SLACK = 1.0
 # A start (the ExecCondition= checks, the exec, READY=1) that takes longer hangs: seconds. (No
 # figure is promised for it: under TCG on a busy machine it took 0.4 to 6 s; the report says.)
 STARTUP_MAX = 10.0

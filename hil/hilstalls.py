@@ -2,14 +2,14 @@
 
 ``stallmon.py`` records when a CPU could not run at all; these functions read its intervals
 and judge samples with them: a CPU stall can only delay, so what a stall may explain is
-inconclusive, never a pass (latency samples, single times, frame counts, periods of
-the grid fitted under the frames between stalls, gaps in the periodic frames, kernel drops).
+inconclusive, never a pass (latency samples, single times, frame counts, gaps in the
+periodic frames, kernel drops); a period is that of the grid fitted under the frames.
 """
 
 from __future__ import annotations
 
 import bisect
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 
 # --------------------------------------------------------------------------- environment stalls
@@ -119,12 +119,7 @@ def periods(ts: Sequence[float], stalls: Sequence[tuple[float, float]], period_s
     """The gaps between the frame times ``ts`` (sorted), judged on stall-free stretches."""
     gaps = [b - a for a, b in zip(ts, ts[1:], strict=False)]
     split = [(a, b) for a, b in stalls if b - a >= period_s / 2]
-    runs: list[list[float]] = []
-    for i, t in enumerate(ts):
-        if i == 0 or overlap(split, ts[i - 1], t) > 0:
-            runs.append([t])
-        else:
-            runs[-1].append(t)
+    runs = split_runs(ts, lambda a, b: overlap(split, a, b) > 0)
     judged: list[float] = []
     stretches = 0
     for run in runs:
@@ -144,15 +139,21 @@ def periods(ts: Sequence[float], stalls: Sequence[tuple[float, float]], period_s
 RESTART_GAP_PERIODS = 1.5
 
 
-def split_late(run: Sequence[float], period_s: float) -> list[list[float]]:
-    """``run`` cut after every gap of ``RESTART_GAP_PERIODS`` periods or more."""
+def split_runs(ts: Sequence[float], cut: Callable[[float, float], bool]) -> list[list[float]]:
+    """The frame times ``ts`` in runs, a new one begun after every gap ``(a, b)`` that
+    ``cut(a, b)`` says ends a run."""
     out: list[list[float]] = []
-    for i, t in enumerate(run):
-        if i == 0 or t - run[i - 1] >= RESTART_GAP_PERIODS * period_s:
+    for i, t in enumerate(ts):
+        if i == 0 or cut(ts[i - 1], t):
             out.append([t])
         else:
             out[-1].append(t)
     return out
+
+
+def split_late(ts: Sequence[float], period_s: float) -> list[list[float]]:
+    """``ts`` cut after every gap of ``RESTART_GAP_PERIODS`` periods or more."""
+    return split_runs(ts, lambda a, b: b - a >= RESTART_GAP_PERIODS * period_s)
 
 
 def grid_period(runs: Sequence[Sequence[float]], nominal_s: float) -> tuple[float | None, int]:

@@ -292,6 +292,7 @@ estop_err_t estop_fault(estop_core_t *core, uint32_t now_us, estop_out_t *out);
     ensures next_call_ahead: \result == ESTOP_OK ==>
         1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
+    ensures ok_iff_given: \result == ESTOP_OK <==> usable(core, out) && slot < 8;
  */
 estop_err_t estop_tcp_open(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out);
 
@@ -303,6 +304,7 @@ estop_err_t estop_tcp_open(estop_core_t *core, uint32_t slot, uint32_t now_us, e
     ensures next_call_ahead: \result == ESTOP_OK ==>
         1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures never_leaves_stopped: core != \null ==> (\old(core->state) == 0 ==> core->state == 0);
+    ensures ok_iff_given: \result == ESTOP_OK <==> usable(core, out) && slot < 8;
  */
 estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, estop_out_t *out);
 
@@ -317,6 +319,10 @@ estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, 
     ensures next_call_ahead: \result == ESTOP_OK ==>
         1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures consumed_bound: \result == ESTOP_OK ==> *consumed <= len;
+    ensures ok_iff_given: \result == ESTOP_OK ==> usable(core, out) && slot < 8 &&
+        consumed != \null && (data != \null || len == 0);
+    ensures ok_iff_given: usable(core, out) && slot < 8 && consumed != \null &&
+        (data != \null || len == 0) ==> \result == ESTOP_OK || \result == ESTOP_ERR_SLOT_CLOSED;
     ensures leaves_stopped_only_by_release: core != \null && \old(core->state) == 0 &&
         core->state != 0 ==> \result == ESTOP_OK && out->has_reply == 1 &&
         slot < 8 && core->slots[slot].fill == 0 &&

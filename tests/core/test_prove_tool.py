@@ -218,9 +218,12 @@ def test_make_proves_mutant_sample_comes_from_the_runs_under_the_default_model()
 
 
 def test_smoke_tests_run_with_their_timeout_in_every_typed_run() -> None:
-    checks = prove.wp.MODEL_CHECKS["Typed"]
-    assert "-wp-smoke-tests" in checks
-    assert checks[checks.index("-wp-smoke-timeout") + 1] == str(prove.wp.SMOKE_TIMEOUT_S)
+    for cpu_limited, smoke_s in ((False, prove.wp.SMOKE_TIMEOUT_S),
+                                 (True, prove.wp.SMOKE_WALL_GUARD_S)):
+        checks = prove.wp.model_checks("Typed", cpu_limited)
+        assert "-wp-smoke-tests" in checks
+        assert checks[checks.index("-wp-smoke-timeout") + 1] == str(smoke_s)
+    assert prove.wp.model_checks("Caveat", True) == []
 
 
 def test_a_goal_one_solver_left_is_a_failure_and_goes_to_the_retry() -> None:

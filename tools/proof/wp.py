@@ -50,8 +50,7 @@ SMOKE_TIMEOUT_S = 1
 SMOKE_RLIMIT = 20000
 SMOKE_Z3_RLIMIT = 1000000
 SMOKE_WALL_GUARD_S = 10
-MODEL_CHECKS = {"Typed": ["-wp-check-memory-model", "-wp-smoke-tests",
-                          "-wp-smoke-timeout", str(SMOKE_TIMEOUT_S)]}
+MODEL_CHECKS = {"Typed": ["-wp-check-memory-model", "-wp-smoke-tests"]}
 MODEL_TAGS = {"Typed": "typed_", "Caveat": "typed_caveat_"}  # how WP names their goals
 WP_OPTS = ["-wp-par", "2", "-wp-bound-forall-unfolding", "8"]
 # The time a goal gets is the CPU time its solver uses, not the wall time it waits: make test
@@ -119,6 +118,16 @@ def first_pass_provers(fcts: list[str]) -> str:
 
 def model_of(fcts: list[str]) -> str:
     return next((f[1:] for f in fcts if f.startswith("@")), WP_MODEL)
+
+
+def model_checks(model: str, cpu_limited: bool) -> list[str]:
+    """The checks a run under this model asks for: its hypotheses and smoke tests (Typed),
+    with WP's wall limit on a smoke test: SMOKE_TIMEOUT_S, or only SMOKE_WALL_GUARD_S against
+    a hang where the solvers' own units bound it (cpu_limited)."""
+    if model not in MODEL_CHECKS:
+        return []
+    smoke_s = SMOKE_WALL_GUARD_S if cpu_limited else SMOKE_TIMEOUT_S
+    return [*MODEL_CHECKS[model], "-wp-smoke-timeout", str(smoke_s)]
 
 
 def inline_list() -> str:
@@ -189,13 +198,11 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
             "-inline-calls", inline_list(), "-wp", *target,
             # One model a run: a second -wp-model is added to the first, not put in its place
             # (Typed and Caveat together named the goals typed_caveat_*).
-            "-wp-model", model, "-wp-prover", provers, *WP_OPTS, *MODEL_CHECKS.get(model, []),
+            "-wp-model", model, "-wp-prover", provers, *WP_OPTS, *model_checks(model, cpu_limited),
             "-wp-timeout", str(goal_timeout_s * (WALL_GUARD if cpu_limited else 1)), *flags]
     if cpu_limited:
         env = dict(env, ESTOP_SOLVER_CPU_S=str(goal_timeout_s), ESTOP_SMOKE_RLIMIT=str(
             SMOKE_RLIMIT), ESTOP_SMOKE_Z3_RLIMIT=str(SMOKE_Z3_RLIMIT))
-        if "-wp-smoke-timeout" in args:
-            args[args.index("-wp-smoke-timeout") + 1] = str(SMOKE_WALL_GUARD_S)
     if cache:
         # The solvers' verdicts by goal (a hash of the goal and the prover): a run again with
         # a longer timeout re-tries only what timed out. Emptied by every make prove.

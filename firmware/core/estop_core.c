@@ -529,7 +529,9 @@ static int plain_valid(const uint8_t *d, size_t len)
 {
     int ok = 0;
     if (len == ESTOP_UDP_LEN) {
-        ok = body_valid(d) && (rd_u32le(&d[16]) <= 1u);
+        if (rd_u32le(&d[16]) <= 1u) {
+            ok = body_valid(d);
+        }
     } else if (len == ESTOP_UDP_LEN_NO_HORN) {
         ok = body_valid(d);
     } else {

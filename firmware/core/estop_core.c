@@ -513,7 +513,7 @@ estop_err_t estop_tick(estop_core_t *core, uint32_t now_us, estop_out_t *out)
 }
 
 /* Section 1: every field of a control body's first 16 bytes in range: the whole body of the
- * 16-byte form; the forms with a horn word check it beside this (a flag here would leave a
+ * 16-byte form. The forms with a horn word use horned_body_valid (a flag here would leave a
  * branch dead in each call WP inlines, which its smoke tests refuse). */
 static int body_valid(const uint8_t *b)
 {
@@ -523,15 +523,20 @@ static int body_valid(const uint8_t *b)
            ((gear == 1u) || (gear == 2u) || (gear == 4u) || (gear == 8u)) && (turn <= 3u);
 }
 
+/* Section 1: a control body with its horn word (the 20-byte plain packet's and the
+ * authenticated packet's): the 16 bytes above in range, and the horn 0 or 1. */
+static int horned_body_valid(const uint8_t *b)
+{
+    return body_valid(b) && (rd_u32le(&b[16]) <= 1u);
+}
+
 /* Section 1: a plain control packet (20 bytes, or 16 without the horn) with every field in
  * range. */
 static int plain_valid(const uint8_t *d, size_t len)
 {
     int ok = 0;
     if (len == ESTOP_UDP_LEN) {
-        if (rd_u32le(&d[16]) <= 1u) {
-            ok = body_valid(d);
-        }
+        ok = horned_body_valid(d);
     } else if (len == ESTOP_UDP_LEN_NO_HORN) {
         ok = body_valid(d);
     } else {
@@ -562,8 +567,7 @@ static const uint8_t *valid_body(estop_core_t *core, const uint8_t *d, size_t le
         } else {
             /* no valid plain packet: body stays NULL */
         }
-    } else if ((len == ESTOP_UDP_AUTH_LEN) && body_valid(&d[CONTROL_BODY_AT]) &&
-               (rd_u32le(&d[CONTROL_BODY_AT + 16u]) <= 1u)) {
+    } else if ((len == ESTOP_UDP_AUTH_LEN) && horned_body_valid(&d[CONTROL_BODY_AT])) {
         if (rd_u32le(d) != ESTOP_MAGIC_CONTROL) {
             estop__unauthenticated(core);
         } else if (estop__authenticate(core, d, CONTROL_TAG_AT, CONTROL_IDS_AT, CHANNEL_UDP) !=

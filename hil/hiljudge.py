@@ -14,7 +14,15 @@ from hildaemon import Daemon, sched_text
 from hilemu import BRAKE_SILENCE_S
 from hilroll import Roll
 from hilrun import EARLY_TOL_MS, KEEPALIVE_GAP_S, TIMEOUT_MS, Result, Run, ms
-from hilstalls import STALL_EXCUSE_S, enough_frames, excused, judge_latencies, late, overlap
+from hilstalls import (
+    STALL_EXCUSE_S,
+    Verdict,
+    enough_frames,
+    judge_gaps,
+    judge_latencies,
+    late,
+    overlap,
+)
 from hilstates import LogChange, log_changes
 from hilstats import StatusWindow, status_windows, summary
 
@@ -101,22 +109,19 @@ def judge_frames(run: Run, res: Result, key: str, what: str, t0: float, t1: floa
 
 def frame_gap_check(run: Run, res: Result, key: str, t0: float, t1: float) -> None:
     """No ESTOP_BRAKE gap of 50 ms in ``[t0, t1]``. A gap the CPU stalls explain
-    (hilstalls.excused) is not a pass either: the row is inconclusive and runs once more."""
+    (hilstalls.judge_gaps) is not a pass either: the row is inconclusive and runs once more."""
     run.mon.sync()
     ts = [f.ts for f in run.mon.window(t0, t1) if f.can_id == BRAKE_ID]
-    gaps = [(a, b) for a, b in zip(ts, ts[1:], strict=False)]
-    res.figures[key] = ms(max((b - a for a, b in gaps), default=0.0))
-    for a, b in gaps:
-        if b - a < BRAKE_SILENCE_S:
-            continue
-        stall = excused(a, b, run.stalls())
-        if stall is None:
-            res.check(False, f"ESTOP_BRAKE gap of {ms(b - a)} ms at {a:.3f}")
-        else:
-            res.inconclusive = f"ESTOP_BRAKE gap of {ms(b - a)} ms, a CPU stood still " \
-                               f"{ms(stall)} ms of it"
-            res.check(False, f"ESTOP_BRAKE gap of {ms(b - a)} ms at {a:.3f} (not judged: a CPU "
-                             f"stood still {ms(stall)} ms of it)")
+    res.figures[key] = ms(max((b - a for a, b in zip(ts, ts[1:], strict=False)), default=0.0))
+    apply_gaps(res, judge_gaps(ts, run.stalls(), BRAKE_SILENCE_S))
+
+
+def apply_gaps(res: Result, v: Verdict) -> None:
+    """A :func:`hilstalls.judge_gaps` verdict into the row's result."""
+    if v.inconclusive:
+        res.inconclusive = v.inconclusive
+    for f in v.fails:
+        res.check(False, f)
 
 
 def windows_in(run: Run, t0: float, t1: float) -> list[StatusWindow]:

@@ -280,6 +280,29 @@ def excused(t0: float, t1: float, stalls: Sequence[tuple[float, float]],
     return s if s > 0 and (t1 - t0) - s <= runnable_s else None
 
 
+def judge_gaps(ts: Sequence[float], stalls: Sequence[tuple[float, float]], limit_s: float,
+               what: str = "ESTOP_BRAKE") -> Verdict:
+    """Gaps of ``limit_s`` or more between the frame times ``ts`` (sorted): each one a failure.
+    One that the CPU stalls explain (:func:`excused`) is not judged: a failure all the same
+    and the verdict inconclusive (the row runs once more), never a pass."""
+    fails: list[str] = []
+    why: str | None = None
+    for a, b in zip(ts, ts[1:], strict=False):
+        if b - a < limit_s:
+            continue
+        gap = round((b - a) * 1000, 3)
+        stall = excused(a, b, stalls)
+        if stall is None:
+            fails.append(f"{what} gap of {gap} ms at {a:.3f}")
+        else:
+            why = f"{what} gap of {gap} ms, a CPU stood still {round(stall * 1000, 3)} ms of it"
+            fails.append(f"{what} gap of {gap} ms at {a:.3f} (not judged: a CPU stood still "
+                         f"{round(stall * 1000, 3)} ms of it)")
+    # A gap the stalls do not explain decides the verdict: no run more would change it.
+    judged_fail = any("not judged" not in f for f in fails)
+    return Verdict(fails, None if judged_fail else why)
+
+
 def judge_drops(dropped: int | None, stall_s: float, what: str,
                 excuse_s: float = STALL_EXCUSE_S) -> Verdict:
     """Datagrams the kernel dropped at the daemon's socket while ``what`` lasted, against 0: the

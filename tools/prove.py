@@ -92,6 +92,7 @@ def report_eva(evas: list[concurrent.futures.Future[eva.EvaResult]]) -> bool:
 def report_wp(wps: list[concurrent.futures.Future[tuple[list[str], WpResult]]]) -> bool:
     ok = True
     totals: dict[str, int] = {}
+    sums = [0, 0, 0, 0]  # proof goals proved, proof goals, smoke tests, failed smoke tests
     groups = dict(wp.wp_groups())
     for fut in wps:
         retried, w = fut.result()
@@ -103,10 +104,14 @@ def report_wp(wps: list[concurrent.futures.Future[tuple[list[str], WpResult]]]) 
             totals[k] = totals.get(k, 0) + v
         provers = ", ".join(f"{k} {v}" for k, v in sorted(w.by_prover.items()))
         model = wp.model_of(groups[w.name])
+        proved, goals = wp.proof_goals(w)
+        for i, v in enumerate((proved, goals, w.smoke, len(w.smoke_failed))):
+            sums[i] += v
         checks = (f"; {w.smoke} smoke tests, {len(w.smoke_failed)} failed; memory-model "
                   "hypotheses checked at the calls" if model in MODEL_CHECKS else
                   "; no smoke tests, hypotheses not checked")
-        print(f"prove: wp {w.name} ({model}): {w.proved}/{w.total} goals proved ({provers})"
+        print(f"prove: wp {w.name} ({model}): {proved}/{goals} proof goals proved "
+              f"(WP's count {w.proved}/{w.total} with the smoke tests; {provers})"
               + checks + f"; {w.wall_s:.0f} s")
         for g in w.failed:
             print(f"prove:   not proved: {g}")
@@ -119,7 +124,9 @@ def report_wp(wps: list[concurrent.futures.Future[tuple[list[str], WpResult]]]) 
             print(f"prove:   error: {w.error}")
         ok = ok and wp.ok(w)
     if wps:
-        print("prove: wp total by prover: "
+        print(f"prove: wp total: {sums[0]}/{sums[1]} proof goals proved, {sums[2]} smoke tests "
+              f"({sums[3]} failed); WP's count by prover (no smoke test among them; a goal "
+              "both solvers proved counts for each): "
               + ", ".join(f"{k} {v}" for k, v in sorted(totals.items())))
     return ok
 

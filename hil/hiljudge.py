@@ -66,6 +66,7 @@ def judge_spoiled(res: Result, spoiled: int, n: int, judged: int, missing: str, 
         if spoiled > n // 2:
             if keepalive:
                 res.inconclusive = f"{spoiled} of {n} samples: the harness's keepalive paused"
+                res.spoiled = True
             else:
                 res.inconclusive = f"{spoiled} of {n} samples spoiled by the harness"
                 res.check(False, f"not judged: {res.inconclusive}")

@@ -106,12 +106,25 @@ class Result:
     notes: list[str] = field(default_factory=list)
     duration_s: float = 0.0
     inconclusive: str | None = None  # the environment spoiled the test: run it once more
+    # The harness itself could not hold the test's conditions (its keepalive paused, its bus
+    # monitor fell behind): any failure of this try may be the harness's own.
+    spoiled: bool = False
 
     def check(self, ok: bool, what: str) -> bool:
         """Record a failed sub-check as a note; returns ``ok``."""
         if not ok:
             self.notes.append(f"FAIL: {what}")
         return ok
+
+    def worth_another_try(self) -> bool:
+        """Failed and inconclusive, with nothing failed that the environment cannot explain:
+        the harness spoiled the whole try, or every failure is "not judged" (one the CPU
+        stalls explain). A failure they do not explain decides at once: a second try that
+        alone decided could wash it out."""
+        if self.passed or not self.inconclusive:
+            return False
+        fails = [n for n in self.notes if n.startswith("FAIL")]
+        return self.spoiled or all("not judged" in n for n in fails)
 
 
 class Run:
@@ -269,6 +282,7 @@ class Run:
         if gap >= KEEPALIVE_GAP_S:
             res.inconclusive = (f"the harness's own keepalive paused {ms(gap)} ms "
                                 "(the link was not live, as this test needs)")
+            res.spoiled = True
 
     def setup(self) -> None:
         self.stallmon = StallMonitor(self.out, sys.executable)

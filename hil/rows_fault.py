@@ -104,10 +104,10 @@ def sc_invalid_flood(run: Run, res: Result) -> None:
         res.inconclusive = drops.inconclusive
     if rate < FLOOD_MIN_RATE:
         res.inconclusive = f"the flooder reached {round(rate)} packets/s only"
-        res.check(False, f"not a flood: {round(rate)} < {FLOOD_MIN_RATE} packets/s")
+        res.check(False, f"not judged: not a flood: {round(rate)} < {FLOOD_MIN_RATE} packets/s")
     if t0 > t_last + TIMEOUT_MS / 2000:
         res.inconclusive = f"the flood began {ms(t0 - t_last)} ms after the last valid packet"
-        res.check(False, "the flood began after half the timeout")
+        res.check(False, "not judged: the flood began after half the timeout")
     if got is None:
         res.check(False, "still ARMED 1 s after the last valid packet (flood keeps it alive)")
     else:

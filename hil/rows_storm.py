@@ -117,6 +117,7 @@ def sc_storm_stop(run: Run, res: Result) -> None:
                        f"deadline; a CPU stood still {ms(stall)} ms meanwhile")
                 if stall >= COMMAND_LIMIT_S / 2:
                     res.inconclusive = why
+                    why = f"not judged: {why}"
                 res.check(False, why)
                 break
             if pr.t_first is None:

@@ -83,6 +83,7 @@ def run_one(run: Run, sid: str, res: Result, fn: Callable[[Run, Result], None]) 
         # failures may be the harness's own. It is run once more; a second time is a FAIL.
         res.inconclusive = (f"the bus monitor fell more than {LAG_MAX_S:g} s behind the bus "
                             f"(max lag so far {ms(run.mon.max_lag)} ms)")
+        res.spoiled = True
         res.notes.append(f"FAIL: not judged: {res.inconclusive}")
     res.duration_s = round(time.monotonic() - t0, 2)
     log(f"  -> {'PASS' if res.passed else 'FAIL'} {json.dumps(res.figures)[:300]}")
@@ -102,7 +103,11 @@ def run_all(run: Run, only: set[str] | None, budget_s: float) -> None:
             continue
         log(f"scenario {sid}: {title}")
         run_one(run, sid, res, fn)
-        if not res.passed and res.inconclusive and sid in RETRYABLE:
+        if not res.passed and res.inconclusive and sid in RETRYABLE \
+                and not res.worth_another_try():
+            log(f"  inconclusive ({res.inconclusive}), but a failure the CPU stalls do not "
+                f"explain decides: {sid} does not run again")
+        elif sid in RETRYABLE and res.worth_another_try():
             # The environment, not the daemon, spoiled this run (see the note): once more.
             # The first try stays on record in the notes; the second one decides.
             first = res

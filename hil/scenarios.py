@@ -103,11 +103,11 @@ def run_all(run: Run, only: set[str] | None, budget_s: float) -> None:
             continue
         log(f"scenario {sid}: {title}")
         run_one(run, sid, res, fn)
-        if not res.passed and res.inconclusive and sid in RETRYABLE \
-                and not res.worth_another_try():
+        retry = sid in RETRYABLE and res.worth_another_try()
+        if not retry and not res.passed and res.inconclusive and sid in RETRYABLE:
             log(f"  inconclusive ({res.inconclusive}), but a failure the CPU stalls do not "
                 f"explain decides: {sid} does not run again")
-        elif sid in RETRYABLE and res.worth_another_try():
+        elif retry:
             # The environment, not the daemon, spoiled this run (see the note): once more.
             # The first try stays on record in the notes; the second one decides.
             first = res

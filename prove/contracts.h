@@ -85,7 +85,6 @@ uint8_t estop__current_flags(const estop_core_t *core);
     ensures msg_frames: out->n_can <= 3;
     ensures msg_keeps_clock: core->now_us == \old(core->now_us) &&
         core->magic == \old(core->magic);
-    ensures msg_keeps_fills: fills_kept(Pre, Post, core);
     ensures leaves_stopped_only_by_release: \old(core->state) == 0 && core->state != 0 ==>
         msg_id == ESTOP_MSG_RELEASE && release_authenticated != 0 && \result == 0;
     ensures msg_stops: msg_id == \old(core->cfg.stop_id) || msg_id == ESTOP_MSG_LIFT ==>

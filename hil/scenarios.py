@@ -137,7 +137,7 @@ def main(argv: list[str] | None = None) -> int:
                    help="daemon command (default: estopd on PATH); split on spaces")
     p.add_argument("--only", help="comma-separated scenario ids (boot always runs)")
     p.add_argument("--repeat", type=int, default=8, help="samples for latency scenarios")
-    p.add_argument("--budget", type=float, default=480.0, help="seconds for all scenarios")
+    p.add_argument("--budget", type=float, default=640.0, help="seconds for all scenarios")
     p.add_argument("--rt-prio", type=int, default=RT_PRIO,
                    help="run the daemon as deployed: SCHED_FIFO at this priority under chrt -f "
                         "-R, with --rt-prio and --mlock (0: an ordinary process)")

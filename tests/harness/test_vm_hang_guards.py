@@ -5,7 +5,8 @@ longest that step was seen to take on a slow machine (issue 24, seventeenth roun
 loop of 10 million additions 1.57 s idle, against 0.54 to 0.91 s before): there the gamepad VM
 took 455 s beside make prove, ran out its 480-s bound in the next run and took 554 s in the
 one after; a Debian 13 boot of the systemd VM with its checks took 556 s against a bound of
-600 s; and hil/run, alone, 384 s, of which the scenarios 310 s (its budget was 240 s)."""
+600 s; in CI, estop remote's release in the systemd VM was not seen within 90 s; and
+hil/run, alone, 384 s, of which the scenarios 310 s (its budget was 240 s)."""
 
 from __future__ import annotations
 
@@ -19,6 +20,9 @@ from repo import ROOT
 SLOWEST_SEEN_S = {
     "gamepad VM (whole)": ("tools/vm-pytest", r"VM_PYTEST_TIMEOUT:-(\d+)", 554.0),
     "systemd VM boot": ("tools/systemd-vm", r"BOOT_TIMEOUT_S = (\d+)", 556.0),
+    # CI (stop 44): estop remote's release not seen within 90 s, the guest busy 87 s of 91
+    "systemd VM: a command of estop's": ("tools/systemd_vm/checks_service.py",
+                                         r"TOOL_WAIT_S = (\d+)", 91.0),
     "HIL VM": ("hil/run", r"HIL_VM_TIMEOUT:-(\d+)", 384.0),
     "HIL scenarios": ("hil/run", r"HIL_BUDGET:-(\d+)", 310.0),
 }

@@ -63,7 +63,7 @@ def restart_times(t0: float, pid: int, death: float) -> tuple[float, float, floa
 
 
 def first_frame_after(frames: BrakeFrames, t: float, what: str, timeout: float) -> Frame:
-    return wait_for(what, lambda: frames.since(t)[:1], timeout)[0]  # type: ignore[no-any-return]
+    return wait_for(what, lambda: frames.first_since(t), timeout)  # type: ignore[no-any-return]
 
 
 def boot_frame(f: Frame) -> None:

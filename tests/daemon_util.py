@@ -208,6 +208,7 @@ class Daemon:
         self.tcp_port = 0
         self.start_line = ""
         self._out = _Tail(self.out_path)
+        self._frames: list[Frame] = []  # self._out's lines parsed so far
         self._err = _Tail(self.err_path)
         self._udp: socket.socket | None = None
         self.env: dict[str, str] = {}  # added to the environment of the process
@@ -258,8 +259,12 @@ class Daemon:
         return list(self._err.lines)
 
     def frames(self) -> list[Frame]:
+        # Each line parsed once: wait_frame polls every 5 ms, and parsing the whole can-log
+        # (110 lines a second) at every poll took a core's share from the daemon under test.
         self._out.poll()
-        return [parse_canlog_line(line) for line in self._out.lines]
+        lines = self._out.lines
+        self._frames.extend(parse_canlog_line(line) for line in lines[len(self._frames):])
+        return list(self._frames)
 
     def wait_log(self, pred: Callable[[str], bool], timeout: float = 5.0) -> str:
         deadline = time.monotonic() + timeout
@@ -275,10 +280,13 @@ class Daemon:
                    after: int = 0) -> Frame:
         """First frame from index `after` on that matches."""
         deadline = time.monotonic() + timeout
+        i = after
         while True:
-            for f in self.frames()[after:]:
+            frames = self.frames()
+            for f in frames[i:]:
                 if pred(f):
                     return f
+            i = max(i, len(frames))  # each frame tried once
             if time.monotonic() > deadline:
                 raise AssertionError(f"no matching frame in {timeout}s")
             time.sleep(0.005)

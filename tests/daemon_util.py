@@ -260,7 +260,7 @@ class Daemon:
 
     def frames(self) -> list[Frame]:
         # Each line parsed once: wait_frame polls every 5 ms, and parsing the whole can-log
-        # (110 lines a second) at every poll took a core's share from the daemon under test.
+        # (110 lines a second) at every poll made a wait cost more the longer the test ran.
         self._out.poll()
         lines = self._out.lines
         self._frames.extend(parse_canlog_line(line) for line in lines[len(self._frames):])

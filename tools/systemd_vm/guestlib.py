@@ -231,7 +231,9 @@ class BrakeFrames:
             return self.frames[i] if i < len(self.frames) else None
 
     def cursor(self, t: float) -> Callable[[], list[Frame]]:
-        """A function that returns the frames from t on that it has not returned before."""
+        """A function that returns the frames from t on that it has not returned before (by
+        position: a frame put in before one already returned, its stamp out of order, is
+        missed and the last one returned again; one socket's kernel stamps come in order)."""
         with self._lock:
             at = bisect.bisect_left(self._times, t)
 
@@ -243,14 +245,10 @@ class BrakeFrames:
         return new
 
     def _add(self, frame: Frame) -> None:
-        with self._lock:  # in time order (a stamp out of order is put in its place)
-            if self._times and frame.t < self._times[-1]:
-                i = bisect.bisect_right(self._times, frame.t)
-                self._times.insert(i, frame.t)
-                self.frames.insert(i, frame)
-            else:
-                self._times.append(frame.t)
-                self.frames.append(frame)
+        with self._lock:  # in time order: at the end, or where a stamp out of order belongs
+            i = bisect.bisect_right(self._times, frame.t)
+            self._times.insert(i, frame.t)
+            self.frames.insert(i, frame)
 
     def _open(self) -> socket.socket | None:
         s = socket.socket(socket.AF_CAN, socket.SOCK_RAW, socket.CAN_RAW)

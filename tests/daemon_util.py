@@ -21,9 +21,10 @@ import signal
 import socket
 import subprocess
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import pytest
 
@@ -31,6 +32,27 @@ from core_util import packet, reply_fields, request
 from estop.protocol.crc import e2e_crc8
 
 ROOT = Path(__file__).resolve().parents[1]
+T = TypeVar("T")
+
+
+def first_new_match(items: Callable[[], Sequence[T]], pred: Callable[[T], bool], after: int,
+                    timeout: float, where: str) -> T:
+    """The first element from index `after` on of a growing list that matches, polled every
+    5 ms. Each element is tried once: re-testing all since `after` at every poll made a wait
+    cost more the longer a test ran (a daemon logs about 100 frames a second). The list is
+    scanned once more after the deadline, so an element that came in while the waiter slept
+    through it still counts."""
+    deadline = time.monotonic() + timeout
+    i = after
+    while True:
+        seen = items()
+        for x in seen[i:]:
+            if pred(x):
+                return x
+        i = max(i, len(seen))
+        if time.monotonic() > deadline:
+            raise AssertionError(f"no matching frame {where} in {timeout} s")
+        time.sleep(0.005)
 
 STOP_ID = 0xE570E570
 MSG_STATUS = 1
@@ -279,17 +301,7 @@ class Daemon:
     def wait_frame(self, pred: Callable[[Frame], bool], timeout: float = 5.0,
                    after: int = 0) -> Frame:
         """First frame from index `after` on that matches."""
-        deadline = time.monotonic() + timeout
-        i = after
-        while True:
-            frames = self.frames()
-            for f in frames[i:]:
-                if pred(f):
-                    return f
-            i = max(i, len(frames))  # each frame tried once
-            if time.monotonic() > deadline:
-                raise AssertionError(f"no matching frame in {timeout}s")
-            time.sleep(0.005)
+        return first_new_match(self.frames, pred, after, timeout, "in the can-log")
 
     def count_once_armed(self, timeout: float = 5.0) -> int:
         """How many frames the can-log holds once the first ARMED brake frame is in it. The

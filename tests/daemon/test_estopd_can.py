@@ -32,6 +32,7 @@ from daemon_util import (
     Daemon,
     Frame,
     check_frames,
+    first_new_match,
     udp_packet,
 )
 
@@ -183,17 +184,7 @@ class Bus:
 
     def wait(self, pred: Callable[[Frame], bool], timeout: float = 3.0,
              after: int = 0) -> Frame:
-        # each frame tried once: re-testing every frame since `after` at each 5-ms poll made a
-        # wait cost more the longer the test ran (the bus carries about 100 frames a second)
-        deadline = time.monotonic() + timeout
-        i = after
-        while time.monotonic() < deadline:
-            for f in self.frames[i:]:
-                if pred(f):
-                    return f
-                i += 1
-            time.sleep(0.005)
-        raise AssertionError("no matching frame on the fake bus")
+        return first_new_match(lambda: self.frames, pred, after, timeout, "on the fake bus")
 
     def close(self) -> None:
         self._stop.set()

@@ -21,8 +21,10 @@
 int clock_read_us(uint64_t *t_us);
 /* The same time without the verdict, for log lines and bounds on waits. */
 uint64_t clock_unit_us(void);
-/* The unit's time (microseconds) and CLOCK_REALTIME read one right after the other: their
- * offset at this moment, for converting the kernel's receive stamps (rxtime.h). */
+/* The unit's time (microseconds) and CLOCK_REALTIME read together: their offset at this
+ * moment, for converting the kernel's receive stamps (rxtime.h). The unit's time is read
+ * before and after the wall clock, and the earlier kept (a converted stamp is never younger
+ * than it was); a wide gap between them is read again (clock.c). */
 void clock_pair(uint64_t *unit_us, struct timespec *real);
 /* CLOCK_REALTIME split into seconds and microseconds (for can-utils log lines). */
 void clock_real(int64_t *sec, uint32_t *usec);

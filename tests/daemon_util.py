@@ -35,6 +35,18 @@ ROOT = Path(__file__).resolve().parents[1]
 T = TypeVar("T")
 
 
+def build_preload_shim(source: Path, out_dir: Path) -> Path:
+    """An LD_PRELOAD shim built from one C file: the daemon tests' fault injection (a fake
+    SocketCAN, a suspend of the host, a preemption between two clock reads)."""
+    cc = shutil.which("cc") or shutil.which("gcc")
+    if cc is None:
+        pytest.fail("no C compiler: run `make setup` (deps/debian-packages.txt, group build)")
+    so = out_dir / f"{source.stem}.so"
+    subprocess.run([cc, "-shared", "-fPIC", "-O1", "-Wall", "-Wextra", "-Werror", "-o", str(so),
+                    str(source), "-ldl"], check=True, timeout=60)
+    return so
+
+
 def first_new_match(items: Callable[[], Sequence[T]], pred: Callable[[T], bool], after: int,
                     timeout: float, where: str) -> T:
     """The first element from index `after` on of a growing list that matches, polled every

@@ -10,11 +10,9 @@ daemon's own logic: retry, fault, recovery, reopen, error-frame logging, the las
 
 from __future__ import annotations
 
-import shutil
 import signal
 import socket
 import struct
-import subprocess
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -31,6 +29,7 @@ from daemon_util import (
     STOPPED,
     Daemon,
     Frame,
+    build_preload_shim,
     check_frames,
     first_new_match,
     udp_packet,
@@ -140,15 +139,9 @@ CAN_ERR_BUSOFF = 0x40
 
 @pytest.fixture(scope="module")
 def shim(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    cc = shutil.which("cc") or shutil.which("gcc")
-    if cc is None:
-        pytest.skip("no C compiler for the fake SocketCAN shim")
     d = tmp_path_factory.mktemp("fakecan")
     (d / "fakecan.c").write_text(SHIM_C)
-    so = d / "fakecan.so"
-    subprocess.run([cc, "-shared", "-fPIC", "-O1", "-o", str(so), str(d / "fakecan.c"),
-                    "-ldl"], check=True, timeout=60)
-    return so
+    return build_preload_shim(d / "fakecan.c", d)
 
 
 class Bus:

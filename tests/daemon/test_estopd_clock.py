@@ -10,16 +10,24 @@ sockets, the real daemon.
 
 from __future__ import annotations
 
-import shutil
 import struct
-import subprocess
 import time
 from pathlib import Path
 
 import pytest
 from test_estopd_attacks import Heartbeat, status
 
-from daemon_util import ACK, ARMED, MSG_RELEASE, MSG_STATUS, NAK, R_FAULT, STOPPED, Daemon
+from daemon_util import (
+    ACK,
+    ARMED,
+    MSG_RELEASE,
+    MSG_STATUS,
+    NAK,
+    R_FAULT,
+    STOPPED,
+    Daemon,
+    build_preload_shim,
+)
 from repo import ROOT
 
 pytestmark = pytest.mark.timeout(120)
@@ -29,13 +37,8 @@ SUSPEND_US = 120 * 1_000_000  # two minutes asleep
 
 @pytest.fixture(scope="module")
 def clock_shim(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    cc = shutil.which("cc") or shutil.which("gcc")
-    if cc is None:
-        pytest.fail("no C compiler: run `make setup` (deps/debian-packages.txt, group build)")
-    so = tmp_path_factory.mktemp("clockshim") / "clock_shim.so"
-    subprocess.run([cc, "-shared", "-fPIC", "-O1", "-Wall", "-Wextra", "-Werror", "-o", str(so),
-                    str(ROOT / "tests" / "c" / "clock_shim.c"), "-ldl"], check=True, timeout=60)
-    return so
+    return build_preload_shim(ROOT / "tests" / "c" / "clock_shim.c",
+                              tmp_path_factory.mktemp("clockshim"))
 
 
 class Clock:

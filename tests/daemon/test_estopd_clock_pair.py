@@ -10,15 +10,13 @@ the daemon's log line for the state change.
 
 from __future__ import annotations
 
-import shutil
 import socket
-import subprocess
 import time
 from pathlib import Path
 
 import pytest
 
-from daemon_util import MSG_STATUS, STOPPED, Daemon, udp_packet
+from daemon_util import MSG_STATUS, STOPPED, Daemon, build_preload_shim, udp_packet
 from repo import ROOT
 
 pytestmark = [pytest.mark.timeout(120), pytest.mark.timing]
@@ -30,14 +28,8 @@ RUNS = 6
 
 @pytest.fixture(scope="module")
 def stall_shim(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    cc = shutil.which("cc") or shutil.which("gcc")
-    if cc is None:
-        pytest.fail("no C compiler: run `make setup` (deps/debian-packages.txt, group build)")
-    so = tmp_path_factory.mktemp("stallshim") / "realtime_stall_shim.so"
-    subprocess.run([cc, "-shared", "-fPIC", "-O1", "-Wall", "-Wextra", "-Werror", "-o", str(so),
-                    str(ROOT / "tests" / "c" / "realtime_stall_shim.c"), "-ldl"], check=True,
-                   timeout=60)
-    return so
+    return build_preload_shim(ROOT / "tests" / "c" / "realtime_stall_shim.c",
+                              tmp_path_factory.mktemp("stallshim"))
 
 
 def log_time(line: str) -> float:

@@ -63,7 +63,7 @@ def first_new_match(items: Callable[[], Sequence[T]], pred: Callable[[T], bool],
                 return x
         i = max(i, len(seen))
         if time.monotonic() > deadline:
-            raise AssertionError(f"no matching frame {where} in {timeout} s")
+            raise AssertionError(f"no matching {where} in {timeout} s")
         time.sleep(0.005)
 
 STOP_ID = 0xE570E570
@@ -313,7 +313,7 @@ class Daemon:
     def wait_frame(self, pred: Callable[[Frame], bool], timeout: float = 5.0,
                    after: int = 0) -> Frame:
         """First frame from index `after` on that matches."""
-        return first_new_match(self.frames, pred, after, timeout, "in the can-log")
+        return first_new_match(self.frames, pred, after, timeout, "frame in the can-log")
 
     def count_once_armed(self, timeout: float = 5.0) -> int:
         """How many frames the can-log holds once the first ARMED brake frame is in it. The

@@ -177,7 +177,7 @@ class Bus:
 
     def wait(self, pred: Callable[[Frame], bool], timeout: float = 3.0,
              after: int = 0) -> Frame:
-        return first_new_match(lambda: self.frames, pred, after, timeout, "on the fake bus")
+        return first_new_match(lambda: self.frames, pred, after, timeout, "frame on the fake bus")
 
     def close(self) -> None:
         self._stop.set()

@@ -16,7 +16,14 @@ from pathlib import Path
 
 import pytest
 
-from daemon_util import MSG_STATUS, STOPPED, Daemon, build_preload_shim, udp_packet
+from daemon_util import (
+    MSG_STATUS,
+    STOPPED,
+    Daemon,
+    build_preload_shim,
+    first_new_match,
+    udp_packet,
+)
 from repo import ROOT
 
 pytestmark = [pytest.mark.timeout(120), pytest.mark.timing]
@@ -37,19 +44,6 @@ def log_time(line: str) -> float:
     return float(line.split()[1])
 
 
-def stops(d: Daemon) -> list[str]:
-    return [ln for ln in d.log() if "ARMED->STOPPED" in ln]
-
-
-def next_stop(d: Daemon, n: int, timeout: float = 5.0) -> str:
-    """The (n+1)-th stop line, once the daemon has written it."""
-    deadline = time.monotonic() + timeout
-    while len(got := stops(d)) <= n:
-        assert time.monotonic() < deadline, f"no stop in {timeout} s: {d.log()[-5:]}"
-        time.sleep(0.005)
-    return got[n]
-
-
 def test_a_pause_between_the_clock_reads_never_brings_the_timeout_forward(
         tmp_path: Path, stall_shim: Path) -> None:
     d = Daemon(tmp_path)
@@ -58,7 +52,7 @@ def test_a_pause_between_the_clock_reads_never_brings_the_timeout_forward(
     with d, socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
         for run in range(RUNS):
             d.arm(timeout=10.0)
-            n = len(stops(d))
+            seen = len(d.log())
             # One packet after a quiet 50 ms, then silence. Each read of datagrams pauses
             # (the shim), so packets in a row are read late and behind the periodic frames'
             # core calls, which a datagram's time never goes before: the pause is seen whole
@@ -67,7 +61,8 @@ def test_a_pause_between_the_clock_reads_never_brings_the_timeout_forward(
             time.sleep(0.05)
             t_sent = time.clock_gettime(time.CLOCK_BOOTTIME)
             s.sendto(udp_packet(), ("127.0.0.1", d.udp_port))
-            line = next_stop(d, n)
+            line = first_new_match(d.log, lambda ln: "ARMED->STOPPED" in ln, seen, 5.0,
+                                   "stop line in the daemon's log")
             assert "reason=udp_timeout" in line, line
             # the stop at the timeout after the last packet, never before it (late is allowed:
             # the shim's pauses hold the loop up)

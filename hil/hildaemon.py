@@ -117,9 +117,12 @@ class ThreadSched:
     policy: str  # FIFO, RR, OTHER, ...
     priority: int  # the real-time priority (0 for OTHER)
     reset_on_fork: bool
+    nice: int = 0
 
     def text(self) -> str:
         prio = f" {self.priority}" if self.policy in ("FIFO", "RR") else ""
+        if self.policy == "OTHER" and self.nice:
+            prio = f" nice {self.nice}"
         return f"{self.policy}{prio}{' reset-on-fork' if self.reset_on_fork else ''}"
 
 
@@ -134,12 +137,13 @@ def threads_sched(pid: int) -> list[ThreadSched]:
         try:
             raw = os.sched_getscheduler(tid)
             prio = os.sched_getparam(tid).sched_priority
+            nice = os.getpriority(os.PRIO_PROCESS, tid)
             name = Path(f"/proc/{pid}/task/{tid}/comm").read_text().strip()
         except OSError:
             continue  # the thread ended meanwhile
         policy = raw & ~SCHED_RESET_ON_FORK
         out.append(ThreadSched(tid, name, POLICY_NAMES.get(policy, str(policy)), prio,
-                               bool(raw & SCHED_RESET_ON_FORK)))
+                               bool(raw & SCHED_RESET_ON_FORK), nice))
     return out
 
 

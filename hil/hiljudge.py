@@ -33,7 +33,7 @@ def judge(run: Run, res: Result, key: str, label: str, pairs: list[tuple[float, 
 
     Value = frame - reference. A value before its time is never excused; for the other limits
     (median, max: the profile's plus ``slack_ms``) see :func:`hilstalls.judge_latencies`: a
-    sample during which a CPU stood still counts only as an upper bound.
+    sample during which a CPU stood still or the daemon queued counts only as an upper bound.
     """
     stalls = run.stalls()
     vals = [ms(b - a) for a, b in pairs]
@@ -75,15 +75,15 @@ def judge_spoiled(res: Result, spoiled: int, n: int, judged: int, missing: str, 
 
 def judge_late(run: Run, res: Result, key: str, what: str, t0: float, t1: float,
                limit_s: float) -> None:
-    """One time ``t0 -> t1`` against ``limit_s``. Over the limit while a CPU stood still
-    (STALL_EXCUSE_S or more of it) it cannot be judged: a failure that makes the row
-    inconclusive (it runs once more), never a pass."""
+    """One time ``t0 -> t1`` against ``limit_s``. Over the limit while a CPU stood still or the
+    daemon queued (STALL_EXCUSE_S or more of it) it cannot be judged: a failure that makes the
+    row inconclusive (it runs once more), never a pass."""
     lt = late(t0, t1, limit_s, run.stalls())
     res.figures[key] = ms(lt.value_s)
     if lt.ok:
         return
     if lt.stall is not None:
-        why = f"a CPU stood still {ms(lt.stall)} ms of it"
+        why = f"a CPU stood still or the daemon queued {ms(lt.stall)} ms of it"
         res.figures[f"{key}_cpu_stall_ms"] = ms(lt.stall)
         res.inconclusive = f"{what}: {ms(lt.value_s)} ms, {why}"
         res.check(False, f"{what} {ms(lt.value_s)} ms > {ms(limit_s)} ms (not judged: {why})")
@@ -101,9 +101,10 @@ def judge_frames(run: Run, res: Result, key: str, what: str, t0: float, t1: floa
     res.figures[key] = n
     if verdict is None:
         stall = overlap(run.stalls(), t0, t1)
-        res.inconclusive = f"{what}: {n} frames, a CPU stood still {ms(stall)} ms meanwhile"
-        res.check(False, f"{what}: {n} < {want} frames (not judged: a CPU stood still "
-                         f"{ms(stall)} ms of the {ms(t1 - t0)} ms)")
+        res.inconclusive = (f"{what}: {n} frames, a CPU stood still or the daemon queued "
+                            f"{ms(stall)} ms meanwhile")
+        res.check(False, f"{what}: {n} < {want} frames (not judged: a CPU stood still or the "
+                         f"daemon queued {ms(stall)} ms of the {ms(t1 - t0)} ms)")
     elif not verdict:
         res.check(False, f"{what}: {n} < {want} frames")
 

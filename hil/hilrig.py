@@ -97,22 +97,31 @@ class Candump:
 # --------------------------------------------------------------------------- stall monitor
 
 class StallMonitor:
-    """One ``stallmon.py`` per CPU (real-time priority): when did a CPU not run at all?"""
+    """One ``stallmon.py`` per CPU (real-time priority): when did a CPU not run at all? With
+    ``daemon_pidfile`` (the daemon an ordinary process: a TCG run), ``waitmon.py`` as well:
+    when did the daemon wait on a run queue behind the harness's processes?"""
 
-    def __init__(self, out: Path, python: str) -> None:
+    def __init__(self, out: Path, python: str, daemon_pidfile: Path | None = None) -> None:
         cpus = sorted(os.sched_getaffinity(0))[:8]
+        here = Path(__file__).resolve().parent
         self.paths = [out / f"stalls-cpu{c}.txt" for c in cpus]
-        script = str(Path(__file__).resolve().parent / "stallmon.py")
-        self.procs = [subprocess.Popen([python, "-B", script, str(c), str(p)],
-                                       stdin=subprocess.DEVNULL)
-                      for c, p in zip(cpus, self.paths, strict=True)]
+        argvs = [[python, "-B", str(here / "stallmon.py"), str(c), str(p)]
+                 for c, p in zip(cpus, self.paths, strict=True)]
+        self.wait_path: Path | None = None
+        if daemon_pidfile is not None:
+            self.wait_path = out / "daemon-waits.txt"
+            self.paths.append(self.wait_path)
+            argvs.append([python, "-B", str(here / "waitmon.py"), str(daemon_pidfile),
+                          str(self.wait_path)])
+        self.procs = [subprocess.Popen(a, stdin=subprocess.DEVNULL) for a in argvs]
         self._offsets = [0] * len(self.paths)
         self._merged: list[tuple[float, float]] = []
+        self._waits: list[tuple[float, float]] = []
         self._lock = threading.Lock()
 
     def intervals(self) -> list[tuple[float, float]]:
-        """Union over the CPUs of the intervals in which one could not run (read on from where
-        the previous call stopped: a loaded run writes thousands of lines)."""
+        """Union of the intervals in which a CPU could not run, or the daemon waited for one
+        (read on from where the previous call stopped: a loaded run writes thousands of lines)."""
         with self._lock:
             new: list[tuple[float, float]] = []
             for i, p in enumerate(self.paths):
@@ -124,9 +133,18 @@ class StallMonitor:
                     continue
                 end = data.rfind(b"\n") + 1  # complete lines only
                 self._offsets[i] += end
-                new += read_stalls(data[:end].decode(errors="replace").splitlines())
+                got = read_stalls(data[:end].decode(errors="replace").splitlines())
+                if p == self.wait_path:
+                    self._waits = merge_more(self._waits, got)
+                new += got
             self._merged = merge_more(self._merged, new)
             return self._merged
+
+    def waits(self) -> list[tuple[float, float]]:
+        """The daemon's waits on a run queue alone (none unless monitored), merged."""
+        self.intervals()
+        with self._lock:
+            return self._waits
 
     def realtime(self) -> bool:
         try:

@@ -64,8 +64,8 @@ def merge_more(merged: list[tuple[float, float]],
     return merged[:cut] + merge(merged[cut:] + more)
 
 
-# A sample (a latency, a frame gap) during which a CPU stood still this long is not judged
-# against a timing limit: the environment, not the daemon, may have made it late.
+# A sample (a latency, a frame gap) during which a CPU stood still or the daemon queued this long
+# is not judged against a timing limit: the environment, not the daemon, may have made it late.
 STALL_EXCUSE_S = 0.002
 
 
@@ -194,8 +194,9 @@ def grid_period(runs: Sequence[Sequence[float]], nominal_s: float) -> tuple[floa
 @dataclass(frozen=True, slots=True)
 class Late:
     """A single time ``t0 -> t1`` judged against ``limit_s``: ``ok`` when within it; over it,
-    ``stall`` says how long a CPU stood still meanwhile when that is ``STALL_EXCUSE_S`` or more
-    (then the sample cannot be judged: the environment may have made it late)."""
+    ``stall`` says how long a CPU stood still or the daemon queued meanwhile when that is
+    ``STALL_EXCUSE_S`` or more (then the sample cannot be judged: the environment may have made
+    it late)."""
 
     value_s: float
     ok: bool
@@ -295,9 +296,9 @@ def judge_gaps(ts: Sequence[float], stalls: Sequence[tuple[float, float]], limit
         if stall is None:
             fails.append(f"{what} gap of {gap} ms at {a:.3f}")
         else:
-            why = f"{what} gap of {gap} ms, a CPU stood still {round(stall * 1000, 3)} ms of it"
-            fails.append(f"{what} gap of {gap} ms at {a:.3f} (not judged: a CPU stood still "
-                         f"{round(stall * 1000, 3)} ms of it)")
+            held = f"a CPU stood still or the daemon queued {round(stall * 1000, 3)} ms of it"
+            why = f"{what} gap of {gap} ms, {held}"
+            fails.append(f"{what} gap of {gap} ms at {a:.3f} (not judged: {held})")
     # A gap the stalls do not explain decides the verdict: no run more would change it.
     judged_fail = any("not judged" not in f for f in fails)
     return Verdict(fails, None if judged_fail else why)
@@ -306,15 +307,15 @@ def judge_gaps(ts: Sequence[float], stalls: Sequence[tuple[float, float]], limit
 def judge_drops(dropped: int | None, stall_s: float, what: str,
                 excuse_s: float = STALL_EXCUSE_S) -> Verdict:
     """Datagrams the kernel dropped at the daemon's socket while ``what`` lasted, against 0: the
-    receive buffer has room for all of it. A drop while a CPU stood still ``excuse_s`` or more
-    (``stall_s`` of it) cannot be judged (the daemon may not have run to read): inconclusive,
-    never a pass. Unknown (no socket found) is a failure."""
+    receive buffer has room for all of it. A drop while a CPU stood still or the daemon queued
+    ``excuse_s`` or more (``stall_s`` of it) cannot be judged (the daemon may not have run to
+    read): inconclusive, never a pass. Unknown (no socket found) is a failure."""
     if dropped is None:
         return Verdict([f"{what}: no daemon socket in /proc/net/udp"])
     if not dropped:
         return Verdict([])
     if stall_s >= excuse_s:
-        why = (f"the kernel dropped {dropped} datagrams of {what} while a CPU stood still "
-               f"{round(stall_s * 1000, 3)} ms of it")
+        why = (f"the kernel dropped {dropped} datagrams of {what} while a CPU stood still or "
+               f"the daemon queued {round(stall_s * 1000, 3)} ms of it")
         return Verdict([f"kernel drops not judged: {why}"], why)
     return Verdict([f"the kernel dropped {dropped} datagrams of {what}"])

@@ -20,9 +20,9 @@ from hilrun import FLOOD_RATE, RECOVERY_S, TIMEOUT_MS, Result, Row, Run, ms
 from hilstalls import judge_drops, overlap
 from hilstats import sent_between
 
-# The invalid-UDP flood (its target rate is hilrun.FLOOD_RATE): the least rate that counts as
-# a flood, how long it lasts, and the exactly counted burst before it.
-FLOOD_MIN_RATE = 10_000
+# The invalid-UDP flood (its target rate is hilrun.FLOOD_RATE; the least rate that counts as
+# a flood is the timing profile's, Limits.flood): how long it lasts, and the exactly counted
+# burst before it.
 FLOOD_S = 0.7
 FLOOD_BURST = 120
 DRAIN_MAX_S = 10.0  # after the flood's checks, the daemon has read its receive queue empty
@@ -31,7 +31,7 @@ DRAIN_MAX_S = 10.0  # after the flood's checks, the daemon has read its receive 
 def sc_invalid_flood(run: Run, res: Result) -> None:
     """Invalid UDP from a flooder process of its own (flood.py, sendmmsg) after the last valid
     packet: first an exactly counted burst (ESTOP_STATUS must count every packet of it), then
-    a flood of FLOOD_MIN_RATE packets/s or more across the deadline. The stop must come at the
+    a flood of Limits.flood packets/s or more across the deadline. The stop must come at the
     deadline all the same. The daemon's receive buffer (8 MiB, its start line's udp_rcvbuf) has
     room for the whole flood, so the kernel must drop nothing (/proc/net/udp): a drop while a
     CPU stood still is inconclusive (the daemon may not have run), never a pass."""
@@ -102,9 +102,9 @@ def sc_invalid_flood(run: Run, res: Result) -> None:
         res.check(False, f)
     if drops.inconclusive:
         res.inconclusive = drops.inconclusive
-    if rate < FLOOD_MIN_RATE:
+    if rate < run.lim.flood:
         res.inconclusive = f"the flooder reached {round(rate)} packets/s only"
-        res.check(False, f"not judged: not a flood: {round(rate)} < {FLOOD_MIN_RATE} packets/s")
+        res.check(False, f"not judged: not a flood: {round(rate)} < {run.lim.flood} packets/s")
     if t0 > t_last + TIMEOUT_MS / 2000:
         res.inconclusive = f"the flood began {ms(t0 - t_last)} ms after the last valid packet"
         res.check(False, "not judged: the flood began after half the timeout")
@@ -118,17 +118,26 @@ def sc_invalid_flood(run: Run, res: Result) -> None:
     res.figures["release_during_flood"] = show_ex(ex)
     res.check(not ex.reply.ack and ex.reply.nak_code == 2,
               "RELEASE while only invalid packets arrive: not NAK 2")
-    # 3. ESTOP_STATUS during the flood: every window wholly inside it is saturated (255 at
-    #    10000/s is 1000 a window), none counts an authentication failure (no key), and in all
-    #    it never counts more than was sent.
+    # 3. ESTOP_STATUS during the flood: every window wholly inside it in which 255 or more
+    #    were sent is saturated (255; at 10000/s a window gets 1000), none counts an
+    #    authentication failure (no key), and in all it never counts more than was sent.
     fw = windows_in(run, t0, t1 + 0.25)
     inside = [w for w in fw if w.start >= t0 and w.end <= t1]
     res.figures["status_invalid_per_window"] = [w.invalid for w in fw]
-    res.figures["sent_per_window_inside"] = [sent_between(flood["series"], w.start, w.end)[0]
-                                             for w in inside]
+    sent_in = [sent_between(flood["series"], w.start, w.end)[0] for w in inside]
+    res.figures["sent_per_window_inside"] = sent_in
     res.check(len(inside) >= 3, f"only {len(inside)} ESTOP_STATUS windows inside the flood")
-    low = [w.invalid for w in inside if w.invalid < 255]
+    # A window must saturate where the flooder sent at least 255 in it. One where it sent fewer
+    # (held back by the CPU: a TCG guest's flood is uneven) is not judged: a run of 2026-12-03
+    # at 4,625 packets/s failed on a window that counted 208 of it.
+    low = [w.invalid for w, n in zip(inside, sent_in, strict=True) if w.invalid < 255 <= n]
     res.check(not low, f"ESTOP_STATUS windows inside the flood below saturation: {low}")
+    judged = sum(1 for n in sent_in if n >= 255)
+    if judged < len(inside):
+        res.figures["windows_not_judged_fewer_than_255_sent"] = len(inside) - judged
+    if inside and not judged:
+        res.inconclusive = "no ESTOP_STATUS window of the flood had 255 packets sent in it"
+        res.check(False, f"not judged: {res.inconclusive}")
     res.check(all(w.auth_failures == 0 for w in fw),
               "ESTOP_STATUS counted authentication failures on a unit without a key")
     res.check(sum(w.invalid for w in fw) <= sent, "ESTOP_STATUS counted more than was sent")
@@ -387,9 +396,10 @@ def sc_sigterm(run: Run, res: Result) -> None:
 
 ROWS: list[Row] = [
     ("invalid_flood", "Invalid UDP flood while ARMED",
-     f"a burst of {FLOOD_BURST} counted exactly; then >= {FLOOD_MIN_RATE} packets/s from a "
+     f"a burst of {FLOOD_BURST} counted exactly; then >= " "{flood} packets/s from a "
      "flooder process: stops at last valid + 200 ms (overshoot <= {max} ms, reason "
-     "udp_timeout); RELEASE NAK 2; ESTOP_STATUS windows inside the flood saturated (255); "
+     "udp_timeout); RELEASE NAK 2; ESTOP_STATUS windows inside the flood saturated (255) where "
+     "255 were sent; "
      "no ESTOP_BRAKE gap of 50 ms; 0 kernel drops (burst and flood); daemon alive",
      sc_invalid_flood),
     ("iface_down", "CAN link down 300 ms, then up",

@@ -114,7 +114,7 @@ def sc_storm_stop(run: Run, res: Result) -> None:
                 # that time (a host far too busy) it never ran: inconclusive, not a pass.
                 stall = overlap(run.stalls(), pr.t_go, time.time())
                 why = (f"run {i}: estop stop did not end {COMMAND_LIMIT_S:g} s after its "
-                       f"deadline; a CPU stood still {ms(stall)} ms meanwhile")
+                       f"deadline; a CPU stood still or the daemon queued {ms(stall)} ms meanwhile")
                 if stall >= COMMAND_LIMIT_S / 2:
                     res.inconclusive = why
                     why = f"not judged: {why}"

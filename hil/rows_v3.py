@@ -215,7 +215,7 @@ def slowing_share(run: Run, res: Result, i: int, frames: list[Frame], t0: float,
             res.check(False, f"run {i}: the emulator's 50 ms watchdog tripped while SLOWING")
         else:
             res.inconclusive = (f"run {i}: a {ms(nxt - trip.last_good)} ms gap while SLOWING, "
-                                f"a CPU stood still {ms(stall)} ms of it")
+                                f"a CPU stood still or the daemon queued {ms(stall)} ms of it")
             res.check(False, f"not judged: {res.inconclusive}")
     off = frame_commands(replay(frames).changes, t0, t1)
     res.check(frame_commands(ch, t0, t1) == off,

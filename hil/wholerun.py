@@ -48,8 +48,8 @@ def check_bus(run: Run, res: Result) -> None:
         if b.ts - a.ts >= BRAKE_SILENCE_S:
             stall = excused(a.ts, b.ts, stalls)
             if stall is not None:
-                excuses.append(f"{ms(b.ts - a.ts)} ms gap at {a.ts:.3f}: a CPU stood still "
-                               f"{ms(stall)} ms of it")
+                excuses.append(f"{ms(b.ts - a.ts)} ms gap at {a.ts:.3f}: a CPU stood still or "
+                               f"the daemon queued {ms(stall)} ms of it")
                 stall_wins.append((a.ts, b.ts))  # the trip it caused is excused as well
                 continue
         gaps.append((b.ts - a.ts) * 1000)
@@ -77,6 +77,11 @@ def check_bus(run: Run, res: Result) -> None:
     long_stalls = [b - a for a, b in stalls if b - a >= 0.010]
     res.figures["cpu_stalls_10ms_or_more"] = (
         f"{len(long_stalls)}, max {ms(max(long_stalls))} ms" if long_stalls else 0)
+    waits = run.stallmon.waits() if run.stallmon else []
+    if run.stallmon is not None and run.stallmon.wait_path is not None:
+        long_waits = [b - a for a, b in waits if b - a >= 0.010]
+        res.figures["daemon_run_queue_waits_10ms_or_more"] = (
+            f"{len(long_waits)}, max {ms(max(long_waits))} ms" if long_waits else 0)
     res.figures["stall_monitor_realtime"] = run.stallmon.realtime() if run.stallmon else None
     res.figures["bus_monitor_max_lag_ms"] = ms(run.mon.max_lag)
     if excuses:

@@ -1,0 +1,83 @@
+"""Run-queue wait monitor: when was the daemon ready to run, and not let?
+
+    python waitmon.py PIDFILE OUTFILE
+
+Under TCG the harness runs the daemon as an ordinary process (hil/run), so the guest's own
+scheduler may hold it back behind the harness's busy processes, which a deployed daemon at
+SCHED_FIFO 50 never waits for. The kernel counts that time per thread: the second field of
+/proc/PID/schedstat, nanoseconds runnable on a run queue but not running. At real-time priority
+(SCHED_FIFO 60, as stallmon.py) this samples the daemon's main thread (its loop; PIDFILE holds
+its pid, rewritten at each start) every 10 ms and writes each interval in which that wait grew
+by more than 1 ms, as ``start end`` wall-clock seconds, ending at the sample and as long as the
+growth. The kernel adds a wait when it ends (when the thread runs), so a wait ended within the
+10 ms before the sample (more when this monitor itself was held) and began that long before
+its end: the interval is off by that much, which the judges' 25 ms of runnable time in a
+50 ms gap allow for. Time in which the daemon slept, blocked or
+ran is never written: a daemon that sends nothing because it waits for the wrong time, blocks
+on a write or spins is judged as before (tests/harness/test_hil_waitmon.py).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import sys
+import time
+
+# Every 10 ms, not every 2 as stallmon.py: under TCG each wake-up of a Python process costs a
+# fraction of a ms of the guest's CPU, and sampled every 2 ms this woke as often as the two
+# stall monitors together (the first run with it fell short of a flood: 4,625 datagrams/s).
+PERIOD_S = 0.010
+REPORT_S = 0.001  # a growth of the wait beyond this is written
+PRIORITY = 60  # as stallmon.py: above the daemon's SCHED_FIFO 50 where it has that
+PID_EVERY = 5  # samples between two reads of PIDFILE (50 ms); at once when the pid is gone
+
+
+def read_pid(path: str) -> int | None:
+    try:
+        with open(path) as f:
+            return int(f.read().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def run_wait_s(pid: int) -> float | None:
+    """The thread's time on a run queue so far (seconds), None when it is gone."""
+    try:
+        with open(f"/proc/{pid}/schedstat") as f:
+            return int(f.read().split()[1]) / 1e9
+    except (OSError, ValueError, IndexError):
+        return None
+
+
+def main() -> int:
+    pidfile, outfile = sys.argv[1], sys.argv[2]
+    out = open(outfile, "w", buffering=1)  # noqa: SIM115 - lives as long as the process
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(PRIORITY))
+        rt = True
+    except (OSError, AttributeError):
+        rt = False
+    out.write(f"# waits rt {int(rt)} pid {os.getpid()}\n")
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    pid: int | None = None
+    prev_wait: float | None = None
+    n = 0
+    while True:
+        time.sleep(PERIOD_S)
+        if pid is None or n % PID_EVERY == 0:
+            new = read_pid(pidfile)
+            if new != pid:
+                pid, prev_wait = new, None  # a new daemon: no growth to take yet
+        n += 1
+        now = time.time()
+        wait = run_wait_s(pid) if pid is not None else None
+        if wait is None:
+            pid = None
+        elif prev_wait is not None and wait - prev_wait > REPORT_S:
+            out.write(f"{now - (wait - prev_wait):.6f} {now:.6f}\n")
+        prev_wait = wait
+
+
+if __name__ == "__main__":
+    sys.exit(main())

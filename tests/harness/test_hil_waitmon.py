@@ -1,0 +1,86 @@
+"""waitmon.py on this kernel's real scheduler: it writes the time a thread waited on a run
+queue (not its run time), and nothing for a thread that sleeps (a daemon that blocks is still
+judged); the StallMonitor counts those waits with the CPU stalls."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from hilrig import StallMonitor
+from hilstalls import overlap
+
+# Spins, and ends by itself after 30 s should the test be killed before its clean-up.
+SPIN = "import time\nend = time.monotonic() + 30\nwhile time.monotonic() < end: pass"
+WATCH_S = 1.5
+
+
+def _pinned(cpu: int, nice: int, code: str, stdout: int | None = None,
+            ) -> subprocess.Popen[bytes]:
+    return subprocess.Popen([sys.executable, "-c", code], stdout=stdout, preexec_fn=lambda: (
+        os.sched_setaffinity(0, {cpu}), os.nice(nice)))
+
+
+@pytest.fixture
+def procs() -> Iterator[list[subprocess.Popen[bytes]]]:
+    started: list[subprocess.Popen[bytes]] = []
+    yield started
+    for p in started:  # all killed first: each one's exit needs its turn on the CPU
+        p.kill()
+    for p in started:
+        p.wait(timeout=5)
+
+
+def _watch(tmp_path: Path, pid: int, first_pid: int | None = None) -> list[tuple[float, float]]:
+    """The waits StallMonitor's waitmon.py wrote for ``pid`` over WATCH_S, every one of them
+    among the monitor's intervals. ``first_pid``: the pidfile names it first (gone), then
+    ``pid``, as at a daemon's restart."""
+    pidfile = tmp_path / "daemon.pid"
+    pidfile.write_text(f"{first_pid if first_pid is not None else pid}\n")
+    mon = StallMonitor(tmp_path, sys.executable, pidfile)
+    try:
+        if first_pid is not None:
+            time.sleep(0.2)
+            pidfile.write_text(f"{pid}\n")
+        time.sleep(WATCH_S)
+        waits = list(mon.waits())
+        union = mon.intervals()
+    finally:
+        mon.stop()
+    assert mon.wait_path is not None and mon.wait_path.read_text().startswith("# waits rt ")
+    for a, b in waits:
+        assert overlap(union, a, b) == pytest.approx(b - a)
+    return waits
+
+
+def _total(waits: list[tuple[float, float]]) -> float:
+    return sum(b - a for a, b in waits)
+
+
+def test_a_thread_held_back_by_another_on_its_cpu_has_its_waits_written(
+        tmp_path: Path, procs: list[subprocess.Popen[bytes]]) -> None:
+    # At nice 5 beside a spinner at 0 on its CPU (one session: nice weighs between them) the
+    # target runs a quarter of the time at most and waits the rest (the kernel adds each wait
+    # when it ends, at the target's next turn): a monitor that wrote its run time instead
+    # would write less than half.
+    procs.append(_pinned(0, 0, SPIN))
+    procs.append(target := _pinned(0, 5, SPIN))
+    gone = subprocess.Popen(["true"])
+    gone.wait()
+    waits = _watch(tmp_path, target.pid, first_pid=gone.pid)
+    assert _total(waits) > 0.5 * WATCH_S, waits
+
+
+def test_a_sleeping_thread_writes_no_waits(tmp_path: Path,
+                                           procs: list[subprocess.Popen[bytes]]) -> None:
+    procs.append(_pinned(0, 0, SPIN))
+    procs.append(target := _pinned(0, 0, "import time; print('up', flush=True); "
+                                           "time.sleep(60)", stdout=subprocess.PIPE))
+    assert target.stdout is not None and target.stdout.readline() == b"up\n"  # asleep now
+    assert _total(_watch(tmp_path, target.pid)) < 0.05

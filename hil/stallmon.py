@@ -16,23 +16,32 @@ import os
 import signal
 import sys
 import time
+from typing import TextIO
 
 PERIOD_S = 0.002
 REPORT_S = 0.004  # beyond the period
 PRIORITY = 60  # above the daemon's SCHED_FIFO 50 (hilrun.RT_PRIO, as deployed)
 
 
-def main() -> int:
-    cpu = int(sys.argv[1])
-    out = open(sys.argv[2], "w", buffering=1)  # noqa: SIM115 - lives as long as the process
-    os.sched_setaffinity(0, {cpu})
+def start(path: str, what: str) -> TextIO:
+    """A monitor's start (this one's and waitmon.py's): real-time priority PRIORITY where
+    allowed, an exit at SIGTERM, and its output file (line-buffered) with the header line
+    ``# WHAT rt 0|1 pid N`` that StallMonitor.realtime reads."""
+    out = open(path, "w", buffering=1)  # noqa: SIM115 - lives as long as the process
     try:
         os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(PRIORITY))
         rt = True
     except (OSError, AttributeError):
         rt = False
-    out.write(f"# cpu {cpu} rt {int(rt)} pid {os.getpid()}\n")
+    out.write(f"# {what} rt {int(rt)} pid {os.getpid()}\n")
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    return out
+
+
+def main() -> int:
+    cpu = int(sys.argv[1])
+    os.sched_setaffinity(0, {cpu})
+    out = start(sys.argv[2], f"cpu {cpu}")
     prev = time.time()
     while True:
         time.sleep(PERIOD_S)

@@ -19,17 +19,16 @@ on a write or spins is judged as before (tests/harness/test_hil_waitmon.py).
 
 from __future__ import annotations
 
-import os
-import signal
 import sys
 import time
+
+from stallmon import start
 
 # Every 10 ms, not every 2 as stallmon.py: under TCG each wake-up of a Python process costs a
 # fraction of a ms of the guest's CPU, and sampled every 2 ms this woke as often as the two
 # stall monitors together (the first run with it fell short of a flood: 4,625 datagrams/s).
 PERIOD_S = 0.010
 REPORT_S = 0.001  # a growth of the wait beyond this is written
-PRIORITY = 60  # as stallmon.py: above the daemon's SCHED_FIFO 50 where it has that
 PID_EVERY = 5  # samples between two reads of PIDFILE (50 ms); at once when the pid is gone
 
 
@@ -51,15 +50,8 @@ def run_wait_s(pid: int) -> float | None:
 
 
 def main() -> int:
-    pidfile, outfile = sys.argv[1], sys.argv[2]
-    out = open(outfile, "w", buffering=1)  # noqa: SIM115 - lives as long as the process
-    try:
-        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(PRIORITY))
-        rt = True
-    except (OSError, AttributeError):
-        rt = False
-    out.write(f"# waits rt {int(rt)} pid {os.getpid()}\n")
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(0))
+    pidfile = sys.argv[1]
+    out = start(sys.argv[2], "waits")  # stallmon.py's: SCHED_FIFO 60, the header, SIGTERM
     pid: int | None = None
     prev_wait: float | None = None
     n = 0

@@ -1,10 +1,12 @@
 """waitmon.py on this kernel's real scheduler: it writes the time a thread waited on a run
 queue (not its run time), and nothing for a thread that sleeps (a daemon that blocks is still
-judged); the StallMonitor counts those waits with the CPU stalls."""
+judged); the StallMonitor counts those waits with the CPU stalls; stallmon.py writes a stall as
+short as the judges count."""
 
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
 import time
@@ -13,6 +15,7 @@ from pathlib import Path
 
 import pytest
 
+import hilstalls
 from hilrig import StallMonitor
 from hilstalls import overlap
 
@@ -84,3 +87,32 @@ def test_a_sleeping_thread_writes_no_waits(tmp_path: Path,
                                            "time.sleep(60)", stdout=subprocess.PIPE))
     assert target.stdout is not None and target.stdout.readline() == b"up\n"  # asleep now
     assert _total(_watch(tmp_path, target.pid)) < 0.05
+
+
+def test_the_stall_monitor_records_a_stall_of_a_few_ms(tmp_path: Path) -> None:
+    # Held 4 ms at a time (SIGSTOP, then SIGCONT): each hold is a stall of 2 ms or more beyond
+    # its 2-ms period, which the judges count (STALL_EXCUSE_S), so each must be written. Until
+    # 2026-12-03 it wrote only stalls of more than 4 ms beyond, and none of these.
+    out = tmp_path / "stalls.txt"
+    here = Path(hilstalls.__file__).resolve().parent
+    p = subprocess.Popen([sys.executable, "-B", str(here / "stallmon.py"), "1", str(out)])
+    try:
+        end = time.monotonic() + 10
+        while not out.exists() or not out.read_text().startswith("# cpu 1 "):
+            assert time.monotonic() < end, "stallmon.py wrote no header"
+            time.sleep(0.01)
+        time.sleep(0.1)
+        holds = []
+        for _ in range(6):
+            t0 = time.time()
+            os.kill(p.pid, signal.SIGSTOP)
+            time.sleep(0.004)
+            os.kill(p.pid, signal.SIGCONT)
+            holds.append((t0, time.time()))
+            time.sleep(0.05)
+    finally:
+        p.terminate()
+        p.wait(timeout=5)
+    stalls = hilstalls.read_stalls(out.read_text().splitlines())
+    seen = [h for h in holds if hilstalls.overlap(stalls, h[0], h[1] + 0.004) > 0]
+    assert len(seen) >= 5, (holds, stalls)

@@ -12,9 +12,9 @@ by more than 1 ms, as ``start end`` wall-clock seconds, ending at the sample and
 growth. The kernel adds a wait when it ends (when the thread runs), so a wait ended within the
 10 ms before the sample (more when this monitor itself was held) and began that long before
 its end: the interval is off by that much, which the judges' 25 ms of runnable time in a
-50 ms gap allow for. Time in which the daemon slept, blocked or
-ran is never written: a daemon that sends nothing because it waits for the wrong time, blocks
-on a write or spins is judged as before (tests/harness/test_hil_waitmon.py).
+50 ms gap allow for. Time in which the daemon slept, blocked or ran is never written: a
+daemon that sends nothing because it waits for the wrong time, blocks on a write or spins is
+judged as before (tests/harness/test_hil_waitmon.py).
 """
 
 from __future__ import annotations

@@ -299,7 +299,28 @@ def main(argv: list[str] | None = None) -> int:
     text = protocol_md(doc, extra)
     (out / "protocol.md").write_text(text)
     sys.stdout.write(text)
+    sys.stdout.write(failure_summary(doc))
     return 0 if ok else 1
+
+
+def failure_summary(doc: dict, width: int = 300) -> str:
+    """The failed rows again, each with its failures, as the last lines printed: CI keeps only
+    the tail of a run's output, and the table's failed row may lie far above it (stop 48's CI
+    run showed rows 20 to 24, all passed, and not which row failed)."""
+    failed = [r for r in doc.get("results", []) if not r.get("passed")]
+    if not failed and not doc.get("fatal"):
+        return ""
+    lines = ["", "## Failed rows, again (the table above has them in full)", ""]
+    if doc.get("fatal"):
+        lines.append(f"- FATAL: {str(doc['fatal'])[:width]}")
+    for r in failed:
+        fails = [n for n in r.get("notes", []) if n.startswith(("FAIL", "second try"))]
+        lines.append(f"- {r.get('id', '?')} ({r.get('title', '?')}): "
+                     f"{len(fails)} failure note(s)")
+        lines += [f"  - {n[:width]}" for n in fails[:6]]
+        if len(fails) > 6:
+            lines.append(f"  - ... and {len(fails) - 6} more")
+    return "\n".join(lines) + "\n"
 
 
 if __name__ == "__main__":

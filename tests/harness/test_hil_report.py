@@ -45,6 +45,19 @@ def test_report_main(tmp_path: Path) -> None:
     assert hilreport.main([str(tmp_path), "--no-plot"]) == 1
 
 
+def test_the_failed_rows_come_last() -> None:
+    """CI keeps the tail of the output: a failed row's failures are the last lines printed."""
+    doc = _doc(False)
+    doc["results"][0]["notes"] = ["run 1: not a sample", "FAIL: dead-man overshoot: 12 ms"]
+    doc["results"].insert(0, {**_doc(True)["results"][0], "id": "boot"})
+    tail = hilreport.failure_summary(doc)
+    assert tail.rstrip().splitlines()[-2:] == [
+        "- deadman (Dead-man | timeout): 1 failure note(s)",
+        "  - FAIL: dead-man overshoot: 12 ms"]
+    assert "boot" not in tail
+    assert hilreport.failure_summary(_doc(True)) == ""
+
+
 def test_scenario_criteria_format_in_both_profiles() -> None:
     import hilrun
     import scenarios

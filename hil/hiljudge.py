@@ -142,23 +142,25 @@ def last_packet(run: Run, res: Result, remote: UdpRemote, i: int,
     nearly 10 ms. Returns the send time, or None when the harness itself was too slow: the
     link was silent for ``spoil_s`` (most of the time to the first deadline, by default half
     the timeout) before it (the unit may rightly have acted before it), so this is no sample."""
+    t_stop = time.time()
     t_prev = remote.stop()
     assert t_prev is not None
-    idx = run.mon.index()
-    tick = run.brake_after(idx, lambda b: b.state == 1, 0.1)
-    if tick is None:
-        other = run.brake_after(idx, lambda b: True, 0.0)
-        if other is not None and other[1].state != 1:  # the unit is not ARMED: judged
-            res.check(False, f"run {i}: no periodic ARMED frame (state {other[1].state})")
-        else:  # a gap in the frames, or the harness's bus monitor behind: the whole-run row
-            # judges the gaps, stall-aware; a fresh-clone run of c36dc85 failed here outright
-            res.notes.append(f"run {i}: not a sample, no ARMED frame on the bus within 100 ms "
-                             "(a gap the whole-run row judges)")
+    t_wait = time.time()
+    tick = run.next_brake(0.1)
+    t_tick = time.time()
+    if tick is not None and tick.state != 1:  # the unit is not ARMED: judged
+        res.check(False, f"run {i}: no periodic ARMED frame (state {tick.state})")
+        return None
+    if tick is None:  # a gap in the frames: the whole-run row judges the gaps, stall-aware
+        res.notes.append(f"run {i}: not a sample, no ESTOP_BRAKE frame on the bus within "
+                         "100 ms (a gap the whole-run row judges)")
         return None
     t_last = send() if send is not None else remote.send(remote.packet(NEUTRAL))
     if t_last - t_prev >= spoil_s:
         res.notes.append(f"run {i}: not a sample, the harness's {what} came "
-                         f"{ms(t_last - t_prev)} ms after the packet before")
+                         f"{ms(t_last - t_prev)} ms after the packet before (that one "
+                         f"{ms(t_stop - t_prev)} ms before the keepalive was stopped; "
+                         f"{ms(t_tick - t_wait)} ms waiting for a tick)")
         return None
     return t_last
 

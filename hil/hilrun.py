@@ -21,7 +21,7 @@ import can
 
 from estop.client.keyfile import KeyFileError, load_key_file, write_key_file
 from estop.protocol.can import BRAKE_ID, BrakeFrame
-from hilbus import BusMonitor
+from hilbus import BusMonitor, next_frame
 from hilclients import NEUTRAL, AuthRemote, StopClient, UdpRemote, connect_retry
 from hildaemon import Daemon, sched_text, threads_sched
 from hilemu import Frame
@@ -353,6 +353,19 @@ class Run:
 
         fr = self.mon.wait_for(match, start, timeout)
         return None if fr is None else (fr, BrakeFrame.parse(fr.data))
+
+    def next_brake(self, timeout: float) -> BrakeFrame | None:
+        """The daemon's next good ESTOP_BRAKE frame from now on, read at once from a socket of
+        its own (hilbus.next_frame), not through the bus monitor, which may lag; None when
+        none came within ``timeout`` s (a frame that fails its checks is skipped)."""
+        end = time.monotonic() + timeout
+        while (left := end - time.monotonic()) > 0:
+            got = next_frame(self.iface, BRAKE_ID, left)
+            if got is None:
+                return None
+            if not BrakeFrame.check(got[1]):
+                return BrakeFrame.parse(got[1])
+        return None
 
     def wait_packets(self, remote: UdpRemote, t0: float, n: int = ARM_PACKETS) -> None:
         """Until the keepalive started at ``t0`` has sent ``n`` packets (bounded: 3 s)."""

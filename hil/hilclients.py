@@ -31,6 +31,10 @@ class UdpRemote:
         self.lock = threading.Lock()
         self.last_send: float | None = None  # wall time taken just before the last sendto
         self.keepalive_times: list[float] = []
+        # ... and when each send returned: a thread held between its stamp and its send (a
+        # loaded guest) sent later than stamped, and a pause seen only in the stamps before
+        # the sends was up to that much longer (max_gap takes the longest it may have been).
+        self.keepalive_after: list[float] = []
         self.sent = 0
         self.errors = 0
 
@@ -66,6 +70,7 @@ class UdpRemote:
             while not self._stop.is_set():
                 self.last_send = self.send(self.packet(data))
                 self.keepalive_times.append(self.last_send)
+                self.keepalive_after.append(time.time())
                 nxt += period
                 self._stop.wait(max(0.0, nxt - time.monotonic()))
 
@@ -83,10 +88,12 @@ class UdpRemote:
         return self.last_send
 
     def max_gap(self, t0: float, t1: float) -> float:
-        """Longest pause between keepalive packets sent in ``[t0, t1]`` (seconds)."""
-        ts = self.keepalive_times[bisect.bisect_left(self.keepalive_times, t0):
-                                  bisect.bisect_right(self.keepalive_times, t1)]
-        return max((b - a for a, b in zip(ts, ts[1:], strict=False)), default=0.0)
+        """Longest pause between keepalive packets sent in ``[t0, t1]`` (seconds): from the
+        stamp before one send to the return of the next, the longest the pause may have been."""
+        i = bisect.bisect_left(self.keepalive_times, t0)
+        j = bisect.bisect_right(self.keepalive_times, t1)
+        before, after = self.keepalive_times[i:j], self.keepalive_after[i:j]
+        return max((b - a for a, b in zip(before, after[1:], strict=False)), default=0.0)
 
     def close(self) -> None:
         self.stop()

@@ -314,7 +314,7 @@ def failure_summary(doc: dict, width: int = 300) -> str:
     if doc.get("fatal"):
         lines.append(f"- FATAL: {str(doc['fatal'])[:width]}")
     for r in failed:
-        fails = [n for n in r.get("notes", []) if n.startswith(("FAIL", "second try"))]
+        fails = [n for n in r.get("notes", []) if n.startswith(("FAIL", "try "))]
         lines.append(f"- {r.get('id', '?')} ({r.get('title', '?')}): "
                      f"{len(fails)} failure note(s)")
         lines += [f"  - {n[:width]}" for n in fails[:6]]

@@ -164,6 +164,25 @@ class StallMonitor:
                 proc.wait(timeout=3)
 
 
+def cpu_s(pid: int, tid: int | None = None) -> float | None:
+    """CPU seconds (user and system) a process, or one of its threads, has used; None if gone."""
+    path = f"/proc/{pid}/task/{tid}/stat" if tid is not None else f"/proc/{pid}/stat"
+    try:
+        fields = Path(path).read_text().rsplit(")", 1)[1].split()
+        return round((int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"), 2)
+    except (OSError, IndexError, ValueError):
+        return None
+
+
+def cpu_busy_s() -> float | None:
+    """CPU seconds all CPUs have spent busy (not idle, not waiting for I/O) since boot."""
+    try:
+        f = [int(x) for x in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:]]
+        return round((sum(f[:8]) - f[3] - f[4]) / os.sysconf("SC_CLK_TCK"), 2)
+    except (OSError, ValueError, IndexError):
+        return None
+
+
 def iface_stats(iface: str) -> dict[str, int]:
     base = Path("/sys/class/net") / iface / "statistics"
     out: dict[str, int] = {}

@@ -236,14 +236,19 @@ class Verdict:
     inconclusive: str | None = None
 
 
+# Samples without a stall enough to judge the max limit, however many stalled: a loaded TCG
+# guest stalled 7 to 11 of 12 TCP STOP samples in each of two tries (a local run, 2026-12-03).
+MAX_CLEAN = 5
+
+
 def judge_latencies(vals: Sequence[float], stalled: Sequence[bool], p50: float | None,
                     max_ms: float, label: str) -> Verdict:
     """Latency samples (ms) against a median limit (None: none) and a max limit.
 
     A CPU stall can only delay, so a sample taken during one is an upper bound of what the
     daemon did: a limit that all samples meet is met. Where they do not, only the samples
-    without a stall count (at least 3 for a median, at least half of them in all); when too
-    few are left to decide, the verdict is inconclusive, never a pass.
+    without a stall count (at least 3 for a median, for the max at least half of them or
+    MAX_CLEAN); when too few are left to decide, the verdict is inconclusive, never a pass.
     """
     fails: list[str] = []
     why: str | None = None
@@ -261,7 +266,7 @@ def judge_latencies(vals: Sequence[float], stalled: Sequence[bool], p50: float |
     over = [v for v, st in zip(vals, stalled, strict=True) if v > max_ms and not st]
     if over:
         fails.append(f"{label}: {max(over)} ms > {max_ms} ms")
-    elif max(vals) > max_ms and len(clean) < (len(vals) + 1) // 2:
+    elif max(vals) > max_ms and len(clean) < min(MAX_CLEAN, (len(vals) + 1) // 2):
         why = (f"{label}: {max(vals)} ms > {max_ms} ms during a CPU stall, and only "
                f"{len(clean)} of {len(vals)} samples without one")
         fails.append(f"{label}: max not judged ({why})")

@@ -101,6 +101,7 @@ def check_bus(run: Run, res: Result) -> None:
             f"{len(long_waits)}, max {ms(max(long_waits))} ms" if long_waits else 0)
     res.figures["stall_monitor_realtime"] = run.stallmon.realtime() if run.stallmon else None
     res.figures["bus_monitor_max_lag_ms"] = ms(run.mon.max_lag)
+    res.figures["cpu_s"] = run.cpu
     if excuses:
         res.figures["gaps_excused_by_cpu_stalls"] = excuses[:5]
     res.check(bool(gaps) and max(gaps) < BRAKE_SILENCE_S * 1000,

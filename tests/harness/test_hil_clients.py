@@ -79,3 +79,16 @@ def test_the_storm_row_counts_the_stop_clients_the_unit_closed() -> None:
                 c.close()
             for a in accepted:
                 a.close()
+
+
+def test_a_keepalive_send_held_after_its_stamp_counts_in_the_pause() -> None:
+    """A keepalive thread held between its stamp and its send (a loaded guest) sent later than
+    stamped: the pause it may have left is from the stamp before one send to the return of the
+    next (a local run: the unit timed out with 'no' pause of 150 ms in the stamps)."""
+    from hilclients import UdpRemote
+
+    rem = UdpRemote.__new__(UdpRemote)  # no socket: the bookkeeping alone
+    rem.keepalive_times = [0.0, 0.02, 0.04, 0.06]
+    rem.keepalive_after = [0.001, 0.021, 0.24, 0.061]  # the third send returned 200 ms late
+    assert abs(rem.max_gap(0.0, 1.0) - 0.22) < 1e-9  # stamps alone: 0.02
+    assert abs(rem.max_gap(0.05, 1.0) - 0.0) < 1e-9  # one packet: no pause in the range

@@ -12,6 +12,7 @@ import shutil
 import signal
 import socket
 import sys
+import tempfile
 import threading
 import time
 from collections.abc import Callable
@@ -160,7 +161,12 @@ class Run:
         self.markers: list[Frame] = []
         self.t_closed = math.inf
         self.stallmon: StallMonitor | None = None
-        self.pidfile = self.out / "daemon.pid"  # the running daemon's, for waitmon.py
+        # The stall monitors' files and the daemon's pid (for waitmon.py) in the guest's own
+        # memory, not on the host's directory (StallMonitor), copied there at the end.
+        shm = Path("/dev/shm")
+        self.local = Path(tempfile.mkdtemp(prefix="estop-hil-",
+                                           dir=shm if os.access(shm, os.W_OK) else None))
+        self.pidfile = self.local / "daemon.pid"  # the running daemon's, for waitmon.py
         self.want_key = False  # the next daemon gets --key-file (keyed rows) or --no-auth
         self.want_opts: dict[str, str] = {}  # the next daemon's options beyond the defaults
         self.key: bytes | None = None
@@ -306,7 +312,7 @@ class Run:
         # processes, which a deployed daemon at SCHED_FIFO 50 never does: those waits are
         # measured (waitmon.py) and count with the CPU stalls. At real-time priority they don't.
         self.stallmon = StallMonitor(self.out, sys.executable,
-                                     None if self.rt_prio else self.pidfile)
+                                     None if self.rt_prio else self.pidfile, work=self.local)
         setup_vcan(self.iface)
         self.candump = Candump(self.iface, self.out / "candump.log")
         self.monitor = BusMonitor(self.iface)
@@ -367,6 +373,7 @@ class Run:
             self.candump.stop()
         if self.stallmon is not None:
             self.stallmon.stop()
+        shutil.rmtree(self.local, ignore_errors=True)
 
     # ---- helpers used by the scenarios
     def brake_after(self, start: int, pred: Callable[[BrakeFrame], bool],

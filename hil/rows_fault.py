@@ -71,7 +71,7 @@ def sc_invalid_flood(run: Run, res: Result) -> None:
         assert t_last is not None
         fl.start()
         watch = QueueWatch(run.udp_port)
-        got = run.brake_after(start, lambda b: b.state == 0, 1.0)
+        got = run.brake_after(start, lambda b: b.state == 0, 1.0, after=t_last)
         time.sleep(0.05)
         ex = run.clients[0].release()  # only invalid packets arrive: no live link
         time.sleep(max(0.0, t_last + FLOOD_S - time.time()))
@@ -172,7 +172,7 @@ def sc_iface_down(run: Run, res: Result) -> None:
     res.check(d.alive, "daemon exited while the link was down")
     start = run.mon.index()
     t_up0, t_up = set_link(run.iface, up=True)
-    first = run.brake_after(start, lambda _b: True, 1.0)
+    first = run.brake_after(start, lambda _b: True, 1.0, after=t_down)
     time.sleep(0.3)
     run.keepalive_held(res, since, t_up)
     run.windows.append((t_down - 0.01, (first[0].ts if first else t_up) + RECOVERY_S,

@@ -132,7 +132,7 @@ def sc_auth_release(run: Run, res: Result) -> None:
     res.check(ex.tag_ok is True, "the reply to the genuine RELEASE does not verify")
     res.check(ex.reply.ack and ex.reply.state == 1,
               "genuine RELEASE with a live authenticated link: not ACK ARMED")
-    got = run.brake_after(start2, lambda b: b.state == 1, 1.0)
+    got = run.brake_after(start2, lambda b: b.state == 1, 1.0, after=ex.t_send)
     if got is None:
         res.check(False, "no ARMED frame after the genuine RELEASE")
     else:
@@ -171,7 +171,7 @@ def sc_auth_spoof(run: Run, res: Result) -> None:
             continue
         attacker = Attacker(run.udp, attack_packets(ar, key, replay))
         attacker.start()  # the finger is off: only the attacker sends now
-        got = run.brake_after(start, lambda b: b.state == 0, 1.0)
+        got = run.brake_after(start, lambda b: b.state == 0, 1.0, after=t_last)
         time.sleep(0.03)
         attacker.stop()
         t_first = attacker.t0 if t_first is None else t_first
@@ -212,7 +212,7 @@ def sc_auth_stop_datagram(run: Run, res: Result) -> None:
         dg = dg[:32] + os.urandom(16)
         start = run.mon.index()
         t_send = run.udp.send(dg)
-        got = run.brake_after(start, lambda b: b.state == 0, 1.0)
+        got = run.brake_after(start, lambda b: b.state == 0, 1.0, after=t_send)
         ar.stop()
         if got is not None and link_died_first(ar, t_arm, t_send, got[1].reason):
             spoiled += 1  # the harness let the link die before its datagram: not a sample

@@ -83,7 +83,7 @@ def press_in_storm(run: Run, res: Result, i: int, tap: UdpTap) -> Pressed:
     finally:
         figures = run.storm.stop()
     sent = [ts for ts, p in tap.read() if ts >= cmd.t_go and is_stop_datagram(p)]
-    got = run.brake_after(start, lambda b: b.state == STOPPED, 1.0)
+    got = run.brake_after(start, lambda b: b.state == STOPPED, 1.0, after=cmd.t_go)
     run.udp.stop()
     return Pressed(t_arm, cmd.t_go, min(sent) if sent else None, got, code, output, idle,
                    figures)

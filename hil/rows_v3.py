@@ -107,7 +107,7 @@ def sc_lift(run: Run, res: Result) -> None:
             spoiled += 1
             time.sleep(0.3)
             continue
-        got = run.brake_after(start, lambda b: b.state == STOPPED, 1.0)
+        got = run.brake_after(start, lambda b: b.state == STOPPED, 1.0, after=t_lift)
         if got is None:
             res.check(False, f"run {i}: no STOPPED frame within 1 s of the lift")
             continue
@@ -153,7 +153,7 @@ def sc_lift_tcp(run: Run, res: Result) -> None:
         since = time.monotonic()
         start = run.mon.index()
         ex = client.request_frame(tcp.LIFT, counter=i + 1) if framed else client.lift()
-        got = run.brake_after(start, lambda b: b.state == STOPPED, 1.0)
+        got = run.brake_after(start, lambda b: b.state == STOPPED, 1.0, after=ex.t_send)
         run.udp.stop()
         if link_died_first(run.udp, t_arm, ex.t_send, ex.reply.reason):
             spoiled += 1  # the harness let the link die before its LIFT: not a sample

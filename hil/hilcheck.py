@@ -3,7 +3,7 @@ on any host. It lives in modules by job; this one names them and gathers what th
 
 - ``hilemu``: the brake-controller emulator (:class:`BrakeController`, graded as spec
   section 7 asks) and its offline :func:`replay`; the :class:`Frame` every part shares;
-- ``hilstalls``: the environment's stalls (stallmon.py's intervals) and the stall-aware
+- ``hilstalls``: the environment's stalls (hil/mon/stallmon's intervals) and the stall-aware
   verdicts: latencies, single times, frame counts, mean periods, gaps, kernel drops;
 - ``hilstats``: figures of the protocol (:func:`summary`, :func:`frame_gaps`) and the counts of
   the UDP flood rows (/proc/net/udp, ESTOP_STATUS counting windows, a sender's series);

@@ -97,31 +97,36 @@ class Candump:
 
 # --------------------------------------------------------------------------- stall monitor
 
+MON_BIN = Path(__file__).resolve().parent / "mon" / "build"  # hil/mon's make (hil/run)
+
+
 class StallMonitor:
-    """One ``stallmon.py`` per CPU (real-time priority): when did a CPU not run at all? With
-    ``daemon_pidfile`` (the daemon an ordinary process: a TCG run), ``waitmon.py`` as well:
+    """One ``stallmon`` per CPU (hil/mon, real-time priority): when did a CPU not run at all?
+    With ``daemon_pidfile`` (the daemon an ordinary process: a TCG run), ``waitmon`` as well:
     when did the daemon wait on a run queue behind the harness's processes?"""
 
-    def __init__(self, out: Path, python: str, daemon_pidfile: Path | None = None,
-                 work: Path | None = None) -> None:
+    def __init__(self, out: Path, daemon_pidfile: Path | None = None,
+                 work: Path | None = None, bindir: Path = MON_BIN) -> None:
         """The monitors write into ``work`` (default ``out``), copied into ``out`` at stop():
         in a TCG guest ``out`` is the host's directory, each line written a round trip to the
-        host, and the monitors wake 1,100 times a second at real-time priority (a local run
-        measured 183 of the guest's 341 busy CPU seconds in them; hilrun puts ``work`` in
-        /dev/shm)."""
+        host, and the monitors wake 1,500 times a second at real-time priority (a local run
+        measured 183 of the guest's 341 busy CPU seconds in their Python versions, writing
+        there; hilrun puts ``work`` in /dev/shm)."""
         cpus = sorted(os.sched_getaffinity(0))[:8]
-        here = Path(__file__).resolve().parent
+        for exe in ("stallmon", "waitmon"):
+            if not os.access(bindir / exe, os.X_OK):
+                raise RigError(f"no {bindir / exe}: build the monitors (make -C hil/mon)")
         self.out = out
         work = work or out
+        work.mkdir(parents=True, exist_ok=True)
         self.paths = [work / f"stalls-cpu{c}.txt" for c in cpus]
-        argvs = [[python, "-B", str(here / "stallmon.py"), str(c), str(p)]
+        argvs = [[str(bindir / "stallmon"), str(c), str(p)]
                  for c, p in zip(cpus, self.paths, strict=True)]
         self.wait_path: Path | None = None
         if daemon_pidfile is not None:
             self.wait_path = work / "daemon-waits.txt"
             self.paths.append(self.wait_path)
-            argvs.append([python, "-B", str(here / "waitmon.py"), str(daemon_pidfile),
-                          str(self.wait_path)])
+            argvs.append([str(bindir / "waitmon"), str(daemon_pidfile), str(self.wait_path)])
         self.procs = [subprocess.Popen(a, stdin=subprocess.DEVNULL) for a in argvs]
         self._offsets = [0] * len(self.paths)
         self._merged: list[tuple[float, float]] = []

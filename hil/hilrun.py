@@ -37,8 +37,8 @@ EARLY_TOL_MS = 0.1  # a stop before the deadline is a failure (clock granularity
 # frame (every 100 ms): the disturbance window ends this long after the first frame back.
 RECOVERY_S = 0.15
 # A latency sample during which a CPU stood still or the daemon queued STALL_EXCUSE_S (hilcheck)
-# is not judged (see stallmon.py, waitmon.py); it is still shown, and a run with too few judged
-# samples is repeated once.
+# is not judged (see hil/mon: stallmon, waitmon); it is still shown, and a row with too few
+# judged samples is tried again (scenarios.TRIES).
 # The harness's own keepalive (20 ms) must not pause this long where a live link is the test's
 # premise; if it did, the test is repeated once.
 KEEPALIVE_GAP_S = 0.15
@@ -161,12 +161,12 @@ class Run:
         self.markers: list[Frame] = []
         self.t_closed = math.inf
         self.stallmon: StallMonitor | None = None
-        # The stall monitors' files and the daemon's pid (for waitmon.py) in the guest's own
+        # The stall monitors' files and the daemon's pid (for hil/mon/waitmon) in the guest's own
         # memory, not on the host's directory (StallMonitor), copied there at the end.
         shm = Path("/dev/shm")
         self.local = Path(tempfile.mkdtemp(prefix="estop-hil-",
                                            dir=shm if os.access(shm, os.W_OK) else None))
-        self.pidfile = self.local / "daemon.pid"  # the running daemon's, for waitmon.py
+        self.pidfile = self.local / "daemon.pid"  # the running daemon's, for hil/mon/waitmon
         self.want_key = False  # the next daemon gets --key-file (keyed rows) or --no-auth
         self.want_opts: dict[str, str] = {}  # the next daemon's options beyond the defaults
         self.key: bytes | None = None
@@ -227,7 +227,7 @@ class Run:
         with self.mon.cond:
             self.mon.ctl.expect_new_sender(time.time())
         d = Daemon(self.argv(), self.out / f"estopd-{len(self.daemons) + 1}.log")
-        tmp = self.pidfile.with_suffix(".tmp")  # replaced whole: waitmon.py reads it any time
+        tmp = self.pidfile.with_suffix(".tmp")  # replaced whole: hil/mon/waitmon reads it any time
         tmp.write_text(f"{d.proc.pid}\n")
         tmp.replace(self.pidfile)
         d.keyed = self.want_key
@@ -310,9 +310,10 @@ class Run:
     def setup(self) -> None:
         # The daemon as an ordinary process (a TCG run) may wait behind the harness's own
         # processes, which a deployed daemon at SCHED_FIFO 50 never does: those waits are
-        # measured (waitmon.py) and count with the CPU stalls. At real-time priority they don't.
-        self.stallmon = StallMonitor(self.out, sys.executable,
-                                     None if self.rt_prio else self.pidfile, work=self.local)
+        # measured (hil/mon/waitmon) and count with the CPU stalls. At real-time priority they
+        # don't.
+        self.stallmon = StallMonitor(self.out, None if self.rt_prio else self.pidfile,
+                                     work=self.local)
         setup_vcan(self.iface)
         self.candump = Candump(self.iface, self.out / "candump.log")
         self.monitor = BusMonitor(self.iface)

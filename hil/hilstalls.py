@@ -1,6 +1,6 @@
 """The environment's stalls told apart from the daemon's (pure logic; see hil/README.md).
 
-``stallmon.py`` records when a CPU could not run at all; these functions read its intervals
+``mon/stallmon.c`` records when a CPU could not run at all; these functions read its intervals
 and judge samples with them: a CPU stall can only delay, so what a stall may explain is
 inconclusive, never a pass (latency samples, single times, frame counts, gaps in the
 periodic frames, kernel drops); a period is that of the grid fitted under the frames.
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 # --------------------------------------------------------------------------- environment stalls
 
 def read_stalls(lines: Iterable[str]) -> list[tuple[float, float]]:
-    """Intervals of a ``stallmon.py`` file (``start end`` per line, ``#`` comments)."""
+    """Intervals of a ``mon/stallmon.c`` file (``start end`` per line, ``#`` comments)."""
     out: list[tuple[float, float]] = []
     for line in lines:
         parts = line.split()

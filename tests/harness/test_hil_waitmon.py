@@ -1,7 +1,7 @@
-"""waitmon.py on this kernel's real scheduler: it writes the time a thread waited on a run
-queue (not its run time), and nothing for a thread that sleeps (a daemon that blocks is still
-judged); the StallMonitor counts those waits with the CPU stalls; stallmon.py writes a stall as
-short as the judges count."""
+"""hil/mon's waitmon on this kernel's real scheduler: it writes the time a thread waited on a
+run queue (not its run time), and nothing for a thread that sleeps (a daemon that blocks is
+still judged); the StallMonitor counts those waits with the CPU stalls; stallmon writes a stall
+as short as the judges count. The monitors are built first, as hil/run does."""
 
 from __future__ import annotations
 
@@ -16,8 +16,13 @@ from pathlib import Path
 import pytest
 
 import hilstalls
-from hilrig import StallMonitor
+from hilrig import MON_BIN, StallMonitor
 from hilstalls import overlap
+
+
+@pytest.fixture(scope="module", autouse=True)
+def monitors() -> None:
+    subprocess.run(["make", "-s", "-C", str(MON_BIN.parent)], check=True, timeout=120)
 
 # Spins, and ends by itself after 30 s should the test be killed before its clean-up.
 SPIN = "import time\nend = time.monotonic() + 30\nwhile time.monotonic() < end: pass"
@@ -41,12 +46,12 @@ def procs() -> Iterator[list[subprocess.Popen[bytes]]]:
 
 
 def _watch(tmp_path: Path, pid: int, first_pid: int | None = None) -> list[tuple[float, float]]:
-    """The waits StallMonitor's waitmon.py wrote for ``pid`` over WATCH_S, every one of them
+    """The waits StallMonitor's waitmon wrote for ``pid`` over WATCH_S, every one of them
     among the monitor's intervals. ``first_pid``: the pidfile names it first (gone), then
     ``pid``, as at a daemon's restart."""
     pidfile = tmp_path / "daemon.pid"
     pidfile.write_text(f"{first_pid if first_pid is not None else pid}\n")
-    mon = StallMonitor(tmp_path, sys.executable, pidfile)
+    mon = StallMonitor(tmp_path, pidfile, work=tmp_path / "work")
     try:
         if first_pid is not None:
             time.sleep(0.2)
@@ -57,6 +62,7 @@ def _watch(tmp_path: Path, pid: int, first_pid: int | None = None) -> list[tuple
     finally:
         mon.stop()
     assert mon.wait_path is not None and mon.wait_path.read_text().startswith("# waits rt ")
+    assert (tmp_path / "daemon-waits.txt").read_text() == mon.wait_path.read_text()  # copied
     for a, b in waits:
         assert overlap(union, a, b) == pytest.approx(b - a)
     return waits
@@ -94,12 +100,11 @@ def test_the_stall_monitor_records_a_stall_of_a_few_ms(tmp_path: Path) -> None:
     # its 2-ms period, which the judges count (STALL_EXCUSE_S), so each must be written. Until
     # 2026-12-03 it wrote only stalls of more than 4 ms beyond, and none of these.
     out = tmp_path / "stalls.txt"
-    here = Path(hilstalls.__file__).resolve().parent
-    p = subprocess.Popen([sys.executable, "-B", str(here / "stallmon.py"), "1", str(out)])
+    p = subprocess.Popen([str(MON_BIN / "stallmon"), "1", str(out)])
     try:
         end = time.monotonic() + 10
         while not out.exists() or not out.read_text().startswith("# cpu 1 "):
-            assert time.monotonic() < end, "stallmon.py wrote no header"
+            assert time.monotonic() < end, "stallmon wrote no header"
             time.sleep(0.01)
         time.sleep(0.1)
         holds = []

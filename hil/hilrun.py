@@ -40,7 +40,7 @@ RECOVERY_S = 0.15
 # is not judged (see hil/mon: stallmon, waitmon); it is still shown, and a row with too few
 # judged samples is tried again (scenarios.TRIES).
 # The harness's own keepalive (20 ms) must not pause this long where a live link is the test's
-# premise; if it did, the test is repeated once.
+# premise; if it did, the test is tried again (scenarios.TRIES).
 KEEPALIVE_GAP_S = 0.15
 # Valid packets a RELEASE needs (spec section 3: 5), with two to spare.
 ARM_PACKETS = 7
@@ -113,7 +113,7 @@ class Result:
     rollouts: dict[str, dict[str, object]] = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
     duration_s: float = 0.0
-    inconclusive: str | None = None  # the environment spoiled the test: run it once more
+    inconclusive: str | None = None  # the environment spoiled the try: run it once more
     # Latency samples by label, each with whether a stall excuses it: this try's, and those
     # of the earlier tries of the row, which its verdict counts too (hiljudge.judge).
     pool: dict[str, list[tuple[float, bool]]] = field(default_factory=dict)

@@ -291,3 +291,11 @@ def test_frames_read_out_of_their_send_order_are_checked_in_it() -> None:
     assert replay(wire).issues == []
     lost = wire[:10] + wire[11:]  # frame 10 never sent: still a jump in the order sent
     assert [i.kind for i in replay(sent_order(lost)[0]).issues] == ["jump"]
+    # The whole-run row reuses the replay in the order sent, without the marker frames, where
+    # nothing was read out of order: the markers change nothing in a replay (trips, commands).
+    silent = wire[:8] + [Frame(f.ts + 0.3, f.can_id, f.data) for f in wire[8:]]
+    marked = sorted([*silent, *(Frame(i * 0.037, 0x7FF, b"HILSYNC") for i in range(20))],
+                    key=lambda f: f.ts)
+    a, b = replay(silent, end=0.9), replay(marked, end=0.9)
+    assert len(a.trips) == 2 and a.trips == b.trips and a.changes == b.changes
+    assert a.issues == b.issues and a.good == b.good

@@ -266,6 +266,10 @@ static int take_frame(estop_slot_t *s, const uint8_t *data, size_t len, size_t *
             out->n_can, out->state_changed, out->reply[0 .. 47], out->reply_len,
             out->has_reply, out->close_slot;
     ensures frame_inv: core->magic == 0x45535450;
+    ensures frame_keeps: core->now_us == \old(core->now_us) &&
+        core->cfg.stop_id == \old(core->cfg.stop_id) &&
+        core->cfg.brake_can_id == \old(core->cfg.brake_can_id) &&
+        core->cfg.brake_period_us == \old(core->cfg.brake_period_us);
     ENSURES_KEPT(frame)
     ensures frame_out: out->n_can <= 3;
     ensures frame_release: \old(core->state) == 0 && core->state != 0 ==>
@@ -324,6 +328,7 @@ estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data,
         /*@ assert taken_inv: slots_ok(core); */
         /*@ assert taken_times: times_ok(core); */
         /*@ assert taken_state: \at(core->state, Pre) == 0 ==> core->state == 0; */
+        /*@ assert taken_now: core->now_us == now_us; */
         /*@ assert taken_whole: whole != 0 ==> core->slots[slot].fill == 0; */
         /*@ assert taken_out: out->has_reply == 0 && out->n_can <= 2; */
         /*@ assert taken_stop: \at(core->state, Pre) != 0 && core->state == 0 ==>
@@ -373,6 +378,7 @@ estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data,
                 1 <= out->n_can && emergency(out, 0, core); */
         /*@ assert handled_stop_brake: taken_state != 0 && core->state == 0 ==>
                 1 <= out->n_can && emergency(out, out->n_can - 1, core); */
+        /*@ assert handled_now: core->now_us == now_us; */
         estop__finish(core, out);
     }
     return err;

@@ -27,7 +27,7 @@ demo: setup
 	$(VENV)/bin/estop demo $(DEMO_ARGS)
 
 test:
-	# make prove (at low priority) beside what bounds no time tighter than a tenth of a second:
+	# make prove (in a session of its own: scripts/beside) beside what bounds no time tighter than a tenth of a second:
 	# the set-up, the static checks, the fuzzers, the mutants, the tests not marked timing, the
 	# gamepad and systemd VMs (scripts/beside). The packages of the provers, the checks and the
 	# fuzzers are installed first; the others (the browser, the MCU toolchain, the VMs: a fresh

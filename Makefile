@@ -27,8 +27,8 @@ demo: setup
 	$(VENV)/bin/estop demo $(DEMO_ARGS)
 
 test:
-	# make prove (in a session of its own: scripts/beside) beside what bounds no time tighter than a tenth of a second:
-	# the set-up, the static checks, the fuzzers, the mutants, the tests not marked timing, the
+	# make prove (in a session of its own: scripts/beside) beside what bounds no time tighter
+	# than a tenth of a second: the set-up, the static checks, the fuzzers, the mutants, the tests not marked timing, the
 	# gamepad and systemd VMs (scripts/beside). The packages of the provers, the checks and the
 	# fuzzers are installed first; the others (the browser, the MCU toolchain, the VMs: a fresh
 	# machine downloads them for about 3 minutes) beside the fuzzers and the mutants, which do

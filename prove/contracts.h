@@ -29,6 +29,7 @@
     behavior run:
       assumes core != \null && out != \null;
       ensures ok_iff_init: \result == ESTOP_OK <==> core->magic == 0x45535450;
+      ensures begin_errs: \result == ESTOP_OK || \result == ESTOP_ERR_NOT_INIT;
       ensures begin_inv: \result == ESTOP_OK ==> inv(core);
       ensures begin_times: \result == ESTOP_OK ==> times_ok(core);
       ensures begin_out: \result == ESTOP_OK ==> core->now_us == now_us && out->n_can <= 3 &&
@@ -43,6 +44,8 @@
           core->cfg.timeout_us == \old(core->cfg.timeout_us) &&
           core->cfg.slow_us == \old(core->cfg.slow_us) &&
           core->cfg.stop_id == \old(core->cfg.stop_id);
+      ensures begin_keeps_slots: \forall integer k; 0 <= k < 8 ==>
+          core->slots[k].open == \old(core->slots[k].open);
       ensures begin_reports: \result == ESTOP_OK ==> out->clock_state == core->state &&
           out->clock_reason == core->reason && out->changed_by_clock == out->state_changed;
       ensures refused_reports: \result != ESTOP_OK ==>
@@ -320,6 +323,8 @@ estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, 
     ensures consumed_bound: \result == ESTOP_OK ==> *consumed <= len;
     ensures consumed_refused: (\result == ESTOP_ERR_NOT_INIT || \result == ESTOP_ERR_SLOT_CLOSED) ==>
         *consumed == 0;
+    ensures closed_refused: \result == ESTOP_ERR_SLOT_CLOSED ==>
+        slot < 8 && \old(core->slots[slot].open) == 0;
     ensures ok_iff_given: \result == ESTOP_OK ==> usable(core, out) && slot < 8 &&
         consumed != \null && (data != \null || len == 0);
     ensures ok_iff_given: usable(core, out) && slot < 8 && consumed != \null &&

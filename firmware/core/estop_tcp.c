@@ -316,6 +316,8 @@ estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data,
     }
     if ((err == ESTOP_OK) && (core->slots[slot].open == 0u)) {
         err = ESTOP_ERR_SLOT_CLOSED;
+        /* Refused only for a slot closed when the call came (estop__begin keeps the flags). */
+        /*@ assert closed_at_call: \at(core->slots[slot].open, Pre) == 0; */
         estop__finish(core, out);
     }
     if (err == ESTOP_OK) {

@@ -27,20 +27,20 @@ demo: setup
 	$(VENV)/bin/estop demo $(DEMO_ARGS)
 
 test:
-	# make prove (in a session of its own: scripts/beside) beside what bounds no time tighter
-	# than a tenth of a second: the set-up, the static checks, the fuzzers, the mutants, the tests not marked timing, the
-	# gamepad and systemd VMs (scripts/beside). The packages of the provers, the checks and the
-	# fuzzers are installed first; the others (the browser, the MCU toolchain, the VMs: a fresh
-	# machine downloads them for about 3 minutes) beside the fuzzers and the mutants, which do
-	# not need them. Before, one apt-get run of all of them held the provers back 96 s. Two
+	# make prove, in a session of its own (scripts/beside), beside what bounds no time tighter
+	# than a tenth of a second: the set-up, the static checks, the fuzzers, the mutants, the tests
+	# not marked timing, the gamepad and systemd VMs. The packages of the provers, the checks and
+	# the fuzzers are installed first; the others (the browser, the MCU toolchain, the VMs: a
+	# fresh machine downloads them for about 3 minutes) beside the fuzzers and the mutants, which
+	# do not need them. Before, one apt-get run of all of them held the provers back 96 s. Two
 	# apt-get runs at once would wait on each other's lock, so no other step installs one. A
 	# failed step of the foreground stops the provers at once. The timing tests and the HIL run
 	# (milliseconds) run after it, alone: they fail with provers on the other core (a CI run of
 	# 3236671: test_a_deadline_passed_during_a_stall_is_not_held_back_by_the_backlog), under
-	# SCHED_IDLE too (issue 24: a drain test 88 ms past its 50-ms bound, the dashboard in
-	# chromium past its 300 ms, CPU stalls of 255 ms in the HIL guest). Tried and dropped (issue
-	# 24): the untimed tests beside the download as well; the foreground ended 200 s sooner,
-	# but the provers, starved meanwhile, 80 s later, and the whole run took 84 s more.
+	# SCHED_IDLE too (issue 24: a drain test 88 ms past its 50-ms bound, the dashboard in chromium
+	# past its 300 ms, CPU stalls of 255 ms in the HIL guest). Tried and dropped (issue 24): the
+	# untimed tests beside the download as well; the foreground ended 200 s sooner, but the
+	# provers, starved meanwhile, 80 s later, and the whole run took 84 s more.
 	scripts/ensure-debs build prove check fuzz
 	scripts/beside '$(MAKE) prove' $(MAKE) setup check fuzz-beside-debs coverage-untimed \
 	  gamepad-vm systemd-vm

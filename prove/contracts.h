@@ -321,8 +321,8 @@ estop_err_t estop_tcp_close(estop_core_t *core, uint32_t slot, uint32_t now_us, 
     ensures next_call_ahead: \result == ESTOP_OK ==>
         1 <= udiff(out->next_call_us, now_us) <= core->cfg.brake_period_us;
     ensures consumed_bound: \result == ESTOP_OK ==> *consumed <= len;
-    ensures consumed_refused: (\result == ESTOP_ERR_NOT_INIT || \result == ESTOP_ERR_SLOT_CLOSED) ==>
-        *consumed == 0;
+    ensures consumed_refused:
+        (\result == ESTOP_ERR_NOT_INIT || \result == ESTOP_ERR_SLOT_CLOSED) ==> *consumed == 0;
     ensures closed_refused: \result == ESTOP_ERR_SLOT_CLOSED ==>
         slot < 8 && \old(core->slots[slot].open) == 0;
     ensures ok_iff_given: \result == ESTOP_OK ==> usable(core, out) && slot < 8 &&

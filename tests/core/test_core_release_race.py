@@ -141,8 +141,9 @@ class WorstOrderUnit:
                 buf += chunk
                 while len(buf) >= auth.REQUEST_SIZE:
                     frame, buf = buf[:auth.REQUEST_SIZE], buf[auth.REQUEST_SIZE:]
-                    if int.from_bytes(frame[4:8], "little") == tcp.RELEASE:
-                        self.release_counters.append(int.from_bytes(frame[24:32], "little"))
+                    request = auth.AuthRequest.decode(frame, K)
+                    if request.msg_id == tcp.RELEASE:
+                        self.release_counters.append(request.counter)
                         time.sleep(self.hold_s)
                         self.held_packets += self._drain_udp()
                     for step in self.wd.tcp_data(0, frame, self._now()):

@@ -77,6 +77,7 @@ static const char *feed(const client_ctx_t *x, client_t *c, uint32_t slot, const
         if (fx.has_reply) {
             reply(c, slot, fx.reply, fx.reply_len);
             c->quiet_since_us = x->round_us; /* a complete frame */
+            c->framed = 1u;
         }
         if (fx.close_slot) {
             /* Framing is lost: the frames before this one have been handled. */

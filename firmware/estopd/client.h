@@ -18,6 +18,8 @@ typedef struct {
     struct sockaddr_in peer;
     uint64_t quiet_since_us;  /* the round it was accepted or sent its latest complete frame
                                  (client_ctx_t.round_us): who makes room */
+    uint8_t framed;           /* it has sent a complete frame: of clients as quiet as each
+                                 other by the round, one that never has goes first (room.c) */
     reply_state_t reply;      /* replies not read: dropped and counted, never waited for */
     const char *retiring;     /* NULL: served; else why it goes once its input is handled */
     int retire_err;           /* the errno that broke it, which the close names instead */

@@ -19,10 +19,24 @@ int room_unread(const client_t *c)
     return ioctl(c->fd, FIONREAD, &n) == 0 ? n : 0;
 }
 
+/* Whether c goes before q (its input waiting: n, q's: q_unread) when room is made. */
+static int quieter(const client_t *c, int n, const client_t *q, int q_unread)
+{
+    if (c->quiet_since_us != q->quiet_since_us) {
+        return c->quiet_since_us < q->quiet_since_us;
+    }
+    if (n != q_unread) {
+        return n > q_unread;
+    }
+    return c->framed == 0u && q->framed != 0u;
+}
+
 /* The client quiet longest among those served (-1: none): no complete frame for the most
  * rounds. Among clients as quiet as each other (every client with input is served each round)
  * the one with the most input waiting: a well-behaved client has a request or none waiting, a
- * flood of requests has many (and its drain is spread over rounds: tcp.h). */
+ * flood of requests has many (and its drain is spread over rounds: tcp.h). Then one that has
+ * never sent a frame: one accepted in the round in which another's frame was handled came out
+ * of the same wait, so it may well have connected first, and it has shown no frame since. */
 int room_quietest(const tcp_t *t)
 {
     int i;
@@ -35,8 +49,7 @@ int room_quietest(const tcp_t *t)
             continue;
         }
         n = room_unread(c);
-        if (q < 0 || c->quiet_since_us < t->clients[q].quiet_since_us ||
-            (c->quiet_since_us == t->clients[q].quiet_since_us && n > q_unread)) {
+        if (q < 0 || quieter(c, n, &t->clients[q], q_unread)) {
             q = i;
             q_unread = n;
         }

@@ -8,6 +8,7 @@ import time
 from pathlib import Path
 
 import pytest
+from test_estopd_rxtime import pause, resume
 
 from daemon_util import (
     ACK,
@@ -128,6 +129,38 @@ def test_a_ninth_client_gets_the_place_of_the_one_quiet_longest(tmp_path: Path) 
                 if i != 3:
                     assert d.request(MSG_STATUS, 100 + i, sock=s).seq == 100 + i
             socks[3] = extra
+        finally:
+            for s in socks:
+                s.close()
+
+
+def test_a_frame_and_an_accept_in_one_round_the_one_that_never_sent_a_frame_goes(
+        tmp_path: Path) -> None:
+    """Quietness is counted in loop rounds. A connection accepted in the round in which another
+    client's frame is handled is as quiet as that client by the round, but it has sent no frame
+    at all: it is the one to make room (PROTOCOL.md 2, "no complete frame since it connected").
+    The daemon is held (SIGSTOP) while #7 connects and #0 sends, so the accept and the frame come
+    out of one wait. Before, the tie went to the lower slot: #0, which had just talked (the
+    CI failure of the test above, under load)."""
+    with Daemon(tmp_path) as d:
+        socks = [d.connect() for _ in range(7)]
+        try:
+            for i, s in enumerate(socks):
+                assert d.request(MSG_STATUS, i, sock=s).seq == i
+            pause(d)
+            try:
+                socks.append(d.connect())  # #7 waits in the backlog
+                socks[0].sendall(tcp_frame(MSG_STATUS, 70))
+            finally:
+                resume(d)
+            assert parse_reply(recv_exact(socks[0], 16)).seq == 70
+            for i in range(1, 7):  # every other talker is less quiet than both
+                assert d.request(MSG_STATUS, 100 + i, sock=socks[i]).seq == 100 + i
+            extra = d.connect()
+            assert d.request(MSG_STATUS, 99, sock=extra).seq == 99
+            assert _closed_by_peer(socks[7])
+            assert d.request(MSG_STATUS, 170, sock=socks[0]).seq == 170
+            socks.append(extra)
         finally:
             for s in socks:
                 s.close()

@@ -444,6 +444,9 @@ static uint32_t next_due(uint32_t due, uint32_t period, uint32_t now)
     ensures due_room: \at(udiff(core->brake_due_us, core->now_us), Pre) ==
         core->cfg.brake_period_us ==> out->n_can <= \old(out->n_can) + 1;
     ensures due_keeps: frames_kept(Pre, Post, out, \old(out->n_can));
+    ENSURES_INV(due)
+    ensures due_keeps_slots: \forall integer k; 0 <= k < 8 ==>
+        core->slots[k].open == \old(core->slots[k].open);
  */
 static void send_due_frames(estop_core_t *core, estop_out_t *out)
 {
@@ -480,10 +483,29 @@ estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out)
         if (core->magic != CORE_MAGIC) {
             out->changed_by_clock = 0u;
             err = ESTOP_ERR_NOT_INIT;
+            /* Nothing of the core was written: said here, where it is plain, and not left to
+             * the solvers at the end of both branches. */
+            /*@ assert begin_step: \forall integer k; 0 <= k < 8 ==>
+                    core->slots[k].open == \at(core->slots[k].open, Pre); */
+            /*@ assert begin_step: \at(core->state, Pre) == 0 ==> core->state == 0; */
         } else {
             advance_clock(core, now_us, out); /* sets changed_by_clock */
+            /* What the clauses over the whole core need, after each call (under Typed the
+             * solvers ran out of time carrying them past all three at once). */
+            /*@ assert begin_step: inv(core); */
+            /*@ assert begin_step: \forall integer k; 0 <= k < 8 ==>
+                    core->slots[k].open == \at(core->slots[k].open, Pre); */
+            /*@ assert begin_step: \at(core->state, Pre) == 0 ==> core->state == 0; */
             estop__age_tag_window(core);
+            /*@ assert begin_step: inv(core); */
+            /*@ assert begin_step: \forall integer k; 0 <= k < 8 ==>
+                    core->slots[k].open == \at(core->slots[k].open, Pre); */
+            /*@ assert begin_step: \at(core->state, Pre) == 0 ==> core->state == 0; */
             send_due_frames(core, out);
+            /*@ assert begin_step: inv(core); */
+            /*@ assert begin_step: \forall integer k; 0 <= k < 8 ==>
+                    core->slots[k].open == \at(core->slots[k].open, Pre); */
+            /*@ assert begin_step: \at(core->state, Pre) == 0 ==> core->state == 0; */
         }
     }
     return err;

@@ -140,6 +140,39 @@ def report_assumed() -> bool:
     return not errors
 
 
+def report_mutants(tries: list[selftest.MutantTry], equivalent: dict[str, str],
+                   in_scope: int) -> bool:
+    """The self-test's mutants: each tried one caught, or listed as equivalent (and a listed
+    one not caught). One that is not a mutant (does not compile) counts for neither; a sample
+    of which none could be tried fails, as it showed nothing."""
+    ok = True
+    caught_n = 0
+    tried_n = 0
+    for t in tries:
+        if not t.tried:
+            print(f"prove: self-test mutant {t.key} ({t.check}): not tried: {t.what}")
+            continue
+        tried_n += 1
+        listed = t.key in equivalent
+        verdict = "caught" if t.caught else (
+            "equivalent (listed)" if listed else "NOT CAUGHT")
+        print(f"prove: self-test mutant {t.key} ({t.check}): {verdict}: {t.what}")
+        caught_n += int(t.caught)
+        ok = ok and (t.caught or listed)
+        if t.caught and listed:
+            print("prove:   error: listed as equivalent in prove/mutants_equivalent.txt, "
+                  "but caught: take it off the list")
+            ok = False
+    print(f"prove: self-test mutants caught {caught_n}/{tried_n} "
+          f"(of {in_scope} in prove/mutants_scope.txt; "
+          f"{sum(1 for t in tries if t.tried and t.key in equivalent)} listed equivalent; "
+          f"{len(tries) - tried_n} not mutants, not tried)")
+    if tried_n == 0:
+        print("prove:   error: no mutant of the sample could be tried")
+        ok = False
+    return ok
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--jobs", type=int, default=2, help="analyses run at once (default 2)")
@@ -195,23 +228,8 @@ def main() -> int:
                 print(f"prove: self-test {p.name} ({p.check}): "
                       f"{'caught' if caught else 'NOT CAUGHT'}: {what}")
                 ok = ok and caught
-        caught_n = 0
-        for mfut in mutated:
-            t = mfut.result()
-            listed = t.key in equivalent
-            verdict = "caught" if t.caught else (
-                "equivalent (listed)" if listed else "NOT CAUGHT")
-            print(f"prove: self-test mutant {t.key} ({t.check}): {verdict}: {t.what}")
-            caught_n += int(t.caught)
-            ok = ok and (t.caught or listed)
-            if t.caught and listed:
-                print("prove:   error: listed as equivalent in prove/mutants_equivalent.txt, "
-                      "but caught: take it off the list")
-                ok = False
         if mutated:
-            print(f"prove: self-test mutants caught {caught_n}/{len(mutated)} "
-                  f"(of {len(in_scope)} in prove/mutants_scope.txt; "
-                  f"{sum(1 for f in mutated if f.result().key in equivalent)} listed equivalent)")
+            ok = report_mutants([f.result() for f in mutated], equivalent, len(in_scope)) and ok
     print(f"prove: {'ok' if ok else 'FAILED'} in {time.monotonic() - t0:.0f} s "
           f"(logs in {BUILD.relative_to(ROOT)}/)")
     return 0 if ok else 1

@@ -379,3 +379,36 @@ def test_proof_goals_leave_the_smoke_tests_out(tmp_path: Path) -> None:
     assert prove.wp.proof_goals(failed) == (201, 201)
     left = result(263, 264, ["typed_x_ensures_y"], tmp_path, smoke=63)
     assert prove.wp.proof_goals(left) == (200, 201)
+
+
+class NotAMutant:
+    """A 'mutant' whose source does not compile: a change the self-test cannot try."""
+    key = "estop_core.c:test: not a mutant"
+    file = "estop_core.c"
+
+    def apply(self, source: str) -> str:
+        return source + "\nthis is not C;\n"
+
+
+def test_a_mutant_that_does_not_compile_is_not_counted_as_caught() -> None:
+    # Until issue 24's twenty-sixth round it was: a make prove whose sample mutants no longer
+    # applied (the core edited under a run) printed "caught 2/2" having tried nothing.
+    t = prove.selftest.try_mutant(9999, NotAMutant(), "wp:entry:estop_tick", {})
+    assert (t.tried, t.caught) == (False, False)
+    assert not (prove.BUILD / "mutant-9999").exists()
+
+
+def test_the_mutant_report_fails_a_sample_of_which_nothing_was_tried(
+        capsys: pytest.CaptureFixture[str]) -> None:
+    MutantTry = prove.selftest.MutantTry
+    untried = MutantTry("a", "wp:entry", False, "does not compile (not a mutant)", tried=False)
+    caught = MutantTry("b", "wp:entry", True, "1 goals fail")
+    survivor = MutantTry("c", "wp:entry", False, "37/37 goals proved")
+    assert not prove.report_mutants([untried, untried], {}, 385)
+    assert "caught 0/0" in capsys.readouterr().out
+    assert prove.report_mutants([untried, caught], {}, 385)
+    assert "caught 1/1 (of 385 in prove/mutants_scope.txt; 0 listed equivalent; 1 not " \
+           "mutants, not tried)" in capsys.readouterr().out
+    assert not prove.report_mutants([caught, survivor], {}, 385)
+    assert prove.report_mutants([caught, survivor], {"c": "equivalent: why"}, 385)
+    assert not prove.report_mutants([caught], {"b": "equivalent: why"}, 385)

@@ -175,6 +175,10 @@ class MutantTry:
     check: str
     caught: bool
     what: str
+    # False: not a mutant (it does not compile, or Frama-C refuses it): nothing was tried, so
+    # it counts neither as caught nor as surviving (until issue 24's twenty-sixth round it
+    # counted as caught, and a sample of such could pass the self-test having tried nothing).
+    tried: bool = True
 
 
 def scope(path: Path = PROVE / "mutants_scope.txt") -> dict[str, str]:
@@ -268,12 +272,14 @@ def try_mutant(index: int, mutant: Any, check: str, env: dict[str, str]) -> Muta
     shutil.copytree(CORE, core_dir)
     (core_dir / file).write_text(mutant.apply(src))
     if not compiles(core_dir, file):
-        return MutantTry(key, check, True, "does not compile (not a mutant)")
+        shutil.rmtree(core_dir, ignore_errors=True)
+        return MutantTry(key, check, False, "does not compile (not a mutant)", tried=False)
     w = run_mutant(f"mutant-{index}", core_dir, wp_fcts(check), env)
     shutil.rmtree(core_dir, ignore_errors=True)
     failed = w.failed + w.smoke_failed
     if w.error:
-        return MutantTry(key, check, True, f"frama-c refuses it ({w.error[:80]})")
+        return MutantTry(key, check, False, f"frama-c refuses it ({w.error[:80]})",
+                         tried=False)
     if failed:
         return MutantTry(key, check, True, f"{len(failed)} goals fail, e.g. {failed[0]}")
     return MutantTry(key, check, False, f"{w.proved}/{w.total} goals proved")

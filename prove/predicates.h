@@ -85,6 +85,19 @@
      \at((o)->can[k].data[0], L1) == \at((o)->can[k].data[0], L2) && \
      \at((o)->can[k].data[2], L1) == \at((o)->can[k].data[2], L2))
 #define frames_kept(L1, L2, o, n) (\forall integer k; 0 <= k < (n) ==> frame_kept(L1, L2, o, k))
+/* A reply's step (core read only, out's reply written): what its caller's clauses read past
+ * it, stated by the callee. Under Typed the solvers did not carry them past the call in the
+ * handlers' own context (issue 24's twenty-seventh round). */
+#define ENSURES_REPLY_KEEPS(tag) \
+    ensures tag##_inv: \at(cfg_ok(core), Pre) ==> cfg_ok(core); \
+    ensures tag##_inv: \at(known_ok(core), Pre) ==> known_ok(core); \
+    ensures tag##_inv: \at(slots_ok(core), Pre) ==> slots_ok(core); \
+    ensures tag##_inv: \at(fresh_ok(core), Pre) ==> fresh_ok(core); \
+    ensures tag##_times: \at(times_ok(core), Pre) ==> times_ok(core); \
+    ensures tag##_core: core->state == \old(core->state) && \
+        core->cfg.key_len == \old(core->cfg.key_len) && \
+        core->cfg.brake_can_id == \old(core->cfg.brake_can_id); \
+    ensures tag##_out: out->n_can == \old(out->n_can) && frames_kept(Pre, Post, out, 3);
 /* Frame k of out is ESTOP_BRAKE with brake_request 1 (emergency) and the state STOPPED. */
 #define emergency(o, k, c) \
     ((o)->can[k].id == (c)->cfg.brake_can_id && (o)->can[k].data[0] == 1 && \

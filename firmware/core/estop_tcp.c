@@ -68,6 +68,7 @@ static void reply_head(const estop_core_t *core, uint8_t *r, uint32_t seq, uint8
 /*@ requires \valid_read(core) && \valid(out) && \separated(out, core);
     assigns out->reply[0 .. 15], out->reply_len, out->has_reply;
     ensures out->has_reply == 1 && out->reply[11] == nak_code;
+    ENSURES_REPLY_KEEPS(plain_reply)
  */
 static void reply_plain(const estop_core_t *core, uint32_t seq, uint8_t nak_code, estop_out_t *out)
 {

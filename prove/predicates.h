@@ -86,8 +86,9 @@
      \at((o)->can[k].data[2], L1) == \at((o)->can[k].data[2], L2))
 #define frames_kept(L1, L2, o, n) (\forall integer k; 0 <= k < (n) ==> frame_kept(L1, L2, o, k))
 /* A reply's step (core read only, out's reply written): what its caller's clauses read past
- * it, stated by the callee. Under Typed the solvers did not carry them past the call in the
- * handlers' own context (issue 24's twenty-seventh round). */
+ * it, stated by the callee, since under Typed the solvers did not carry them past the call in
+ * a handler's own context. No proof relies on it yet: the handlers are still Caveat's, where
+ * handle_plain under Typed came to 1 goal of 101 with it (issue 24's twenty-seventh round). */
 #define ENSURES_REPLY_KEEPS(tag) \
     ensures tag##_inv: \at(cfg_ok(core), Pre) ==> cfg_ok(core); \
     ensures tag##_inv: \at(known_ok(core), Pre) ==> known_ok(core); \

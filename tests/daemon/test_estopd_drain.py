@@ -308,6 +308,23 @@ def test_a_stop_waits_behind_one_eviction_at_most(tmp_path: Path) -> None:
         probe.explain(t_resume, t_reply)
 
 
+ROUND_S = 0.15  # a round of the eviction test lasts at least this long after the resume
+ROUND_JUDGED = 12  # and until this many round trips were judged in it
+ROUND_CAP_S = 3.0  # but no longer than this
+
+
+def round_over(since_resume_s: float, judged: int) -> bool:
+    """Whether a round of the eviction test is over. CI's run of e42a4c6 judged 88 round trips
+    in ten rounds of 0.15 s (p99 and max within their bounds): the measuring client was evicted
+    in each round, and its new connection's first reply, which waits in the listen backlog behind
+    the churn's and is not judged, took most of the round on that loaded machine. A round now
+    lasts until it judged enough round trips, within a cap, so that the count measures the
+    daemon rather than the backlog."""
+    if since_resume_s >= ROUND_CAP_S:
+        return True
+    return since_resume_s >= ROUND_S and judged >= ROUND_JUDGED
+
+
 @contextlib.contextmanager
 def collector_paused() -> Iterator[None]:
     """Python's cyclic garbage collector off for a timed part: the test judges the daemon's
@@ -356,7 +373,8 @@ def test_eviction_work_cannot_hold_up_a_well_behaved_client(tmp_path: Path) -> N
                     # burst; its round trip counts from the resume.
                     seq += 1
                     s.sendall(tcp_frame(MSG_STATUS, seq))
-                    end = resume(d) + 0.15
+                    resumed = resume(d)
+                    judged_before = len(trips)
                     a = time.time()
                     while True:
                         try:
@@ -370,7 +388,7 @@ def test_eviction_work_cannot_hold_up_a_well_behaved_client(tmp_path: Path) -> N
                             if not fresh:
                                 trips.append((a, time.time()))
                             fresh = False
-                        if time.time() >= end:
+                        if round_over(time.time() - resumed, len(trips) - judged_before):
                             break
                         seq += 1
                         a = time.time()
@@ -389,7 +407,7 @@ def test_eviction_work_cannot_hold_up_a_well_behaved_client(tmp_path: Path) -> N
             for old in held:
                 old.close()
         evictions = sum(" client_evict " in line for line in d.log())
-    assert len(trips) > 100, (len(trips), evicted)
+    assert len(trips) > 100, f"{len(trips)} round trips judged, the measuring client evicted {evicted} times"
     # What each round trip took beyond the machine's stall over it.
     over = sorted(b - a - probe.stall_s(a, b) for a, b in trips)
     p99 = over[int(0.99 * (len(over) - 1))]

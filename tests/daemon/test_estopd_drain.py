@@ -407,7 +407,8 @@ def test_eviction_work_cannot_hold_up_a_well_behaved_client(tmp_path: Path) -> N
             for old in held:
                 old.close()
         evictions = sum(" client_evict " in line for line in d.log())
-    assert len(trips) > 100, f"{len(trips)} round trips judged, the measuring client evicted {evicted} times"
+    assert len(trips) > 100, \
+        f"{len(trips)} round trips judged, the measuring client evicted {evicted} times"
     # What each round trip took beyond the machine's stall over it.
     over = sorted(b - a - probe.stall_s(a, b) for a, b in trips)
     p99 = over[int(0.99 * (len(over) - 1))]

@@ -96,6 +96,7 @@ uint8_t estop__current_flags(const estop_core_t *core);
         \old(core->state) != 0 && \old(out->n_can) <= 2 ==>
         out->n_can == \old(out->n_can) + 1 && emergency(out, \old(out->n_can), core);
     ENSURES_STOP_BRAKES(msg_stopping_brakes)
+    ENSURES_STOP_BRAKES_AT(msg_stopping_brakes_at)
     ensures msg_stop_keeps: stop_asked(msg_id, \old(core->cfg.stop_id)) ==>
         \old(out->n_can) <= out->n_can && frames_kept(Pre, Post, out, \old(out->n_can));
     ensures msg_release_acked: msg_id == ESTOP_MSG_RELEASE &&

@@ -110,7 +110,8 @@ static void reply_request(const estop_core_t *core, const uint8_t *req, uint8_t 
 }
 
 /* Section 2: one whole 16-byte plain frame with a good CRC, in slot k. A plain RELEASE is
- * authenticated only on a unit without a key. */
+ * authenticated only on a unit without a key. Its clauses read the frame at the call (\old:
+ * no slot is written, but under Typed the solvers did not carry the bytes past the calls). */
 /*@ requires \valid(core) && \valid(out) && \separated(core, out);
     requires core->magic == 0x45535450 && inv(core) && times_ok(core);
     requires k < 8 && out->n_can <= 3;
@@ -122,21 +123,35 @@ static void reply_request(const estop_core_t *core, const uint8_t *req, uint8_t 
     ensures plain_frames: out->n_can <= 3;
     ensures plain_release: \old(core->state) == 0 && core->state != 0 ==>
         out->has_reply == 1 && core->cfg.key_len == 0 && out->reply[11] == 0 &&
-        rd_u32le_l(&core->slots[k].buf[0]) == ESTOP_MSG_RELEASE;
+        \old(rd_u32le_l(&core->slots[k].buf[0])) == ESTOP_MSG_RELEASE;
     ENSURES_STOPS(plain_stops,
-                  stop_asked(rd_u32le_l(&core->slots[k].buf[0]), \old(core->cfg.stop_id)), 11)
-    ENSURES_STOP_BRAKES(plain_stop_brakes)
+                  stop_asked(\old(rd_u32le_l(&core->slots[k].buf[0])), \old(core->cfg.stop_id)),
+                  11)
+    ENSURES_STOP_BRAKES_AT(plain_stop_brakes)
  */
 static void handle_plain(estop_core_t *core, uint32_t k, estop_out_t *out)
 {
     const uint8_t *f = core->slots[k].buf;
     const uint32_t msg_id = rd_u32le(f);
+    /* The sequence number read first: past the step, the read's precondition ran out of 20 s
+     * under Typed. */
+    const uint32_t seq = rd_u32le(&f[4]);
     uint8_t nak;
     if ((msg_id == ESTOP_MSG_RELEASE) && (core->cfg.key_len != 0u)) {
         estop__unauthenticated(core); /* the key holder's RELEASE is a request frame */
     }
     nak = estop__handle_msg(core, msg_id, core->cfg.key_len == 0u, out);
-    reply_plain(core, rd_u32le(&f[4]), nak, out);
+    /* The step's rules at this point, before the reply's writes: stated at the return alone,
+     * under Typed plain_stops and plain_release ran out of 20 s. */
+    /*@ assert plain_released: \at(core->state, Pre) == 0 && core->state != 0 ==>
+            msg_id == ESTOP_MSG_RELEASE && core->cfg.key_len == 0 && nak == 0; */
+    /*@ assert plain_stopped: stop_asked(msg_id, \at(core->cfg.stop_id, Pre)) ==>
+            core->state == 0 && nak == 0; */
+    /*@ assert plain_stopped_count: stop_asked(msg_id, \at(core->cfg.stop_id, Pre)) ==>
+            \at(out->n_can, Pre) <= out->n_can; */
+    /*@ assert plain_stopped_kept: stop_asked(msg_id, \at(core->cfg.stop_id, Pre)) &&
+            1 <= \at(out->n_can, Pre) ==> frame_kept(Pre, Here, out, 0); */
+    reply_plain(core, seq, nak, out);
 }
 
 /* Section 5.2: one whole 48-byte request frame, in slot k. Only a RELEASE needs

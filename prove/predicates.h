@@ -55,11 +55,13 @@
 #define times_ok(c) (brake_due_ok(c) && status_due_ok(c) && link_ok(c) && armed_ok(c))
 /* The invariant and the times kept by a step, as separate clauses named tag_inv and tag_times:
  * one proof goal each (as one conjunction the solvers timed out). */
-#define ENSURES_INV(tag) \
-    ensures tag##_inv: cfg_ok(core); \
-    ensures tag##_inv: known_ok(core); \
-    ensures tag##_inv: slots_ok(core); \
-    ensures tag##_inv: fresh_ok(core);
+#define ENSURES_INV(tag) INV_PARTS(ENSURES_PART, tag)
+/* The invariant's parts (inv's, in its order), each given to each(tag, part): the one list
+ * ENSURES_INV and ENSURES_REPLY_KEEPS write their clauses from. */
+#define INV_PARTS(each, tag) \
+    each(tag, cfg_ok) each(tag, known_ok) each(tag, slots_ok) each(tag, fresh_ok)
+#define ENSURES_PART(tag, part) ensures tag##_inv: part(core);
+#define ENSURES_PART_KEPT(tag, part) ensures tag##_inv: \at(part(core), Pre) ==> part(core);
 #define ENSURES_KEPT(tag) \
     ENSURES_INV(tag) \
     ensures tag##_times: brake_due_ok(core); \
@@ -102,10 +104,7 @@
  * it, stated by the callee, since under Typed the solvers did not carry them past the call in
  * a handler's own context. handle_plain's proof relies on it (issue 24's twenty-eighth round). */
 #define ENSURES_REPLY_KEEPS(tag) \
-    ensures tag##_inv: \at(cfg_ok(core), Pre) ==> cfg_ok(core); \
-    ensures tag##_inv: \at(known_ok(core), Pre) ==> known_ok(core); \
-    ensures tag##_inv: \at(slots_ok(core), Pre) ==> slots_ok(core); \
-    ensures tag##_inv: \at(fresh_ok(core), Pre) ==> fresh_ok(core); \
+    INV_PARTS(ENSURES_PART_KEPT, tag) \
     ensures tag##_times: \at(times_ok(core), Pre) ==> times_ok(core); \
     ensures tag##_core: core->state == \old(core->state) && \
         core->cfg.key_len == \old(core->cfg.key_len) && \

@@ -207,10 +207,18 @@ class BrakeController:
 
 
 def replay(frames: Iterable[Frame], silence_s: float = BRAKE_SILENCE_S,
-           end: float | None = None) -> BrakeController:
-    """Offline emulator run: watchdog trips are placed exactly at their deadlines."""
+           end: float | None = None, new_senders: Iterable[float] = ()) -> BrakeController:
+    """Offline emulator run: watchdog trips are placed exactly at their deadlines.
+    ``new_senders`` are the times a new daemon was started (each daemon's t_start): from the
+    first frame at or after each, the counters start over, as in the live emulator (the run's
+    start_daemon). Without them a restart quicker than a status period read the new daemon's
+    first ESTOP_STATUS (counter 0) as a repeat when the old one's last had counter 0 too (CI
+    of 7ea791b: two such repeats failed the whole-run row, 1 in 15 a restart)."""
     ctl = BrakeController(silence_s=silence_s)
+    starts = sorted(new_senders)
     for fr in frames:
+        while starts and starts[0] <= fr.ts:
+            ctl.expect_new_sender(starts.pop(0))
         if ctl.last_good is not None and fr.ts - ctl.last_good >= silence_s - _EPS:
             ctl.on_tick(ctl.last_good + silence_s)
         ctl.on_frame(fr)

@@ -40,7 +40,7 @@ def check_bus(run: Run, res: Result) -> None:
     # saw the frames as read, and a replay in that same order is compared with it below.
     wire, swapped, most = sent_order([f for f in run.mon.frames if f.can_id != MARKER_ID])
     cut = run.t_closed - 0.1  # see the live emulator's comparison below
-    sent = replay(wire, end=cut)
+    sent = replay(wire, end=cut, new_senders=[d.t_start for d in run.daemons])
     frames = [f for f in wire if f.can_id in (BRAKE_ID, STATUS_ID)]
     res.figures["brake_frames_good"] = sent.good
     res.figures["status_frames_good"] = sent.status_good

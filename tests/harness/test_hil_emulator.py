@@ -110,6 +110,23 @@ def test_new_sender_from_a_time() -> None:
     assert len(ctl.issues) == 1 and ctl.good == 5
 
 
+def test_replay_starts_the_counters_over_for_a_new_daemon() -> None:
+    # CI of 7ea791b: a daemon restarted within one status period; the old one's last
+    # ESTOP_STATUS had counter 0, the new one's first has counter 0 (as every daemon's first).
+    old_status = StatusFrame(0, 0, 0, 0, 0xFFFF, 0).encode()
+    frames = [Frame(0.00, 0x050, armed(13)), Frame(0.01, 0x050, armed(14)),
+              Frame(0.015, 0x051, old_status),
+              Frame(0.12, 0x050, BOOT), Frame(0.121, 0x051, old_status),
+              Frame(0.13, 0x050, stopped(1, reason=1))]
+    # Without the restart's time the new daemon's first status frame is a stale repeat.
+    assert [i.kind for i in replay(frames).issues if i.kind != "resync"] == ["repeat"]
+    # With it (the daemon started at 0.1 s), nothing is wrong; a repeat within one daemon
+    # still is.
+    assert replay(frames, new_senders=[0.1]).issues == []
+    again = [*frames, Frame(0.14, 0x050, stopped(1, reason=1))]
+    assert [i.kind for i in replay(again, new_senders=[0.1]).issues] == ["repeat"]
+
+
 def test_status_frames_checked() -> None:
     ctl = BrakeController()
     good = StatusFrame(5, 0, 0, 0, 12, 0).encode()

@@ -77,22 +77,20 @@
     ensures tag: (asks) ==> \old(out->n_can) <= out->n_can; \
     ensures tag: (asks) && 1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
 /* A step that stops a moving unit (with room in out) appends one frame: the emergency one. */
+#define stops_moving_unit (\old(core->state) != 0 && core->state == 0)
 #define ENSURES_STOP_BRAKES(tag) \
-    ensures tag: \old(core->state) != 0 && core->state == 0 && \old(out->n_can) <= 2 ==> \
+    ensures tag: stops_moving_unit && \old(out->n_can) <= 2 ==> \
         out->n_can == \old(out->n_can) + 1 && emergency(out, \old(out->n_can), core);
 /* The same rule one index at a time (out's count at the call 0, 1 or 2): a caller that writes
  * out's reply after the step reads the frame at a constant index through those writes, which
  * WP's simplifier does, where at the count (a value) it left the read to the solvers, which did
  * not find it in 90 s (issue 24's twenty-seventh round). */
 #define ENSURES_STOP_BRAKES_AT(tag) \
-    ensures tag: \old(core->state) != 0 && core->state == 0 && \old(out->n_can) <= 2 ==> \
+    ensures tag: stops_moving_unit && \old(out->n_can) <= 2 ==> \
         out->n_can == \old(out->n_can) + 1; \
-    ensures tag: \old(core->state) != 0 && core->state == 0 && \old(out->n_can) == 0 ==> \
-        emergency(out, 0, core); \
-    ensures tag: \old(core->state) != 0 && core->state == 0 && \old(out->n_can) == 1 ==> \
-        emergency(out, 1, core); \
-    ensures tag: \old(core->state) != 0 && core->state == 0 && \old(out->n_can) == 2 ==> \
-        emergency(out, 2, core);
+    STOP_BRAKE_AT(tag, 0) STOP_BRAKE_AT(tag, 1) STOP_BRAKE_AT(tag, 2)
+#define STOP_BRAKE_AT(tag, n) \
+    ensures tag: stops_moving_unit && \old(out->n_can) == n ==> emergency(out, n, core);
 /* The frames of out a step leaves as they were: the first n keep their ID, brake_request and
  * state byte (what the stop rules read). */
 #define frame_kept(L1, L2, o, k) \

@@ -76,6 +76,23 @@
     ensures tag: (asks) ==> out->reply[at] == 0; \
     ensures tag: (asks) ==> \old(out->n_can) <= out->n_can; \
     ensures tag: (asks) && 1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
+/* What estop__begin's clauses read (its core, out and times), asserted after each of its three
+ * calls: left to the solvers at the return, past all three calls at once, its clauses took 15
+ * to 35 s each (issue 24's twenty-ninth round). */
+#define begin_carried(now) \
+    (core->magic == 0x45535450 && core->now_us == (now) && out->has_reply == 0 && \
+     out->close_slot == 0 && core->last_valid_us == \at(core->last_valid_us, Pre) && \
+     core->cfg.timeout_us == \at(core->cfg.timeout_us, Pre) && \
+     core->cfg.slow_us == \at(core->cfg.slow_us, Pre) && \
+     core->cfg.stop_id == \at(core->cfg.stop_id, Pre) && out->clock_state == core->state && \
+     out->clock_reason == core->reason && out->changed_by_clock == out->state_changed && \
+     (\at(core->state, Pre) != 0 && core->state == 0 ==> \
+      1 <= out->n_can && emergency(out, 0, core)) && \
+     link_ok(core) && armed_ok(core))
+/* What advance_clock's clauses read, asserted at the end of each of its three branches. */
+#define clock_branch_left(now) \
+    (cfg_ok(core) && slots_ok(core) && core->now_us == (now) && out->n_can <= 1 && \
+     link_ok(core))
 /* A step that stops a moving unit (with room in out) appends one frame: the emergency one. */
 #define stops_moving_unit (\old(core->state) != 0 && core->state == 0)
 #define ENSURES_STOP_BRAKES(tag) \

@@ -387,6 +387,10 @@ static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
         reason = (uint8_t)ESTOP_REASON_FAULT;
     }
     age_link(core, step);
+    /* What the clauses read, asserted past each call and at the merge of the branches: left to
+     * the solvers at the return, six clauses took 8 to 25 s each (issue 24's twenty-ninth
+     * round; the clock run went from 425 to 226 CPU-s alone). */
+    /*@ assert clock_branch: clock_branch_left(now_us); */
     /* The state itself rather than moving(): Eva then keeps the test and the stop together
      * (through the call it split the states apart and lost that a moving unit is stopped). */
     /* Each branch asserts what it leaves, right after its call: the solvers then need not
@@ -397,17 +401,25 @@ static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
         /*@ assert clock_due:
                 udiff(core->brake_due_us, core->now_us) == core->cfg.brake_period_us; */
         /*@ assert clock_due: out->n_can == 1 && emergency(out, 0, core); */
+        /*@ assert clock_branch: clock_branch_left(now_us); */
     } else if ((core->state == ESTOP_STATE_ARMED) && (link_age(core) >= core->cfg.slow_us)) {
         enter_slowing(core); /* ARMED implies a fresh link, so the age is meaningful */
         state_changed(core, out);
         /*@ assert clock_due:
                 udiff(core->brake_due_us, core->now_us) == core->cfg.brake_period_us; */
         /*@ assert clock_due: core->state == 2; */
+        /*@ assert clock_branch: clock_branch_left(now_us); */
     } else {
         /* nothing is due: the state stays */
         /*@ assert clock_due: out->state_changed == 0 && out->n_can == 0; */
         /*@ assert clock_due: core->state == \at(core->state, Pre); */
+        /*@ assert clock_branch: clock_branch_left(now_us); */
     }
+    /*@ assert clock_merged: core->now_us == now_us && out->n_can <= 1; */
+    /*@ assert clock_merged: out->state_changed != 0 ==>
+            udiff(core->brake_due_us, core->now_us) == core->cfg.brake_period_us; */
+    /*@ assert clock_merged: fresh_ok(core); */
+    /*@ assert clock_merged: out->n_can == out->state_changed && out->state_changed <= 1; */
     out->changed_by_clock = out->state_changed; /* every change so far came from the clock */
     out->clock_state = core->state;
     out->clock_reason = core->reason;
@@ -432,6 +444,9 @@ static uint32_t next_due(uint32_t due, uint32_t period, uint32_t now)
     return next;
 }
 
+/* due_keeps_core and due_keeps_out: what estop__begin's clauses read past this call, as plain
+ * equalities (past the assigns alone, its assertion took 48 s; a clause over out->can[0] here
+ * made due_inv slow instead). */
 /*@ requires \valid(core) && \valid(out) && \separated(core, out) && inv(core);
     requires out->n_can <= 1;
     assigns out->can[0 .. 2], out->n_can, core->brake_counter, core->status_counter,
@@ -447,6 +462,21 @@ static uint32_t next_due(uint32_t due, uint32_t period, uint32_t now)
     ENSURES_INV(due)
     ensures due_keeps_slots: \forall integer k; 0 <= k < 8 ==>
         core->slots[k].open == \old(core->slots[k].open);
+    ensures due_keeps_core: core->magic == \old(core->magic) &&
+        core->link_fresh == \old(core->link_fresh) &&
+        core->cfg.brake_can_id == \old(core->cfg.brake_can_id) &&
+        core->state == \old(core->state) &&
+        core->reason == \old(core->reason) && core->now_us == \old(core->now_us) &&
+        core->last_valid_us == \old(core->last_valid_us) &&
+        core->cfg.timeout_us == \old(core->cfg.timeout_us) &&
+        core->cfg.slow_us == \old(core->cfg.slow_us) &&
+        core->cfg.stop_id == \old(core->cfg.stop_id);
+    ensures due_keeps_out: out->has_reply == \old(out->has_reply) &&
+        out->close_slot == \old(out->close_slot) &&
+        out->state_changed == \old(out->state_changed) &&
+        out->changed_by_clock == \old(out->changed_by_clock) &&
+        out->clock_state == \old(out->clock_state) &&
+        out->clock_reason == \old(out->clock_reason);
  */
 static void send_due_frames(estop_core_t *core, estop_out_t *out)
 {
@@ -491,17 +521,26 @@ estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out)
         } else {
             advance_clock(core, now_us, out); /* sets changed_by_clock */
             /* What the clauses over the whole core need, after each call (under Typed the
-             * solvers ran out of time carrying them past all three at once). */
+             * solvers ran out of time carrying them past all three at once; begin_carried's
+             * facts took 15 to 35 s each before issue 24's twenty-ninth round). */
+            /*@ assert begin_carry: begin_carried(now_us); */
             /*@ assert begin_step: inv(core); */
             /*@ assert begin_step: \forall integer k; 0 <= k < 8 ==>
                     core->slots[k].open == \at(core->slots[k].open, Pre); */
             /*@ assert begin_step: \at(core->state, Pre) == 0 ==> core->state == 0; */
             estop__age_tag_window(core);
+            /* The clock's frame, if any, came with a brake due a whole period ahead: so
+             * send_due_frames adds at most one (due_room). */
+            /*@ assert begin_room_carry: out->n_can <= 1 && (out->n_can != 0 ==>
+                    udiff(core->brake_due_us, core->now_us) == core->cfg.brake_period_us); */
+            /*@ assert begin_carry: begin_carried(now_us); */
             /*@ assert begin_step: inv(core); */
             /*@ assert begin_step: \forall integer k; 0 <= k < 8 ==>
                     core->slots[k].open == \at(core->slots[k].open, Pre); */
             /*@ assert begin_step: \at(core->state, Pre) == 0 ==> core->state == 0; */
             send_due_frames(core, out);
+            /*@ assert begin_room_carry: out->n_can <= 2; */
+            /*@ assert begin_carry: begin_carried(now_us); */
             /*@ assert begin_step: inv(core); */
             /*@ assert begin_step: \forall integer k; 0 <= k < 8 ==>
                     core->slots[k].open == \at(core->slots[k].open, Pre); */

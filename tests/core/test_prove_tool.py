@@ -99,6 +99,20 @@ def test_every_assumption_is_listed_with_a_test_that_exists() -> None:
     assert {"mac_value", "u32_wrap_up", "or_byte"} <= {a.name for a in items}
 
 
+def test_a_core_function_in_no_run_and_not_listed_is_an_error(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    # Before issue 24's twenty-ninth round estop__age_tag_window was in no run, and its
+    # contract, which the clock run relies on, was proved by none: nothing said so.
+    real = prove.wp.wp_groups()
+    without = [(n, [f for f in fcts if f != "estop__age_tag_window"]) for n, fcts in real]
+    monkeypatch.setattr(prove.assumed.wp, "wp_groups", lambda: without)
+    _, errors = prove.assumed.check()
+    assert errors == ["function estop__age_tag_window: in no WP run and not inlined, but not "
+                      "in prove/assumed.txt"]
+    monkeypatch.setattr(prove.assumed.wp, "wp_groups", lambda: real)
+    assert prove.assumed.check()[1] == []
+
+
 def test_an_unlisted_admitted_clause_or_axiom_is_found(tmp_path: Path) -> None:
     h = tmp_path / "x.h"
     h.write_text("/*@ axiomatic A { axiom sneaky: \\forall integer x; x == x + 1; } */\n"

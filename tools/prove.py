@@ -49,7 +49,8 @@ COST_S = {"eva:keyed": 159, "wp:tcp": 123, "wp:tcpframe": 90, "wp:clock": 145, "
           "wp:plain": 62,
           "wp:auth": 91, "wp:datagram": 66, "mutant": 105, "wp:loops": 58, "wp:init": 30,
           "eva:plain": 52, "wp:entry": 46, "wp:steps": 113, "plant:eva": 25, "plant:wp": 20,
-          "wp:udp": 120, "wp:frames": 26, "wp:link": 11, "wp:ct": 9, "wp:lemmas": 4}
+          "wp:udp": 120, "wp:frames": 26, "wp:link": 11, "wp:ct": 9, "wp:lemmas": 4,
+          "wp:blake2s": 20}
 DEFAULT_COST_S = 60
 
 

@@ -227,6 +227,35 @@ def test_make_proves_mutant_sample_comes_from_the_short_runs() -> None:
     assert [m.key for m, _ in prove.selftest.sample(every, 8)] == [m.key for m, _ in picked]
 
 
+def test_the_sampled_mutants_get_their_runs_shorter_limit_and_the_others_the_long_one() -> None:
+    assert prove.selftest.mutant_timeout_s("wp:entry:estop_fault") == 12
+    assert prove.selftest.mutant_timeout_s("wp:steps:release") == prove.selftest.GOAL_TIMEOUT_S
+    assert set(prove.selftest.SAMPLE_RUNS) <= set(prove.selftest.MUTANT_TIMEOUT_S)
+
+
+def test_the_slowest_goal_of_a_log_is_a_solvers_time_in_seconds() -> None:
+    log = (GOOD + "[wp] [CVC4 1.8] Goal typed_x_ensures_a : Valid (Qed:12ms) (4.2s) (9)\n"
+           "[wp] [Z3 4.8.12] Goal typed_x_ensures_b : Valid (Qed:29ms) (950ms) (19382)\n"
+           "[wp] [Qed] Goal typed_x_ensures_c : Valid (7000ms)\n")
+    # the solver's time, not Qed's before it; a goal Qed alone proved counts its time
+    assert prove.selftest.slowest_goal_s(log) == pytest.approx(7.0)
+    assert prove.selftest.slowest_goal_s(GOOD) == pytest.approx(0.04)
+
+
+def test_a_goal_of_the_unmutated_run_slower_than_its_mutants_limit_fails_make_prove(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    # a mutant counted caught at 12 s would show nothing if the code itself needed 13
+    monkeypatch.setattr(prove.selftest, "BUILD", tmp_path)
+    slow = "[wp] [CVC4 1.8] Goal typed_estop_tick_ensures_a : Valid (Qed:1ms) (13.5s) (1)\n"
+    (tmp_path / "wp-entry.log").write_text(GOOD + slow)
+    errors = prove.selftest.mutant_limit_errors(["entry", "steps"])
+    assert len(errors) == 1 and "entry's slowest goal took 13.5 s" in errors[0]
+    # not in this make prove's runs (make prove --group ...): no verdict on an old log
+    assert prove.selftest.mutant_limit_errors(["steps"]) == []
+    (tmp_path / "wp-entry.log").write_text(GOOD + slow.replace("13.5s", "4.2s"))
+    assert prove.selftest.mutant_limit_errors(["entry"]) == []
+
+
 def test_smoke_tests_run_with_their_timeout_in_every_typed_run() -> None:
     for cpu_limited, smoke_s in ((False, prove.wp.SMOKE_TIMEOUT_S),
                                  (True, prove.wp.SMOKE_WALL_GUARD_S)):

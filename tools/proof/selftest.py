@@ -29,6 +29,45 @@ from .frama import BUILD, CORE, PROVE
 # time each (wp.run_wp: bounded by wall time, a solver starved beside make test's other steps
 # could count a mutant caught that an idle one proves).
 GOAL_TIMEOUT_S = 40
+# Less for the runs whose every goal proves in a fraction of it: make prove's sample comes from
+# `entry`, whose slowest goal took 4.2 s beside make test's other steps (CVC4; the CI run of
+# d919dff). A caught mutant runs its false goal's limit out in both solvers, so 12 s instead of
+# 40 cut each of the two by about 55 CPU-s of both solvers (57 s and 35 s of wall time alone
+# on the idle machine, against about 85 and 62; issue 24's thirtieth round). Still a check that
+# can fail: make prove fails when a goal of the unmutated run took longer than this limit
+# (mutant_limit_errors), so a goal a mutant leaves unproved at it is one the code proves.
+MUTANT_TIMEOUT_S = {"entry": 12}
+
+
+def mutant_timeout_s(check: str) -> int:
+    """The CPU time a mutant's goal gets in the run of check (wp:RUN[:FUNCTION])."""
+    return MUTANT_TIMEOUT_S.get(check.split(":")[1], GOAL_TIMEOUT_S)
+
+
+def slowest_goal_s(log: str) -> float:
+    """The longest time a proved goal of a WP log took: its solver's, or Qed's where Qed alone
+    proved it (stricter than the solvers' alone)."""
+    times = [0.0]
+    for m in re.finditer(r"Goal \w+ : Valid (?:\(Qed:[^)]*\) )?\((\d+(?:\.\d+)?)(ms|s)\)",
+                         log):
+        t = float(m.group(1))
+        times.append(t / 1000 if m.group(2) == "ms" else t)
+    return max(times)
+
+
+def mutant_limit_errors(ran: list[str]) -> list[str]:
+    """The runs of MUTANT_TIMEOUT_S that ran in this make prove and have a goal slower than
+    their mutants' limit: there a mutant's unproved goal would not show that the mutant broke
+    the proof."""
+    errors = []
+    for run, limit in sorted(MUTANT_TIMEOUT_S.items()):
+        log = BUILD / f"wp-{run}.log"
+        if run in ran and log.exists():
+            slowest = slowest_goal_s(log.read_text())
+            if slowest > limit:
+                errors.append(f"{run}'s slowest goal took {slowest:.1f} s, more than its "
+                              f"mutants' {limit} s (selftest.MUTANT_TIMEOUT_S)")
+    return errors
 # A planted goal is false: it fails at any timeout, and costs this one of both solvers. At 20 s
 # the plants' nine false goals took about 360 s of the two workers (the CI run of efe87a5). Wall
 # time (wp.run_wp's cpu_limited): a false goal fails at any limit, and a starved solver costs
@@ -251,15 +290,16 @@ def compiles(core_dir: Path, file: str) -> bool:
     return proc.returncode == 0
 
 
-def run_mutant(name: str, core_dir: Path, fcts: list[str], env: dict[str, str]) -> wp.WpResult:
+def run_mutant(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
+               timeout_s: int = GOAL_TIMEOUT_S) -> wp.WpResult:
     """One pass on a mutant with both solvers, stopped at its first failure: a goal both
-    leave at GOAL_TIMEOUT_S of CPU, or a smoke test they fail (under Typed), catches it. Two
-    passes as in make prove (CVC4 alone, then both over the function of a goal it left) cost a
-    caught mutant of the Typed steps run about 4 minutes (issue 24's sixteenth round): the
+    leave at timeout_s of CPU (mutant_timeout_s), or a smoke test they fail (under Typed),
+    catches it. Two passes as in make prove (CVC4 alone, then both over the function of a
+    goal it left) cost a caught mutant of the Typed steps run about 4 minutes (issue 24's sixteenth round): the
     goal the mutant made false ran out CVC4's limit in the first pass and Z3's in the retry,
     after the function's other goals and smoke tests again."""
     (wp.WP_CACHE / name).mkdir(parents=True, exist_ok=True)
-    return wp.run_wp(name, core_dir, fcts, env, GOAL_TIMEOUT_S, cache=True, first_failure=True)
+    return wp.run_wp(name, core_dir, fcts, env, timeout_s, cache=True, first_failure=True)
 
 
 def try_mutant(index: int, mutant: Any, check: str, env: dict[str, str]) -> MutantTry:
@@ -274,7 +314,7 @@ def try_mutant(index: int, mutant: Any, check: str, env: dict[str, str]) -> Muta
     if not compiles(core_dir, file):
         shutil.rmtree(core_dir, ignore_errors=True)
         return MutantTry(key, check, False, "does not compile (not a mutant)", tried=False)
-    w = run_mutant(f"mutant-{index}", core_dir, wp_fcts(check), env)
+    w = run_mutant(f"mutant-{index}", core_dir, wp_fcts(check), env, mutant_timeout_s(check))
     shutil.rmtree(core_dir, ignore_errors=True)
     failed = w.failed + w.smoke_failed
     if w.error:

@@ -295,9 +295,9 @@ def run_mutant(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
     """One pass on a mutant with both solvers, stopped at its first failure: a goal both
     leave at timeout_s of CPU (mutant_timeout_s), or a smoke test they fail (under Typed),
     catches it. Two passes as in make prove (CVC4 alone, then both over the function of a
-    goal it left) cost a caught mutant of the Typed steps run about 4 minutes (issue 24's sixteenth round): the
-    goal the mutant made false ran out CVC4's limit in the first pass and Z3's in the retry,
-    after the function's other goals and smoke tests again."""
+    goal it left) cost a caught mutant of the Typed steps run about 4 minutes (issue 24's
+    sixteenth round): the goal the mutant made false ran out CVC4's limit in the first pass
+    and Z3's in the retry, after the function's other goals and smoke tests again."""
     (wp.WP_CACHE / name).mkdir(parents=True, exist_ok=True)
     return wp.run_wp(name, core_dir, fcts, env, timeout_s, cache=True, first_failure=True)
 

@@ -234,8 +234,8 @@ def main() -> int:
                 ok = ok and caught
         if mutated:
             ok = report_mutants([f.result() for f in mutated], equivalent, len(in_scope)) and ok
-            for err in selftest.mutant_limit_errors([k.split(":")[1] for k in keys
-                                                     if k.startswith("wp:")]):
+            for err in selftest.mutant_limit_errors({k.split(":")[1]: futs[k].result()
+                                                     for k in keys if k.startswith("wp:")}):
                 print(f"prove:   error: {err}")
                 ok = False
     print(f"prove: {'ok' if ok else 'FAILED'} in {time.monotonic() - t0:.0f} s "

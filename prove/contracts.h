@@ -108,6 +108,7 @@ uint8_t estop__current_flags(const estop_core_t *core);
         !stop_asked(msg_id, \old(core->cfg.stop_id)) ==>
         \result == ESTOP_NAK_UNKNOWN_ID && core->state == \old(core->state);
     ensures nak_code: \result <= 4;
+    ENSURES_SLOTS_KEPT(msg)
  */
 uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authenticated,
                           estop_out_t *out);
@@ -130,6 +131,7 @@ int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, s
 
 /*@ requires \valid(core);
     assigns core->counters, core->status_auth_failed;
+    ENSURES_SLOTS_KEPT(unauth)
  */
 void estop__unauthenticated(estop_core_t *core);
 
@@ -162,6 +164,7 @@ uint8_t estop_crc8_e2e(uint16_t data_id, const uint8_t *payload, size_t len);
 
 /*@ requires \valid_read(data + (0 .. len - 1));
     assigns \nothing;
+    admit ensures crc_value: len == 12 ==> \result == CRC12(data);
  */
 uint32_t estop_crc32(const uint8_t *data, size_t len);
 

@@ -64,4 +64,20 @@
 #define tag_ok(k, p, at) \
     (\forall integer i; 0 <= i < 16 ==> (p)[(at) + i] == MAC_BYTE(k, p, at, i))
 
+/*@
+  // CRC-32 (PROTOCOL.md section 2: zlib's) of a plain frame's first 12 bytes b0..b11, as
+  // estop_crc32 computes it (its admitted clause crc_value). Uninterpreted here: the TCP rule
+  // needs only that a released frame's bytes 12..15 are this function of its first 12; that
+  // it is CRC-32, tests/core/test_crc_value.py tests through the core.
+  axiomatic Crc32 {
+    logic integer crc32_12(integer b0, integer b1, integer b2, integer b3, integer b4,
+                           integer b5, integer b6, integer b7, integer b8, integer b9,
+                           integer b10, integer b11);
+  }
+*/
+/* The CRC-32 of the 12 bytes at p, and a plain frame at b whose CRC (bytes 12..15) is right. */
+#define CRC12(p) crc32_12((p)[0], (p)[1], (p)[2], (p)[3], (p)[4], (p)[5], (p)[6], (p)[7], \
+                          (p)[8], (p)[9], (p)[10], (p)[11])
+#define plain_crc_ok(b) (rd_u32le_l(&(b)[12]) == CRC12(b))
+
 #endif /* ESTOP_PROVE_LOGIC_H */

@@ -163,6 +163,12 @@
  * initialised. Every stop rule is stated for an ESTOP_OK return (ok_iff_given), so a call that
  * returned anything else for such a call would escape them. */
 #define usable(c, o) ((c) != \null && (o) != \null && (c)->magic == 0x45535450)
+#define byte_kept(L1, L2, c, j, i) \
+    (\at((c)->slots[j].buf[i], L1) == \at((c)->slots[j].buf[i], L2))
+#define head_kept(L1, L2, c, j) \
+    (byte_kept(L1, L2, c, j, 0) && byte_kept(L1, L2, c, j, 1) && byte_kept(L1, L2, c, j, 2) && \
+     byte_kept(L1, L2, c, j, 3) && byte_kept(L1, L2, c, j, 4) && byte_kept(L1, L2, c, j, 5) && \
+     byte_kept(L1, L2, c, j, 6) && byte_kept(L1, L2, c, j, 7))
 #define fills_kept(L1, L2, c) \
     (\at((c)->slots[0].fill, L1) == \at((c)->slots[0].fill, L2) && \
      \at((c)->slots[1].fill, L1) == \at((c)->slots[1].fill, L2) && \
@@ -172,6 +178,43 @@
      \at((c)->slots[5].fill, L1) == \at((c)->slots[5].fill, L2) && \
      \at((c)->slots[6].fill, L1) == \at((c)->slots[6].fill, L2) && \
      \at((c)->slots[7].fill, L1) == \at((c)->slots[7].fill, L2))
+
+/* What a step on the way of a TCP frame keeps of the core for the frame's rules past it: the
+ * configuration they read and every slot's fill, each as a clause of its own (left to the
+ * solvers through the callees' assigns under Typed, the frame handlers' clauses ran out:
+ * issue 24's thirty-first round). */
+#define ENSURES_CFG_KEPT(tag) \
+    ensures tag##_cfg: core->magic == \old(core->magic); \
+    ensures tag##_cfg: core->now_us == \old(core->now_us); \
+    ensures tag##_cfg: core->cfg.stop_id == \old(core->cfg.stop_id); \
+    ensures tag##_cfg: core->cfg.key_len == \old(core->cfg.key_len); \
+    ensures tag##_cfg: core->cfg.brake_can_id == \old(core->cfg.brake_can_id); \
+    ensures tag##_cfg: core->cfg.brake_period_us == \old(core->cfg.brake_period_us); \
+    ensures tag##_fills: \forall integer j; 0 <= j < 8 ==> \
+        core->slots[j].fill == \old(core->slots[j].fill);
+/* And the first 8 bytes of every slot (a frame's magic and message ID), in one of three forms
+ * by where the clause stands, since the solvers instantiate a quantifier over two variables
+ * only toward a goal with both free (-wp-print: a clause over j and i did not give slot k's
+ * byte 0 in 20 s, the form over j alone in 2 s):
+ * - ENSURES_SLOTS_KEPT, over slot and byte: the core's steps, which write fields;
+ * - ENSURES_HEADS_KEPT, over the slot, each byte named: a step that calls them and whose
+ *   caller reads one slot (plain_step, from the former in 10 s), and reply_plain;
+ * - ENSURES_SLOT_KEPT, slot k alone: a frame handler. */
+#define ENSURES_SLOTS_KEPT(tag) \
+    ENSURES_CFG_KEPT(tag) \
+    ensures tag##_heads: \forall integer j, i; 0 <= j < 8 && 0 <= i < 8 ==> \
+        byte_kept(Pre, Post, core, j, i);
+#define ENSURES_HEADS_KEPT(tag) \
+    ENSURES_CFG_KEPT(tag) \
+    ensures tag##_heads: \forall integer j; 0 <= j < 8 ==> head_kept(Pre, Post, core, j);
+#define ENSURES_SLOT_KEPT(tag) \
+    ENSURES_CFG_KEPT(tag) \
+    ensures tag##_head: head_kept(Pre, Post, core, k);
+/* A frame handler's slot k: its word at byte at (the magic at 0, a request's message ID at 4),
+ * as the frame's rules read it, kept (from the bytes, for its caller). */
+#define ENSURES_WORD_KEPT(tag, at) \
+    ensures tag##_words: rd_u32le_l(&core->slots[k].buf[at]) == \
+        \old(rd_u32le_l(&core->slots[k].buf[at]));
 
 /*@
   // C99 6.3.1.3p2: a value converted to an unsigned type is reduced modulo 2^32. Why3's

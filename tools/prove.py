@@ -42,11 +42,12 @@ MUTANTS_IN_MAKE_PROVE = 2  # the fast subset; make prove-mutants runs them all
 # among the last to start while the plants waited). The figures are each analysis's seconds on
 # the idle machine with the first pass of CVC4 alone (issue 24: tools/prove.py, and the runs
 # datagram and valid on their own); only the order depends on them. One not named here counts
-# as DEFAULT_COST_S. wp:tcpframe is a guess (measured only beside wp:tcp: 173 s of both);
-# wp:plain is its 62 s in a fresh-clone make test; wp:clock its 145 s alone since issue 24's
-# twenty-ninth round (244 s before); wp:udp and wp:auth theirs with %noprune (the thirtieth).
-COST_S = {"eva:keyed": 159, "wp:tcp": 123, "wp:tcpframe": 90, "wp:clock": 145, "wp:valid": 28,
-          "wp:plain": 62,
+# as DEFAULT_COST_S. wp:tcpframe (handle_request alone), wp:frame and wp:plain are theirs
+# beside other runs of issue 24's thirty-first round (59, 32 and 22 s); wp:clock its 145 s
+# alone since issue 24's twenty-ninth round (244 s before); wp:udp and wp:auth theirs with
+# %noprune (the thirtieth).
+COST_S = {"eva:keyed": 159, "wp:tcp": 123, "wp:tcpframe": 60, "wp:clock": 145, "wp:valid": 28,
+          "wp:plain": 22, "wp:frame": 32,
           "wp:auth": 26, "wp:datagram": 66, "mutant": 105, "wp:loops": 58, "wp:init": 30,
           "eva:plain": 52, "wp:entry": 46, "wp:steps": 113, "plant:eva": 25, "plant:wp": 20,
           "wp:udp": 31, "wp:frames": 26, "wp:link": 11, "wp:ct": 9, "wp:lemmas": 4,

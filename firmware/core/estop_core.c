@@ -184,6 +184,7 @@ static void push_frame(estop_out_t *out, uint32_t id, uint16_t data_id, const ui
         brake_ok(out, \old(out->n_can), core->cfg.slow_level);
     ensures \old(out->n_can) >= 3 ==> out->n_can == \old(out->n_can);
     ensures brake_keeps: frames_kept(Pre, Post, out, \old(out->n_can));
+    ENSURES_SLOTS_KEPT(brake)
  */
 static void send_brake(estop_core_t *core, estop_out_t *out)
 {
@@ -242,6 +243,7 @@ static void state_changed(estop_core_t *core, estop_out_t *out)
             core->brake_counter, core->brake_due_us;
     ensures inv_base(core) && core->state == 0 && out->n_can <= 3;
     ensures stop_restarts_release_count: core->valid_run == 0;
+    ENSURES_SLOTS_KEPT(stop)
     ensures stop_keeps: frames_kept(Pre, Post, out, \old(out->n_can));
     ensures stop_times: \at(times_ok(core), Pre) ==> times_ok(core);
     ensures stop_keeps_clock: core->now_us == \old(core->now_us) &&
@@ -299,6 +301,7 @@ static void enter_slowing(estop_core_t *core)
     ensures inv_base(core) && core->state != 0 && out->state_changed == 1 &&
         out->n_can <= 3;
     ensures arm_clears_reason: core->reason == 0;
+    ENSURES_SLOTS_KEPT(arm)
     ensures arm_slows: core->state == 1 ==>
         udiff(core->now_us, core->last_valid_us) < core->cfg.slow_us;
     ensures core->brake_due_us == (uint32_t)(core->now_us + core->cfg.brake_period_us);
@@ -831,6 +834,7 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
         core->last_neutral != 0 && core->link_fresh != 0 &&
         core->valid_run >= core->cfg.release_packets;
     ensures rel_acked: \result == 0 ==> core->state != 0;
+    ENSURES_SLOTS_KEPT(rel)
     ensures rel_refused_keeps: \result != 0 ==> core->state == \old(core->state);
     ensures \result <= 4;
  */

@@ -69,6 +69,7 @@ static void reply_head(const estop_core_t *core, uint8_t *r, uint32_t seq, uint8
     assigns out->reply[0 .. 15], out->reply_len, out->has_reply;
     ensures out->has_reply == 1 && out->reply[11] == nak_code;
     ENSURES_REPLY_KEEPS(plain_reply)
+    ENSURES_HEADS_KEPT(plain_reply)
  */
 static void reply_plain(const estop_core_t *core, uint32_t seq, uint8_t nak_code, estop_out_t *out)
 {
@@ -78,14 +79,40 @@ static void reply_plain(const estop_core_t *core, uint32_t seq, uint8_t nak_code
     out->has_reply = 1u;
 }
 
-/* Section 5.3: the 48-byte reply to a request frame, tagged over the request's tag and the
- * reply's first 32 bytes (zero tag without a key, or when the MAC cannot be made). The key
- * state's digest length (at most 16: the invariant's) is estop_b2s_mac's precondition. */
+/* Section 5.3: the tag of a reply r to the request req, over the request's tag and r's first
+ * 32 bytes: zero without a key, or when the MAC cannot be made (no tag rather than a stale
+ * one). The key state's digest length (at most 16: the invariant's) is estop_b2s_mac's
+ * precondition. */
+/*@ requires \valid_read(core) && \valid_read(req + (0 .. 47)) && \valid(r + (0 .. 47));
+    requires \separated(r + (0 .. 47), core) && \separated(r + (0 .. 47), req + (0 .. 47));
+    requires core->mac.outlen <= 16;
+    assigns r[32 .. 47];
+ */
+static void reply_tag(const estop_core_t *core, const uint8_t *req, uint8_t *r)
+{
+    if (core->cfg.key_len != 0u) {
+        uint8_t m[ESTOP_TAG_LEN + REQUEST_TAG_AT];
+        copy_bytes(m, &req[REQUEST_TAG_AT], ESTOP_TAG_LEN);
+        copy_bytes(&m[ESTOP_TAG_LEN], r, REQUEST_TAG_AT);
+        if (estop_b2s_mac(&core->mac, m, sizeof m, &r[REQUEST_TAG_AT]) != 0) {
+            zero_bytes(&r[REQUEST_TAG_AT], ESTOP_TAG_LEN);
+        }
+    } else {
+        zero_bytes(&r[REQUEST_TAG_AT], ESTOP_TAG_LEN);
+    }
+}
+
+/* Section 5.3: the 48-byte reply to a request frame. Its tag made by a function of its own:
+ * under Typed, what the reply keeps of the core and of out's frames was not found past the
+ * merge of the tag's branches (issue 24's thirty-first round). */
 /*@ requires \valid_read(core) && \valid(out) && \valid_read(req + (0 .. 47));
     requires \separated(out, core) && \separated(out, req + (0 .. 47));
     requires core->mac.outlen <= 16;
     assigns out->reply[0 .. 47], out->reply_len, out->has_reply;
     ensures out->has_reply == 1 && out->reply[15] == nak_code;
+    ENSURES_REPLY_KEEPS(request_reply)
+    ENSURES_CFG_KEPT(request_reply)
+    ensures request_reply_req: \forall integer i; 0 <= i < 8 ==> req[i] == \old(req[i]);
  */
 static void reply_request(const estop_core_t *core, const uint8_t *req, uint8_t nak_code,
                           estop_out_t *out)
@@ -95,23 +122,45 @@ static void reply_request(const estop_core_t *core, const uint8_t *req, uint8_t 
     reply_head(core, &r[4], rd_u32le(&req[8]), nak_code);
     wr_u64le(&r[16], core->cfg.session);
     wr_u64le(&r[24], rd_u64le(&req[24]));
-    if (core->cfg.key_len != 0u) {
-        uint8_t m[ESTOP_TAG_LEN + REQUEST_TAG_AT];
-        copy_bytes(m, &req[REQUEST_TAG_AT], ESTOP_TAG_LEN);
-        copy_bytes(&m[ESTOP_TAG_LEN], r, REQUEST_TAG_AT);
-        if (estop_b2s_mac(&core->mac, m, sizeof m, &r[REQUEST_TAG_AT]) != 0) {
-            zero_bytes(&r[REQUEST_TAG_AT], ESTOP_TAG_LEN); /* no tag rather than a stale one */
-        }
-    } else {
-        zero_bytes(&r[REQUEST_TAG_AT], ESTOP_TAG_LEN);
-    }
+    reply_tag(core, req, r);
     out->reply_len = (uint8_t)ESTOP_REPLY_MAX;
     out->has_reply = 1u;
 }
 
-/* Section 2: one whole 16-byte plain frame with a good CRC, in slot k. A plain RELEASE is
- * authenticated only on a unit without a key. Its clauses read the frame at the call (\old:
- * no slot is written, but under Typed the solvers did not carry the bytes past the calls). */
+/* Section 2: the step of a plain frame's message msg_id. A plain RELEASE is authenticated
+ * only on a unit without a key. A function of its own, apart from the reply: its rules in the
+ * context of the step alone (under Typed, in one function with the reply they ran out of 60 s
+ * once the callees stated what they keep: issue 24's thirty-first round). */
+/*@ requires \valid(core) && \valid(out) && \separated(core, out);
+    requires core->magic == 0x45535450 && inv(core) && times_ok(core);
+    requires out->n_can <= 3;
+    assigns core->counters, core->status_auth_failed, core->valid_run, core->state,
+            core->reason, core->slow_run, core->status_stops, core->status_slowdowns,
+            core->brake_counter, core->brake_due_us, out->can[0 .. 2], out->n_can,
+            out->state_changed;
+    ENSURES_KEPT(plain_step)
+    ENSURES_HEADS_KEPT(plain_step)
+    ensures plain_step_frames: out->n_can <= 3;
+    ensures plain_step_release: \old(core->state) == 0 && core->state != 0 ==>
+        msg_id == ESTOP_MSG_RELEASE && core->cfg.key_len == 0 && \result == 0;
+    ensures plain_step_stops: stop_asked(msg_id, \old(core->cfg.stop_id)) ==>
+        core->state == 0 && \result == 0;
+    ensures plain_step_stops: stop_asked(msg_id, \old(core->cfg.stop_id)) ==>
+        \old(out->n_can) <= out->n_can;
+    ensures plain_step_stops: stop_asked(msg_id, \old(core->cfg.stop_id)) &&
+        1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
+    ENSURES_STOP_BRAKES_AT(plain_step_brakes)
+ */
+static uint8_t plain_step(estop_core_t *core, uint32_t msg_id, estop_out_t *out)
+{
+    if ((msg_id == ESTOP_MSG_RELEASE) && (core->cfg.key_len != 0u)) {
+        estop__unauthenticated(core); /* the key holder's RELEASE is a request frame */
+    }
+    return estop__handle_msg(core, msg_id, core->cfg.key_len == 0u, out);
+}
+
+/* Section 2: one whole 16-byte plain frame with a good CRC, in slot k: its step, then its
+ * reply. */
 /*@ requires \valid(core) && \valid(out) && \separated(core, out);
     requires core->magic == 0x45535450 && inv(core) && times_ok(core);
     requires k < 8 && out->n_can <= 3;
@@ -120,6 +169,8 @@ static void reply_request(const estop_core_t *core, const uint8_t *req, uint8_t 
             core->brake_counter, core->brake_due_us, out->can[0 .. 2], out->n_can,
             out->state_changed, out->reply[0 .. 47], out->reply_len, out->has_reply;
     ENSURES_KEPT(plain)
+    ENSURES_SLOT_KEPT(plain)
+    ENSURES_WORD_KEPT(plain, 0)
     ensures plain_frames: out->n_can <= 3;
     ensures plain_release: \old(core->state) == 0 && core->state != 0 ==>
         out->has_reply == 1 && core->cfg.key_len == 0 && out->reply[11] == 0 &&
@@ -133,24 +184,8 @@ static void handle_plain(estop_core_t *core, uint32_t k, estop_out_t *out)
 {
     const uint8_t *f = core->slots[k].buf;
     const uint32_t msg_id = rd_u32le(f);
-    /* The sequence number read first: past the step, the read's precondition ran out of 20 s
-     * under Typed. */
     const uint32_t seq = rd_u32le(&f[4]);
-    uint8_t nak;
-    if ((msg_id == ESTOP_MSG_RELEASE) && (core->cfg.key_len != 0u)) {
-        estop__unauthenticated(core); /* the key holder's RELEASE is a request frame */
-    }
-    nak = estop__handle_msg(core, msg_id, core->cfg.key_len == 0u, out);
-    /* The step's rules at this point, before the reply's writes: stated at the return alone,
-     * under Typed plain_stops and plain_release ran out of 20 s. */
-    /*@ assert plain_released: \at(core->state, Pre) == 0 && core->state != 0 ==>
-            msg_id == ESTOP_MSG_RELEASE && core->cfg.key_len == 0 && nak == 0; */
-    /*@ assert plain_stopped: stop_asked(msg_id, \at(core->cfg.stop_id, Pre)) ==>
-            core->state == 0 && nak == 0; */
-    /*@ assert plain_stopped_count: stop_asked(msg_id, \at(core->cfg.stop_id, Pre)) ==>
-            \at(out->n_can, Pre) <= out->n_can; */
-    /*@ assert plain_stopped_kept: stop_asked(msg_id, \at(core->cfg.stop_id, Pre)) &&
-            1 <= \at(out->n_can, Pre) ==> frame_kept(Pre, Here, out, 0); */
+    const uint8_t nak = plain_step(core, msg_id, out);
     reply_plain(core, seq, nak, out);
 }
 
@@ -165,6 +200,9 @@ static void handle_plain(estop_core_t *core, uint32_t k, estop_out_t *out)
             core->brake_counter, core->brake_due_us, out->can[0 .. 2], out->n_can,
             out->state_changed, out->reply[0 .. 47], out->reply_len, out->has_reply;
     ENSURES_KEPT(request)
+    ENSURES_SLOT_KEPT(request)
+    ENSURES_WORD_KEPT(request, 0)
+    ENSURES_WORD_KEPT(request, 4)
     ensures request_frames: out->n_can <= 3;
     ensures request_release: \old(core->state) == 0 && core->state != 0 ==>
         out->has_reply == 1 && core->cfg.key_len != 0 && out->reply[15] == 0 &&
@@ -291,7 +329,8 @@ static int take_frame(estop_slot_t *s, const uint8_t *data, size_t len, size_t *
     ensures frame_release: \old(core->state) == 0 && core->state != 0 ==>
         out->has_reply == 1 && core->slots[k].fill == \old(core->slots[k].fill) &&
         ((core->cfg.key_len == 0 && out->reply[11] == 0 &&
-          rd_u32le_l(&core->slots[k].buf[0]) == ESTOP_MSG_RELEASE) ||
+          rd_u32le_l(&core->slots[k].buf[0]) == ESTOP_MSG_RELEASE &&
+          \at(plain_crc_ok(core->slots[k].buf), Pre)) ||
          (core->cfg.key_len != 0 && out->reply[15] == 0 &&
           rd_u32le_l(&core->slots[k].buf[0]) == ESTOP_MAGIC_REQUEST &&
           rd_u32le_l(&core->slots[k].buf[4]) == ESTOP_MSG_RELEASE &&
@@ -370,7 +409,8 @@ estop_err_t estop_tcp_rx(estop_core_t *core, uint32_t slot, const uint8_t *data,
         /*@ assert handled_release: \at(core->state, Pre) == 0 && core->state != 0 ==>
                 out->has_reply == 1 && core->slots[slot].fill == 0 &&
                 ((core->cfg.key_len == 0 && out->reply[11] == 0 &&
-                  rd_u32le_l(&core->slots[slot].buf[0]) == ESTOP_MSG_RELEASE) ||
+                  rd_u32le_l(&core->slots[slot].buf[0]) == ESTOP_MSG_RELEASE &&
+                  \at(plain_crc_ok(core->slots[slot].buf), framed)) ||
                  (core->cfg.key_len != 0 && out->reply[15] == 0 &&
                   rd_u32le_l(&core->slots[slot].buf[0]) == ESTOP_MAGIC_REQUEST &&
                   rd_u32le_l(&core->slots[slot].buf[4]) == ESTOP_MSG_RELEASE &&

@@ -463,6 +463,21 @@ def test_a_keyless_reply_frame_has_a_zero_tag_whatever_the_buffer_held() -> None
     assert r.out.reply_len == 48 and reply[32:] == bytes(16)
 
 
+def test_a_reply_whose_tag_cannot_be_made_has_a_zero_tag_whatever_the_buffer_held() -> None:
+    """Mutant: the zero tag dropped where the MAC of a keyed unit's reply fails (reply_tag):
+    the reply would carry what the buffer held. tests/c/mac_failure.c shows it under valgrind;
+    this is the same through cffi, which tools/mutants.py runs. The key state's digest length
+    set to 0 (the invariant allows 0 to 16) makes estop_b2s_mac refuse."""
+    r = Raw(0, Config(key=K))
+    assert lib.estop_tcp_open(r.core, 0, 0, r.out) == lib.ESTOP_OK
+    r.core.mac.outlen = 0
+    ffi.memmove(r.out.reply, b"\xa5" * 48, 48)
+    status = auth.AuthRequest(1, 1, 7, N, 0).encode(K)
+    assert r.tcp(0, status, 1) == lib.ESTOP_OK
+    reply = bytes(ffi.buffer(r.out.reply, 48))
+    assert r.out.reply_len == 48 and reply[4] == 0x80 and reply[32:] == bytes(16)
+
+
 # -- silences --------------------------------------------------------------------------------------
 def test_a_gap_of_exactly_the_warn_time_is_a_silence() -> None:
     """Mutant: >= to > on the warn time in record_gap."""

@@ -117,13 +117,12 @@
 #define frames_kept(L1, L2, o, n) (\forall integer k; 0 <= k < (n) ==> frame_kept(L1, L2, o, k))
 /* A reply's step (core read only, out's reply written): what its caller's clauses read past
  * it, stated by the callee, since under Typed the solvers did not carry them past the call in
- * a handler's own context. handle_plain's proof relies on it (issue 24's twenty-eighth round). */
+ * a handler's own context. handle_plain's proof relies on it (issue 24's twenty-eighth round);
+ * the configuration its callers read, each reply states with ENSURES_CFG_KEPT below. */
 #define ENSURES_REPLY_KEEPS(tag) \
     INV_PARTS(ENSURES_PART_KEPT, tag) \
     ensures tag##_times: \at(times_ok(core), Pre) ==> times_ok(core); \
-    ensures tag##_core: core->state == \old(core->state) && \
-        core->cfg.key_len == \old(core->cfg.key_len) && \
-        core->cfg.brake_can_id == \old(core->cfg.brake_can_id); \
+    ensures tag##_core: core->state == \old(core->state); \
     ensures tag##_out: out->n_can == \old(out->n_can) && frames_kept(Pre, Post, out, 3);
 /* Frame k of out is ESTOP_BRAKE with brake_request 1 (emergency) and the state STOPPED. */
 #define emergency(o, k, c) \
@@ -169,16 +168,6 @@
     (byte_kept(L1, L2, c, j, 0) && byte_kept(L1, L2, c, j, 1) && byte_kept(L1, L2, c, j, 2) && \
      byte_kept(L1, L2, c, j, 3) && byte_kept(L1, L2, c, j, 4) && byte_kept(L1, L2, c, j, 5) && \
      byte_kept(L1, L2, c, j, 6) && byte_kept(L1, L2, c, j, 7))
-#define fills_kept(L1, L2, c) \
-    (\at((c)->slots[0].fill, L1) == \at((c)->slots[0].fill, L2) && \
-     \at((c)->slots[1].fill, L1) == \at((c)->slots[1].fill, L2) && \
-     \at((c)->slots[2].fill, L1) == \at((c)->slots[2].fill, L2) && \
-     \at((c)->slots[3].fill, L1) == \at((c)->slots[3].fill, L2) && \
-     \at((c)->slots[4].fill, L1) == \at((c)->slots[4].fill, L2) && \
-     \at((c)->slots[5].fill, L1) == \at((c)->slots[5].fill, L2) && \
-     \at((c)->slots[6].fill, L1) == \at((c)->slots[6].fill, L2) && \
-     \at((c)->slots[7].fill, L1) == \at((c)->slots[7].fill, L2))
-
 /* What a step on the way of a TCP frame keeps of the core for the frame's rules past it: the
  * configuration they read and every slot's fill, each as a clause of its own (left to the
  * solvers through the callees' assigns under Typed, the frame handlers' clauses ran out:

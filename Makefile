@@ -92,8 +92,9 @@ coverage-untimed: setup
 # such as the browser, once): they wait far more than they compute (about 10 % of the two
 # cores in one process), and make test runs them alone, after the provers; 116 s in one
 # process against 62 to 73 s in two (issue 24's thirty-second round). TIMING_ALONE's modules
-# run after them in one process: their bounds are on the daemon's CPU time in a backlog, and
-# beside another test the rxtime one failed 2 runs of 22 (a 1-ms sleeper overslept 3.7 ms).
+# run after them in one process: their bounds are on the daemon's CPU time in a backlog; in
+# two processes 2 runs of 22 failed one test, the rxtime one in the run whose output was kept
+# (a 1-ms sleeper overslept 3.7 ms beside the other worker), and the drain tests flaked before.
 TIMING_ALONE = tests/daemon/test_estopd_rxtime.py tests/daemon/test_estopd_drain.py
 coverage-timed: setup
 	$(COVTEST) -m "timing and not vm" -n 2 --dist loadfile $(addprefix --ignore=,$(TIMING_ALONE))

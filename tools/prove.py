@@ -43,10 +43,10 @@ MUTANTS_IN_MAKE_PROVE = 2  # the fast subset; make prove-mutants runs them all
 # the idle machine with the first pass of CVC4 alone (issue 24: tools/prove.py, and the runs
 # datagram and valid on their own); only the order depends on them. One not named here counts
 # as DEFAULT_COST_S. wp:tcpframe (handle_request alone), wp:frame and wp:plain are theirs
-# beside other runs of issue 24's thirty-first round (59, 32 and 22 s); wp:clock its 145 s
-# alone since issue 24's twenty-ninth round (244 s before); wp:udp and wp:auth theirs with
-# %noprune (the thirtieth); wp:clock and wp:loops theirs scaled by what %noprune saved alone
-# (the thirty-second: 80 s against 106, 22 s against 26).
+# beside other runs of issue 24's thirty-first round (59, 32 and 22 s); wp:udp and wp:auth
+# theirs with %noprune (the thirtieth); wp:clock (145 s alone since the twenty-ninth, 244 s
+# before) and wp:loops theirs scaled by what %noprune saved alone (the thirty-second: 80 s
+# against 106, 22 s against 26).
 COST_S = {"eva:keyed": 159, "wp:tcp": 123, "wp:tcpframe": 60, "wp:clock": 109, "wp:valid": 28,
           "wp:plain": 22, "wp:frame": 32,
           "wp:auth": 26, "wp:datagram": 66, "mutant": 105, "wp:loops": 50, "wp:init": 30,

@@ -396,30 +396,54 @@ def test_every_first_pass_asks_one_solver_and_the_retry_both() -> None:
     assert set(prove.wp.PROVERS.split(",")) == {"z3", "cvc4"}
 
 
-def test_a_mutant_is_tried_in_one_pass_with_both_solvers(monkeypatch: pytest.MonkeyPatch,
-                                                         tmp_path: Path) -> None:
-    """One pass, both solvers, stopped at the first failure, under any model: a goal only Z3
-    proves does not catch it (CVC4 alone first, then both in a retry, cost a caught mutant of
-    the Typed steps run about 4 minutes against 3 for both mutants of the sample now)."""
-    calls: list[tuple[str, list[str], bool]] = []
+def test_a_mutant_is_tried_in_make_proves_two_passes(monkeypatch: pytest.MonkeyPatch,
+                                                     tmp_path: Path) -> None:
+    """CVC4 alone over the run, stopped at its first failure; then Z3 alone on the goal CVC4
+    left, by its clause's label; one pass with both solvers where Z3 proves it or the goal
+    has no label. A smoke test CVC4 fails catches it at once; so does a goal of a run whose
+    first pass asks both solvers already (%both)."""
+    calls: list[tuple[str, bool, str]] = []
     answers: list[Any] = []
 
     def fake(name: str, core_dir: Path, fcts: list[str], env: dict[str, str], *a: Any,
-             provers: str = prove.wp.PROVERS, first_failure: bool = False, **kw: Any) -> Any:
-        calls.append((provers, fcts, first_failure))
+             provers: str = prove.wp.PROVERS, first_failure: bool = False, only_prop: str = "",
+             **kw: Any) -> Any:
+        calls.append((provers, first_failure, only_prop))
         return answers.pop(0)
 
     monkeypatch.setattr(prove.wp, "run_wp", fake)
     monkeypatch.setattr(prove.wp, "WP_CACHE", tmp_path)
     run = prove.selftest.run_mutant
-    for fcts in (LOOPS, ["release"]):
+    entry = ["estop_tick", "estop_fault", "@Typed"]
+    cvc4 = (prove.wp.FIRST_PASS_PROVERS, True, "")
+    both = (prove.wp.PROVERS, True, "")
+    goal = "typed_estop_fault_ensures_fault_stops"
+
+    def tried(answer: list[Any], fcts: list[str] = entry) -> Any:
         calls.clear()
-        answers[:] = [result(0, 0, ["typed_estop_ct_equal_wp_smoke_dead_code_s1"], tmp_path)]
-        assert run("mutant-0", tmp_path, fcts, {}).failed
-        assert calls == [(prove.wp.PROVERS, fcts, True)]
-        calls.clear()
-        answers[:] = [result(276, 276, [], tmp_path)]
-        assert not run("mutant-0", tmp_path, fcts, {}).failed and len(calls) == 1
+        answers[:] = answer
+        return run("mutant-0", tmp_path, fcts, {})
+
+    # a smoke test CVC4 fails: caught in one pass
+    assert tried([result(0, 0, ["typed_estop_tick_wp_smoke_dead_code_s1"], tmp_path)]).failed
+    assert calls == [cvc4]
+    # every goal proved: not caught, in one pass
+    assert not tried([result(34, 34, [], tmp_path)]).failed and calls == [cvc4]
+    # a goal CVC4 left that Z3 leaves too: caught
+    assert tried([result(3, 33, [goal], tmp_path), result(0, 1, [goal], tmp_path)]).failed
+    assert calls == [cvc4, ("z3", False, "fault_stops")]
+    # one Z3 proves: both solvers over the run decide
+    assert not tried([result(3, 33, [goal], tmp_path), result(1, 1, [], tmp_path),
+                      result(34, 34, [], tmp_path)]).failed
+    assert calls == [cvc4, ("z3", False, "fault_stops"), both]
+    # a goal without a label: both solvers over the run
+    assert tried([result(3, 33, ["typed_estop_fault_ensures"], tmp_path),
+                  result(3, 33, ["typed_estop_fault_ensures"], tmp_path)]).failed
+    assert calls == [cvc4, both]
+    # a run whose first pass asks both solvers (%both): its first failure decides
+    assert tried([result(0, 9, ["typed_estop_ct_equal_assert_equal_bit"], tmp_path)],
+                 ["estop_ct_equal", "@Typed", "%both"]).failed
+    assert calls == [both]
 
 
 def test_proof_goals_leave_the_smoke_tests_out(tmp_path: Path) -> None:
@@ -465,3 +489,19 @@ def test_the_mutant_report_fails_a_sample_of_which_nothing_was_tried(
     assert not prove.report_mutants([caught, survivor], {}, 385)
     assert prove.report_mutants([caught, survivor], {"c": "equivalent: why"}, 385)
     assert not prove.report_mutants([caught], {"b": "equivalent: why"}, 385)
+
+
+def test_a_failed_goal_names_the_clause_a_mutant_second_pass_asks_z3_of() -> None:
+    fcts = ["estop_tick", "estop_tcp_open", "estop_fault", "@Typed"]
+    assert prove.selftest.goal_prop("typed_estop_tick_ensures_next_call_ahead", fcts) == \
+        "next_call_ahead"
+    assert prove.selftest.goal_prop("typed_estop_fault_ensures_fault_stops_2", fcts) == \
+        "fault_stops"
+    assert prove.selftest.goal_prop("typed_estop_fault_assert_handled", fcts) == "handled"
+    # no label: the one pass with both solvers decides
+    assert prove.selftest.goal_prop("typed_estop_tick_ensures", fcts) is None
+    assert prove.selftest.goal_prop("typed_estop_tick_assigns_exit", fcts) is None
+    assert prove.selftest.goal_prop("typed_other_fn_ensures_x", fcts) is None
+    # a Caveat run's goals carry its tag
+    assert prove.selftest.goal_prop("typed_caveat_handle_request_ensures_request_release",
+                                    ["handle_request"]) == "request_release"

@@ -303,16 +303,44 @@ def compiles(core_dir: Path, file: str) -> bool:
     return proc.returncode == 0
 
 
+def goal_prop(goal: str, fcts: list[str]) -> str | None:
+    """The label of the ensures or assert clause a goal of fcts' run proves (its -wp-prop), or
+    None where the goal's name shows none (WP names a goal tag + function + kind + label, and
+    a label's second clause label_2)."""
+    tag = wp.MODEL_TAGS[wp.model_of(fcts)]
+    for f in sorted((f for f in fcts if not f.startswith(("@", "%"))), key=len, reverse=True):
+        m = re.match(rf"{re.escape(tag + f)}_(?:ensures|assert)_([A-Za-z]\w*?)(?:_\d+)?$", goal)
+        if m:
+            return m.group(1)
+    return None
+
+
 def run_mutant(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
                timeout_s: int = GOAL_TIMEOUT_S) -> wp.WpResult:
-    """One pass on a mutant with both solvers, stopped at its first failure: a goal both
-    leave at timeout_s of CPU (mutant_timeout_s), or a smoke test they fail (under Typed),
-    catches it. Two passes as in make prove (CVC4 alone, then both over the function of a
-    goal it left) cost a caught mutant of the Typed steps run about 4 minutes (issue 24's
-    sixteenth round): the goal the mutant made false ran out CVC4's limit in the first pass
-    and Z3's in the retry, after the function's other goals and smoke tests again."""
+    """make prove's two passes on a mutant, at timeout_s of CPU a goal (mutant_timeout_s):
+    CVC4 alone over the run (wp.first_pass_provers), stopped at its first failure; then Z3
+    alone on the goal CVC4 left. A smoke test CVC4 fails, or a goal both solvers leave,
+    catches it. Where Z3 proves that goal, or its clause has no label to select it by, one
+    pass with both solvers over the run decides, stopped at its first failure, as before issue
+    24's thirty-third round: there a sampled mutant cost 66 to 108 CPU-s alone on the idle
+    machine (an unmutated estop_fault 86 CPU-s: Z3 ran out its limit on goals CVC4 proves at
+    once). A retry with both solvers over the run costs as much: WP's cache does not keep a
+    goal's failure for the next run."""
     (wp.WP_CACHE / name).mkdir(parents=True, exist_ok=True)
-    return wp.run_wp(name, core_dir, fcts, env, timeout_s, cache=True, first_failure=True)
+    first = wp.run_wp(name, core_dir, fcts, env, timeout_s, cache=True, first_failure=True,
+                      provers=wp.first_pass_provers(fcts))
+    if first.error or not first.failed or any(wp.SMOKE_TAG in g for g in first.failed):
+        return first  # refused; not caught; or a smoke test CVC4 failed: caught
+    if wp.first_pass_provers(fcts) == wp.PROVERS:
+        return first  # both solvers left it already
+    prop = goal_prop(first.failed[0], fcts)
+    if prop is not None:
+        z3 = wp.run_wp(name, core_dir, fcts, env, timeout_s, only_prop=prop, provers="z3",
+                       log_name=f"{name}-z3")
+        if not z3.error and first.failed[0] in z3.failed:
+            return first
+    return wp.run_wp(name, core_dir, fcts, env, timeout_s, cache=True, first_failure=True,
+                     log_name=f"{name}-both")
 
 
 def try_mutant(index: int, mutant: Any, check: str, env: dict[str, str]) -> MutantTry:

@@ -37,12 +37,7 @@ from proof.frama import BUILD, CORE, ROOT, TOOLS, core_functions, why3_env
 from proof.wp import MODEL_CHECKS, WpResult, parse_checks  # noqa: F401 - tests use them
 
 MUTANTS_IN_MAKE_PROVE = 2  # the fast subset; make prove-mutants runs them all
-# Analyses at once: three on the two cores. Beside make test's other steps make prove's session
-# gets its share of the CPU however many it runs (scripts/beside); alone, in its last minutes,
-# two left 7 to 10 % of the cores idle (two fresh-clone runs of issue 24's thirty-third round,
-# sampled every 5 s): a WP run down to its last goal, or Eva, keeps one core.
-JOBS = 3
-# The order make prove starts its analyses in on its workers: the longest first, so that
+# The order make prove starts its analyses in on its two workers: the longest first, so that
 # the short ones fill both workers at the end (in file order, the two-minute loops run was
 # among the last to start while the plants waited). The figures are each analysis's seconds on
 # the idle machine with the first pass of CVC4 alone (issue 24: tools/prove.py, and the runs
@@ -187,8 +182,7 @@ def report_mutants(tries: list[selftest.MutantTry], equivalent: dict[str, str],
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--jobs", type=int, default=JOBS,
-                    help=f"analyses run at once (default {JOBS})")
+    ap.add_argument("--jobs", type=int, default=2, help="analyses run at once (default 2)")
     ap.add_argument("--only", choices=["eva", "wp", "self-test", "mutants"], action="append",
                     help="run only these parts (repeatable; mutants: the self-test's mutants "
                          "without its plants)")

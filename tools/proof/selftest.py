@@ -306,13 +306,14 @@ def compiles(core_dir: Path, file: str) -> bool:
 def goal_prop(goal: str, fcts: list[str]) -> str | None:
     """The label of the ensures or assert clause a goal of fcts' run proves (its -wp-prop), or
     None where the goal's name shows none (WP names a goal tag + function + kind + label, and
-    a label's second clause label_2)."""
-    tag = wp.MODEL_TAGS[wp.model_of(fcts)]
-    for f in sorted((f for f in fcts if not f.startswith(("@", "%"))), key=len, reverse=True):
-        m = re.match(rf"{re.escape(tag + f)}_(?:ensures|assert)_([A-Za-z]\w*?)(?:_\d+)?$", goal)
-        if m:
-            return m.group(1)
-    return None
+    a label's second clause label_2; wp.goal_function finds the function)."""
+    model = wp.model_of(fcts)
+    fct = wp.goal_function(goal, model, fcts)
+    if fct is None:
+        return None
+    rest = goal.removeprefix(f"{wp.MODEL_TAGS[model]}{fct}_")
+    m = re.fullmatch(r"(?:ensures|assert)_([A-Za-z]\w*?)(?:_\d+)?", rest)
+    return m.group(1) if m else None
 
 
 def run_mutant(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
@@ -327,11 +328,12 @@ def run_mutant(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
     once). A retry with both solvers over the run costs as much: WP's cache does not keep a
     goal's failure for the next run."""
     (wp.WP_CACHE / name).mkdir(parents=True, exist_ok=True)
+    provers = wp.first_pass_provers(fcts)
     first = wp.run_wp(name, core_dir, fcts, env, timeout_s, cache=True, first_failure=True,
-                      provers=wp.first_pass_provers(fcts))
+                      provers=provers)
     if first.error or not first.failed or any(wp.SMOKE_TAG in g for g in first.failed):
         return first  # refused; not caught; or a smoke test CVC4 failed: caught
-    if wp.first_pass_provers(fcts) == wp.PROVERS:
+    if provers == wp.PROVERS:
         return first  # both solvers left it already
     prop = goal_prop(first.failed[0], fcts)
     if prop is not None:

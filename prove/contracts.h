@@ -116,7 +116,8 @@ uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
 /* ---- authentication and link statistics: what they may touch ------------------------------- */
 
 /*@ requires \valid(core) && \valid_read(msg + (0 .. tag_at + 15)) && \valid_read(msg + (ids_at .. ids_at + 19));
-    requires (tag_at == 32 || tag_at == 44) && channel <= 1 && core->mac.outlen <= 16;
+    requires (tag_at == 32 || tag_at == 44) && (ids_at == 4 || ids_at == 12) && channel <= 1 &&
+        core->mac.outlen <= 16;
     requires \separated(msg + (0 .. tag_at + 15), &core->counters, &core->status_auth_failed,
         core->remotes + (0 .. 7), &core->tag_window_us, &core->tag_window_open,
         &core->newcomer_checks, &core->mac);
@@ -125,6 +126,7 @@ uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
     ensures auth_result: \result == 0 || \result == 1;
     ensures auth_tag: \result == 1 ==>
         \at(core->mac.outlen == 16 && tag_ok(&core->mac, msg, tag_at), Pre);
+    ensures auth_fresh: \result == 1 ==> \at(ids_fresh(core, msg, ids_at, channel), Pre);
  */
 int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, size_t ids_at,
                         uint32_t channel);

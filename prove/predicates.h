@@ -148,6 +148,23 @@
 #define datagram_asks_stop(d, len, stop_id) \
     ((len) == 48 && rd_u32le_l(&(d)[0]) == ESTOP_MAGIC_REQUEST && \
      stop_asked(rd_u32le_l(&(d)[4]), stop_id))
+/* Authentication (PROTOCOL.md 5): the remote id, session and counter of a message whose ids
+ * start at m[a] (5.1, 5.2 lay them out alike: id, session, counter). */
+#define ids_remote(m, a) rd_u32le_l(&(m)[a])
+#define ids_session(m, a) rd_u64le_l(&(m)[(a) + 4])
+#define ids_counter(m, a) rd_u64le_l(&(m)[(a) + 12])
+/* Place j of the table holds remote id `id`, and is its first such place (find_remote's). */
+#define place_of(c, rid, j) ((c)->remotes[j].used != 0 && (c)->remotes[j].id == (rid))
+#define first_place(c, rid, j) \
+    (place_of(c, rid, j) && \forall integer i_; 0 <= i_ < (j) ==> !place_of(c, rid, i_))
+/* A counter above the one kept for remote id rid on channel ch (0 UDP, 1 TCP), where one is
+ * kept: a remote with no place, or none seen on the channel, has none. */
+#define counter_above(c, rid, ctr, ch) \
+    (\forall integer j_; 0 <= j_ < 8 && first_place(c, rid, j_) && \
+        ((c)->remotes[j_].seen & (uint8_t)(1u << (ch))) != 0 ==> (ctr) > (c)->remotes[j_].counter[ch])
+/* A request frame at b (5.2: ids from byte 12) of this unit's session, with a counter above
+ * the one kept for its remote on TCP: what a keyed RELEASE needs besides its tag. */
+#define request_fresh(c, b) ids_fresh(c, &(b)[0], 12, 1)
 /* A message ID that asks the unit to stop: its stop ID (stop_id) or LIFT. */
 #define stop_asked(id, stop_id) ((id) == (stop_id) || (id) == ESTOP_MSG_LIFT)
 #define core_ok(c) ((c)->magic == 0x45535450 ==> inv(c))

@@ -34,11 +34,16 @@
 #define COUNTER_AHEAD 65536u       /* a remote's next counters: after up to this many losses
                                       (22 minutes at 50 Hz) */
 
-/* The table entry of a remote id, or NULL when it has no place. */
+/* The table entry of a remote id, or NULL when it has no place. (The table holds one place
+ * per id, the first: take_place gives one only to an id this found no place for.) */
 /*@ requires \valid(core);
     assigns \nothing;
     ensures in_table: \result == \null ||
         (\exists integer k; 0 <= k < 8 && \result == &core->remotes[k]);
+    ensures found_first: \result != \null ==>
+        (\exists integer k; 0 <= k < 8 && \result == &core->remotes[k] && first_place(core, id, k));
+    ensures found_none: \result == \null ==>
+        \forall integer k; 0 <= k < 8 ==> !place_of(core, id, k);
  */
 static estop_remote_t *find_remote(estop_core_t *core, uint32_t id)
 {
@@ -47,6 +52,11 @@ static estop_remote_t *find_remote(estop_core_t *core, uint32_t id)
     /*@ loop invariant 0 <= i <= 8;
         loop invariant found == \null ||
             (\exists integer k; 0 <= k < 8 && found == &core->remotes[k]);
+        loop invariant found_first: found != \null ==>
+            (\exists integer k; 0 <= k < i && found == &core->remotes[k] &&
+             first_place(core, id, k));
+        loop invariant found_none: found == \null ==>
+            \forall integer k; 0 <= k < i ==> !place_of(core, id, k);
         loop assigns i, found;
         loop variant 8 - i;
      */
@@ -257,12 +267,14 @@ int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, s
     estop_remote_t *payer = next_of(r, counter) ? r : NULL;
     int ok = 0;
     int failed = 1;
+    /*@ assert ids_read: id == ids_remote(msg, ids_at) && counter == ids_counter(msg, ids_at); */
     if ((channel == CHANNEL_UDP) && (core->cfg.tag_checks != ESTOP_TAG_CHECKS_ALL)) {
         budgeted = 1;
     }
     if (rd_u64le(&msg[ids_at + SESSION_AFTER_ID]) != core->cfg.session) {
         sat32_inc(&core->counters.auth_bad_session);
-    } else if ((r != NULL) && ((r->seen & bit) != 0u) && (counter <= r->counter[channel])) {
+    } else if ((r != NULL) && (((uint32_t)r->seen & (uint32_t)bit) != 0u) &&
+               (counter <= r->counter[channel])) {
         sat32_inc(&core->counters.auth_old_counter);
     } else if (place == NULL) {
         sat32_inc(&core->counters.auth_table_full);
@@ -275,6 +287,10 @@ int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, s
             use_up(core, r, counter);
         }
     } else {
+        /* What auth_fresh (prove/contracts.h) says of an accepted message, at the checks. */
+        /*@ assert session_same: ids_session(msg, ids_at) == core->cfg.session; */
+        /*@ assert counter_fresh: r == \null || (r->seen & bit) == 0 ||
+                counter > r->counter[channel]; */
         /* The tag is checked before anything is written, so that what the check saw is what
          * the call was given (the proof's rule, auth_tag, speaks of the call's input). */
         const int right = tag_right(core, msg, tag_at);

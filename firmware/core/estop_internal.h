@@ -53,8 +53,20 @@ static inline void wr_u32le(uint8_t *p, uint32_t v)
     p[3] = (uint8_t)(v >> 24);
 }
 
+/*@ logic uint64_t rd_u64le_l(uint8_t *p) =
+        (uint64_t)((uint64_t)rd_u32le_l(p) | ((uint64_t)rd_u32le_l(p + 4) << 32));
+ */
+/* A message whose ids start at m[a] (PROTOCOL.md 5.1, 5.2) of this unit's session, with a
+ * counter above the one kept for its remote id on channel ch (prove/predicates.h). A predicate,
+ * not a macro: opaque to WP's simplifier Qed, so that the goals of a caller that do not need
+ * it do not unfold it (as a macro, it slowed two of them past their limit). */
+/*@ predicate ids_fresh(estop_core_t *c, uint8_t *m, integer a, integer ch) =
+        ids_session(m, a) == c->cfg.session &&
+        counter_above(c, ids_remote(m, a), ids_counter(m, a), ch);
+ */
 /*@ requires \valid_read(p + (0 .. 7));
     assigns \nothing;
+    ensures rd64_value: \result == rd_u64le_l(p);
  */
 static inline uint64_t rd_u64le(const uint8_t *p)
 {

@@ -153,7 +153,7 @@
 #define ids_remote(m, a) rd_u32le_l(&(m)[a])
 #define ids_session(m, a) rd_u64le_l(&(m)[(a) + 4])
 #define ids_counter(m, a) rd_u64le_l(&(m)[(a) + 12])
-/* Place j of the table holds remote id `id`, and is its first such place (find_remote's). */
+/* Place j of the table holds remote id rid, and is its first such place (find_remote's). */
 #define place_of(c, rid, j) ((c)->remotes[j].used != 0 && (c)->remotes[j].id == (rid))
 #define first_place(c, rid, j) \
     (place_of(c, rid, j) && \forall integer i_; 0 <= i_ < (j) ==> !place_of(c, rid, i_))

@@ -631,6 +631,8 @@ static int plain_valid(const uint8_t *d, size_t len)
             core->tag_window_us, core->tag_window_open, core->newcomer_checks;
     ensures \result == \null || (\result == d && len >= 16) || (\result == d + 24 && len == 60);
     ensures body_keeps_state: core->state == \old(core->state);
+    ensures body_keyed: \result != \null && core->cfg.key_len != 0 ==> len == 60 &&
+        \at(core->mac.outlen == 16 && tag_ok(&core->mac, d, 44) && ids_fresh(core, d, 4, 0), Pre);
  */
 static const uint8_t *valid_body(estop_core_t *core, const uint8_t *d, size_t len)
 {

@@ -118,6 +118,25 @@ uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
 /*@ requires \valid(core) && \valid_read(msg + (0 .. tag_at + 15)) && \valid_read(msg + (ids_at .. ids_at + 19));
     requires (tag_at == 32 || tag_at == 44) && (ids_at == 4 || ids_at == 12) && channel <= 1 &&
         core->mac.outlen <= 16;
+    requires \separated(msg + (0 .. tag_at + 15), &core->mac);
+    assigns \nothing;
+    ensures verdict_range: \result <= 5;
+    ensures verdict_tag: \result == 0 ==> core->mac.outlen == 16 && tag_ok(&core->mac, msg, tag_at);
+    ensures verdict_fresh: \result == 0 ==> ids_fresh(core, msg, ids_at, channel);
+ */
+uint32_t estop__auth_verdict(estop_core_t *core, const uint8_t *msg, size_t tag_at,
+                             size_t ids_at, uint32_t channel);
+
+/*@ requires \valid(core) && channel <= 1;
+    assigns core->counters, core->status_auth_failed, core->remotes[0 .. 7],
+            core->tag_window_us, core->tag_window_open, core->newcomer_checks;
+ */
+void estop__auth_commit(estop_core_t *core, uint32_t id, uint64_t counter, uint32_t channel,
+                        uint32_t verdict, int stopped);
+
+/*@ requires \valid(core) && \valid_read(msg + (0 .. tag_at + 15)) && \valid_read(msg + (ids_at .. ids_at + 19));
+    requires (tag_at == 32 || tag_at == 44) && (ids_at == 4 || ids_at == 12) && channel <= 1 &&
+        core->mac.outlen <= 16;
     requires \separated(msg + (0 .. tag_at + 15), &core->counters, &core->status_auth_failed,
         core->remotes + (0 .. 7), &core->tag_window_us, &core->tag_window_open,
         &core->newcomer_checks, &core->mac);

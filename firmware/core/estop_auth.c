@@ -152,7 +152,7 @@ static int next_of(const estop_remote_t *r, uint64_t counter)
 /* Keeps an authenticated counter. counter[TCP] is the highest authenticated on either
  * channel: a RELEASE must be above it (the remote raises one counter for both channels, so a
  * RELEASE that never reached the unit, its connection closed first, is stale once anything
- * later of that remote was taken). A RELEASE of a STOPPED unit brings the UDP counter, when
+ * later of that remote was taken). A RELEASE of a unit STOPPED before its step (stopped) brings the UDP counter, when
  * packets dropped unchecked raised it above the RELEASE's, back down to the RELEASE's: they
  * were sent after the RELEASE, or forged (a forgery of a high counter would otherwise lock
  * the remote out for the session); it stays above every control packet authenticated. */
@@ -160,8 +160,10 @@ static int next_of(const estop_remote_t *r, uint64_t counter)
     requires \exists integer k; 0 <= k < 8 && r == &core->remotes[k];
     assigns core->remotes[0 .. 7];
  */
-static void keep(estop_core_t *core, estop_remote_t *r, uint32_t channel, uint64_t counter)
+static void keep(estop_core_t *core, estop_remote_t *r, uint32_t channel, uint64_t counter,
+                 int stopped)
 {
+    (void)core; /* named by the contract: r lies in its table */
     /* (A counter not kept yet reads 0: places start zeroed and are never freed.) */
     if (channel == CHANNEL_UDP) {
         r->counter[CHANNEL_UDP] = counter;
@@ -171,7 +173,7 @@ static void keep(estop_core_t *core, estop_remote_t *r, uint32_t channel, uint64
         }
     } else {
         r->counter[CHANNEL_TCP] = counter;
-        if ((core->state == ESTOP_STATE_STOPPED) && (r->counter[CHANNEL_UDP] > counter)) {
+        if ((stopped != 0) && (r->counter[CHANNEL_UDP] > counter)) {
             r->counter[CHANNEL_UDP] = counter;
         }
     }
@@ -248,37 +250,78 @@ static int tag_right(const estop_core_t *core, const uint8_t *msg, size_t tag_at
     return right;
 }
 
+/* Whether a control packet on channel is checked within the budget (estop_auth's head). */
+/*@ requires \valid_read(core);
+    assigns \nothing;
+    ensures \result == 0 || \result == 1;
+ */
+static int budgeted(const estop_core_t *core, uint32_t channel)
+{
+    return (channel == CHANNEL_UDP) && (core->cfg.tag_checks != ESTOP_TAG_CHECKS_ALL);
+}
+
 /* Section 5: msg[0 .. tag_at-1] is covered by the tag at msg[tag_at]; the remote id, session
- * and counter follow one another from msg[ids_at] (5.1 and 5.2 lay them out alike). True when
- * the message is authenticated; the new counter is then kept. A failure is counted by the
- * first check that failed; a control packet over the budget is counted as unchecked, and
- * raises its remote's UDP counter. Only called on a unit with a key. */
-int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, size_t ids_at,
-                        uint32_t channel)
+ * and counter follow one another from msg[ids_at] (5.1 and 5.2 lay them out alike). The
+ * verdict, AUTH_OK when the message is authenticated, else the first check that failed.
+ * Writes nothing: estop__auth_commit counts and keeps what it found, so that a caller may
+ * take the step the verdict allows before the table is written (the TCP path: issue 24's
+ * thirty-sixth round). */
+uint32_t estop__auth_verdict(estop_core_t *core, const uint8_t *msg, size_t tag_at,
+                             size_t ids_at, uint32_t channel)
 {
     const uint8_t bit = (uint8_t)(1u << channel);
     const uint32_t id = rd_u32le(&msg[ids_at]);
     const uint64_t counter = rd_u64le(&msg[ids_at + COUNTER_AFTER_ID]);
     estop_remote_t *r = find_remote(core, id);
-    estop_remote_t *place = (r != NULL) ? r : free_place(core); /* NULL: the table is full */
+    const estop_remote_t *place = (r != NULL) ? r : free_place(core); /* NULL: the table is full */
     /* A control packet's check comes out of its remote's allowance when it is one of the
      * remote's next counters, else out of the newcomers' (take_check). */
-    int budgeted = 0;
-    estop_remote_t *payer = next_of(r, counter) ? r : NULL;
-    int ok = 0;
-    int failed = 1;
+    const int budget = budgeted(core, channel);
+    const estop_remote_t *payer = next_of(r, counter) ? r : NULL;
+    uint32_t verdict = AUTH_OK;
     /*@ assert ids_read: id == ids_remote(msg, ids_at) && counter == ids_counter(msg, ids_at); */
-    if ((channel == CHANNEL_UDP) && (core->cfg.tag_checks != ESTOP_TAG_CHECKS_ALL)) {
-        budgeted = 1;
-    }
     if (rd_u64le(&msg[ids_at + SESSION_AFTER_ID]) != core->cfg.session) {
-        sat32_inc(&core->counters.auth_bad_session);
+        verdict = AUTH_BAD_SESSION;
     } else if ((r != NULL) && (((uint32_t)r->seen & (uint32_t)bit) != 0u) &&
                (counter <= r->counter[channel])) {
-        sat32_inc(&core->counters.auth_old_counter);
+        verdict = AUTH_OLD_COUNTER;
     } else if (place == NULL) {
+        verdict = AUTH_TABLE_FULL;
+    } else if ((budget != 0) && (can_check(core, payer) == 0)) {
+        verdict = AUTH_UNCHECKED;
+    } else {
+        /* What auth_fresh (prove/contracts.h) says of an accepted message, at the checks. */
+        /*@ assert session_same: ids_session(msg, ids_at) == core->cfg.session; */
+        /*@ assert counter_fresh: r == \null || (r->seen & bit) == 0 ||
+                counter > r->counter[channel]; */
+        if (tag_right(core, msg, tag_at) == 0) {
+            verdict = AUTH_BAD_TAG;
+        }
+    }
+    return verdict;
+}
+
+/* What the verdict of the message of remote id with counter leaves in the core: a failure
+ * counted by the first check that failed (none for AUTH_NOT_ASKED); a control packet over the
+ * budget counted as unchecked, raising its remote's UDP counter; a tag check spent from the
+ * budget; an authenticated counter kept, and a new remote id given its place. stopped: the
+ * unit was STOPPED before the message's step (keep). */
+void estop__auth_commit(estop_core_t *core, uint32_t id, uint64_t counter, uint32_t channel,
+                        uint32_t verdict, int stopped)
+{
+    estop_remote_t *r = find_remote(core, id);
+    estop_remote_t *place = (r != NULL) ? r : free_place(core); /* NULL: the table is full */
+    estop_remote_t *payer = next_of(r, counter) ? r : NULL;
+    int failed = 1;
+    if (verdict == AUTH_NOT_ASKED) {
+        failed = 0; /* no message to authenticate */
+    } else if (verdict == AUTH_BAD_SESSION) {
+        sat32_inc(&core->counters.auth_bad_session);
+    } else if (verdict == AUTH_OLD_COUNTER) {
+        sat32_inc(&core->counters.auth_old_counter);
+    } else if (verdict == AUTH_TABLE_FULL) {
         sat32_inc(&core->counters.auth_table_full);
-    } else if ((budgeted != 0) && (can_check(core, payer) == 0)) {
+    } else if (verdict == AUTH_UNCHECKED) {
         sat32_inc(&core->counters.auth_unchecked);
         failed = 0; /* not looked at: invalid, but no authentication failure */
         if (r != NULL) {
@@ -287,32 +330,36 @@ int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, s
             use_up(core, r, counter);
         }
     } else {
-        /* What auth_fresh (prove/contracts.h) says of an accepted message, at the checks. */
-        /*@ assert session_same: ids_session(msg, ids_at) == core->cfg.session; */
-        /*@ assert counter_fresh: r == \null || (r->seen & bit) == 0 ||
-                counter > r->counter[channel]; */
-        /* The tag is checked before anything is written, so that what the check saw is what
-         * the call was given (the proof's rule, auth_tag, speaks of the call's input). */
-        const int right = tag_right(core, msg, tag_at);
-        if (budgeted != 0) {
+        if (budgeted(core, channel) != 0) {
             (void)take_check(core, payer); /* the check is spent: can_check found it left */
         }
-        if (right == 0) {
+        if (verdict != AUTH_OK) {
             sat32_inc(&core->counters.auth_bad_tag);
-        } else {
+        } else if (place != NULL) {
             if (r == NULL) {
                 /* A new remote id gets a place only here, with a right tag and session. */
                 take_place(core, place, id);
             }
-            keep(core, place, channel, counter);
-            ok = 1;
+            keep(core, place, channel, counter, stopped);
             failed = 0;
+        } else {
+            /* AUTH_OK with a full table: the verdict said otherwise (defensive) */
         }
     }
     if (failed != 0) {
         core->status_auth_failed = sat8_inc(core->status_auth_failed);
     }
-    return ok;
+}
+
+/* Section 5: the verdict, then what it leaves in the core. True when the message is
+ * authenticated; the new counter is then kept. Only called on a unit with a key. */
+int estop__authenticate(estop_core_t *core, const uint8_t *msg, size_t tag_at, size_t ids_at,
+                        uint32_t channel)
+{
+    const uint32_t verdict = estop__auth_verdict(core, msg, tag_at, ids_at, channel);
+    estop__auth_commit(core, rd_u32le(&msg[ids_at]), rd_u64le(&msg[ids_at + COUNTER_AFTER_ID]),
+                       channel, verdict, core->state == ESTOP_STATE_STOPPED);
+    return (verdict == AUTH_OK) ? 1 : 0;
 }
 
 /* Section 5: a message that needs authentication on this unit but carries no tag it can check

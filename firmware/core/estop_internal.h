@@ -64,6 +64,13 @@ static inline void wr_u32le(uint8_t *p, uint32_t v)
         ids_session(m, a) == c->cfg.session &&
         counter_above(c, ids_remote(m, a), ids_counter(m, a), ch);
  */
+/* The 16 bytes at m + at are the MAC of m[0 .. at-1] under the unit's key state
+ * (prove/logic.h, tag_ok), made with a key state of 16-byte MACs. A predicate, not a macro:
+ * opaque to WP's simplifier Qed, as ids_fresh above: the clauses of request_step
+ * (estop_tcp.c) carry it from the verdict's to handle_request's rule. */
+/*@ predicate tag_made(estop_core_t *c, uint8_t *m, integer at) =
+        c->mac.outlen == 16 && tag_ok(&c->mac, m, at);
+ */
 /*@ requires \valid_read(p + (0 .. 7));
     assigns \nothing;
     ensures rd64_value: \result == rd_u64le_l(p);
@@ -157,8 +164,26 @@ uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authe
 
 /* ---- authentication (estop_auth.c) -------------------------------------------------------- */
 
+/* estop__auth_verdict's verdicts: authenticated, or the first check that failed. */
+#define AUTH_OK 0u
+#define AUTH_BAD_SESSION 1u
+#define AUTH_OLD_COUNTER 2u
+#define AUTH_TABLE_FULL 3u
+#define AUTH_UNCHECKED 4u   /* a control packet over the tag-check budget */
+#define AUTH_BAD_TAG 5u
+#define AUTH_NOT_ASKED 6u   /* no message to authenticate: estop__auth_commit does nothing */
+
+/* The verdict on msg (laid out as for estop__authenticate), writing nothing. */
+uint32_t estop__auth_verdict(estop_core_t *core, const uint8_t *msg, size_t tag_at,
+                             size_t ids_at, uint32_t channel);
+/* What a verdict on the message of remote id with counter leaves in the core: the failure
+ * counted, the tag check spent, the authenticated counter kept. stopped: the unit was STOPPED
+ * before the message's step. */
+void estop__auth_commit(estop_core_t *core, uint32_t id, uint64_t counter, uint32_t channel,
+                        uint32_t verdict, int stopped);
+
 /* msg[0 .. tag_at-1] is covered by the tag at msg[tag_at]; remote id, session and counter
- * follow one another from msg[ids_at]. True when authentic, of this session, fresh and from a
+ * follow one another from msg[ids_at]. The verdict, then the commit. True when authentic, of this session, fresh and from a
  * remote the table holds; the counter is then kept. A control packet dropped unchecked by the
  * budget raises the UDP counter of its remote id (when it has a place) all the same. Only
  * called on a unit with a key. */

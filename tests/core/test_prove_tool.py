@@ -93,6 +93,18 @@ def test_a_run_that_filters_properties_is_refused(tmp_path: Path) -> None:
                                                  "lemmas": ["@Typed"]}
 
 
+def test_a_run_under_an_unchecked_model_is_refused(tmp_path: Path) -> None:
+    # Until issue 24's thirty-seventh round handle_request was proved under Caveat, whose
+    # hypotheses (valid, separated pointers) were never checked; a run under it now fails.
+    groups = tmp_path / "wp_groups.txt"
+    groups.write_text("steps: release\ntcpframe: handle_request @Caveat\n")
+    with pytest.raises(SystemExit, match="run tcpframe is under Caveat"):
+        prove.wp.wp_groups(groups)
+    groups.write_text("steps: release\n")
+    assert prove.wp.model_of(dict(prove.wp.wp_groups(groups))["steps"]) == "Typed"
+    assert {prove.wp.model_of(f) for _, f in prove.wp.wp_groups()} == {"Typed"}
+
+
 def test_every_assumption_is_listed_with_a_test_that_exists() -> None:
     items, errors = prove.assumed.check()
     assert errors == []
@@ -504,4 +516,4 @@ def test_a_failed_goal_names_the_clause_a_mutant_second_pass_asks_z3_of() -> Non
     assert prove.selftest.goal_prop("typed_other_fn_ensures_x", fcts) is None
     # a Caveat run's goals carry its tag
     assert prove.selftest.goal_prop("typed_caveat_handle_request_ensures_request_release",
-                                    ["handle_request"]) == "request_release"
+                                    ["handle_request", "@Caveat"]) == "request_release"

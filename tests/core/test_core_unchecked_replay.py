@@ -271,6 +271,30 @@ def test_a_release_while_moving_leaves_the_used_up_counters_alone() -> None:
     assert u.valid == before
 
 
+def test_a_release_while_moving_below_the_used_up_counter_forgives_nothing() -> None:
+    """The same with a RELEASE whose counter lies below the used-up ones (the remote drew it
+    first and sent it last): while the unit moves it still forgives nothing. Found by a mutant
+    of issue 24's thirty-seventh round (the TCP path telling the authentication the unit was
+    STOPPED whatever its state), which the RELEASE above its packets did not show."""
+    u = Keyed()
+    u.arm()
+    u.wait(WINDOW_MS * MS)
+    spend_allowance(u)
+    u.counter += 1
+    drawn = u.counter  # the RELEASE's, drawn before the packets below
+    left = [u.genuine() for _ in range(3)]
+    for p in left:
+        u.udp(p)  # unchecked: their counters used up
+    steps = u.send(auth.AuthRequest(RELEASE, 1, RID, N, drawn).encode(K))
+    reply = [s.reply for s in steps if s.reply is not None][0]
+    assert reply[15] == 0 and u.state == ARMED  # acknowledged while ARMED
+    u.wait(WINDOW_MS * MS)
+    before = u.valid
+    for p in left:
+        u.udp(p)
+    assert u.valid == before
+
+
 def test_a_release_brings_the_counter_down_only_to_its_own() -> None:
     """What a RELEASE forgives is what lies above its own counter: packets left unchecked
     below it stay refused (they came before the RELEASE)."""

@@ -248,6 +248,7 @@ static void state_changed(estop_core_t *core, estop_out_t *out)
     ensures stop_times: \at(times_ok(core), Pre) ==> times_ok(core);
     ensures stop_keeps_clock: core->now_us == \old(core->now_us) &&
         core->cfg.brake_can_id == \old(core->cfg.brake_can_id) && core->magic == \old(core->magic);
+    ensures stop_keeps_link: core->last_valid_us == \old(core->last_valid_us);
     ensures stop_brakes: \old(out->n_can) <= 2 && (\old(core->state) != 0 ||
         (1 <= \old(out->n_can) && \at(emergency(out, 0, core), Pre))) ==>
         emergency_sent(out, core);
@@ -722,6 +723,7 @@ static void rearm(estop_core_t *core, estop_out_t *out)
     ensures valid_never_leaves_stopped: \old(core->state) == 0 ==> core->state == 0;
     ensures valid_keeps_clock: core->now_us == \old(core->now_us) &&
         core->magic == \old(core->magic);
+    ensures valid_keeps_key: core->cfg.key_len == \old(core->cfg.key_len);
     ensures valid_fresh: core->link_fresh == 1 && core->last_valid_us == core->now_us;
     ensures valid_rearms: \old(core->state) == 2 &&
         ESTOP_REARM_PACKETS <= \old(core->slow_run) + 1 <= 255 ==> core->state == 1;
@@ -768,10 +770,17 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
         /*@ assert data_kept: data != \null && len == 48 ==>
                 data[4] == \at(data[4], Pre) && data[5] == \at(data[5], Pre) &&
                 data[6] == \at(data[6], Pre) && data[7] == \at(data[7], Pre); */
+        /* The core as valid_body finds it (stop_datagram, before it, only reads): the key
+         * state and the remote table its rule below reads. */
+        /*@ ghost checked: ; */
         if (data != NULL) {
             reason = stop_datagram(core, data, len);
             if (reason == ESTOP_REASON_NONE) {
                 body = valid_body(core, data, len);
+                /* body_keyed, at the label (handled_keyed below, one branch at a time). */
+                /*@ assert keyed_body: body != \null && core->cfg.key_len != 0 ==> len == 60 &&
+                        \at(core->mac.outlen == 16 && tag_ok(&core->mac, data, 44) &&
+                            ids_fresh(core, data, 4, 0), checked); */
             }
         }
         /*@ assert datagram_read: data != \null &&
@@ -795,6 +804,14 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
         /*@ assert branch_slots: reason != 0 ==> slots_ok(core); */
         /*@ assert branch_slots: reason == 0 && body != \null ==> slots_ok(core); */
         /*@ assert branch_slots: reason == 0 && body == \null ==> slots_ok(core); */
+        /*@ assert branch_keyed: reason != 0 ==>
+                core->last_valid_us == \at(core->last_valid_us, Pre); */
+        /*@ assert branch_keyed: reason == 0 && body == \null ==>
+                core->last_valid_us == \at(core->last_valid_us, Pre); */
+        /*@ assert branch_keyed: reason == 0 && body != \null && core->cfg.key_len != 0 ==>
+                data != \null && len == 60 &&
+                \at(core->mac.outlen == 16 && tag_ok(&core->mac, data, 44) &&
+                    ids_fresh(core, data, 4, 0), checked); */
         /*@ assert branch_times: reason != 0 ==> times_ok(core); */
         /*@ assert branch_times: reason == 0 && body != \null ==> times_ok(core); */
         /*@ assert branch_times: reason == 0 && body == \null ==> times_ok(core); */
@@ -813,6 +830,16 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
                 core->link_fresh != 0 && core->last_valid_us == now_us; */
         /*@ assert handled_brake: reason != 0 && \at(core->state, Pre) != 0 ==>
                 emergency_sent(out, core); */
+        /* Nothing without the key prolongs motion: on a unit with a key, the link is kept
+         * fresh (its last valid packet's time moved) only by this call's 60-byte datagram,
+         * whose tag is the MAC of its first 44 bytes under the unit's key state, of this
+         * session, with a counter above its remote's kept UDP counter, as the core stood when
+         * the datagram was checked (valid_body's body_keyed; issue 24's thirty-seventh
+         * round). */
+        /*@ assert handled_keyed: core->cfg.key_len != 0 &&
+                core->last_valid_us != \at(core->last_valid_us, Pre) ==> data != \null &&
+                len == 60 && \at(core->mac.outlen == 16 && tag_ok(&core->mac, data, 44) &&
+                                  ids_fresh(core, data, 4, 0), checked); */
         estop__finish(core, out);
     }
     return err;

@@ -248,7 +248,8 @@ static void state_changed(estop_core_t *core, estop_out_t *out)
     ensures stop_times: \at(times_ok(core), Pre) ==> times_ok(core);
     ensures stop_keeps_clock: core->now_us == \old(core->now_us) &&
         core->cfg.brake_can_id == \old(core->cfg.brake_can_id) && core->magic == \old(core->magic);
-    ensures stop_keeps_link: core->last_valid_us == \old(core->last_valid_us);
+    ensures stop_keeps_link: core->last_valid_us == \old(core->last_valid_us) &&
+        core->link_fresh == \old(core->link_fresh) && core->last_neutral == \old(core->last_neutral);
     ensures stop_brakes: \old(out->n_can) <= 2 && (\old(core->state) != 0 ||
         (1 <= \old(out->n_can) && \at(emergency(out, 0, core), Pre))) ==>
         emergency_sent(out, core);
@@ -632,6 +633,10 @@ static int plain_valid(const uint8_t *d, size_t len)
             core->tag_window_us, core->tag_window_open, core->newcomer_checks;
     ensures \result == \null || (\result == d && len >= 16) || (\result == d + 24 && len == 60);
     ensures body_keeps_state: core->state == \old(core->state);
+    ensures body_keeps_link: core->last_valid_us == \old(core->last_valid_us);
+    ensures body_keeps_link: core->link_fresh == \old(core->link_fresh);
+    ensures body_keeps_link: core->last_neutral == \old(core->last_neutral);
+    ensures body_keeps_link: core->valid_run == \old(core->valid_run);
     ensures body_keyed: \result != \null && core->cfg.key_len != 0 ==> len == 60 &&
         \at(core->mac.outlen == 16 && tag_ok(&core->mac, d, 44) && ids_fresh(core, d, 4, 0), Pre);
  */
@@ -805,9 +810,14 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
         /*@ assert branch_slots: reason == 0 && body != \null ==> slots_ok(core); */
         /*@ assert branch_slots: reason == 0 && body == \null ==> slots_ok(core); */
         /*@ assert branch_keyed: reason != 0 ==>
-                core->last_valid_us == \at(core->last_valid_us, Pre); */
+                core->last_valid_us == \at(core->last_valid_us, Pre) &&
+                core->link_fresh == \at(core->link_fresh, checked) &&
+                core->last_neutral == \at(core->last_neutral, checked) && core->valid_run == 0; */
         /*@ assert branch_keyed: reason == 0 && body == \null ==>
-                core->last_valid_us == \at(core->last_valid_us, Pre); */
+                core->last_valid_us == \at(core->last_valid_us, Pre) &&
+                core->link_fresh == \at(core->link_fresh, checked) &&
+                core->last_neutral == \at(core->last_neutral, checked) &&
+                core->valid_run == \at(core->valid_run, checked); */
         /*@ assert branch_keyed: reason == 0 && body != \null && core->cfg.key_len != 0 ==>
                 data != \null && len == 60 &&
                 \at(core->mac.outlen == 16 && tag_ok(&core->mac, data, 44) &&
@@ -831,13 +841,18 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
         /*@ assert handled_brake: reason != 0 && \at(core->state, Pre) != 0 ==>
                 emergency_sent(out, core); */
         /* Nothing without the key prolongs motion: on a unit with a key, the link is kept
-         * fresh (its last valid packet's time moved) only by this call's 60-byte datagram,
+         * fresh (its last valid packet's time moved, or its freshness, or the latest packet's
+         * neutrality changed, or the release count rose past the clock step) only by this
+         * call's 60-byte datagram,
          * whose tag is the MAC of its first 44 bytes under the unit's key state, of this
          * session, with a counter above its remote's kept UDP counter, as the core stood when
          * the datagram was checked (valid_body's body_keyed; issue 24's thirty-seventh
          * round). */
         /*@ assert handled_keyed: core->cfg.key_len != 0 &&
-                core->last_valid_us != \at(core->last_valid_us, Pre) ==> data != \null &&
+                (core->last_valid_us != \at(core->last_valid_us, Pre) ||
+                 core->link_fresh != \at(core->link_fresh, checked) ||
+                 core->last_neutral != \at(core->last_neutral, checked) ||
+                 core->valid_run > \at(core->valid_run, checked)) ==> data != \null &&
                 len == 60 && \at(core->mac.outlen == 16 && tag_ok(&core->mac, data, 44) &&
                                   ids_fresh(core, data, 4, 0), checked); */
         estop__finish(core, out);

@@ -29,8 +29,8 @@ WP_TIMEOUT_S = 1500
 # hypotheses are checked at every call and every run has smoke tests (MODEL_CHECKS). Since
 # issue 24's thirty-seventh round every run is under it, and wp_groups refuses a run under a
 # model without those checks: under Caveat the pointers a function receives were assumed
-# separated and valid, unchecked (some of those hypotheses were false), and contracts were
-# vacuous (docs/PROOF.md "Known holes").
+# separated and valid, unchecked (some of those hypotheses were false), and some contracts
+# were vacuous (docs/PROOF.md "Known holes").
 # A slot's fill is bounded by a quantified invariant (slots_ok): Qed instantiates it for the 8
 # slots. The timeout leaves the slowest goal (about 16 s on an idle 2-core machine) room on a
 # loaded one; a run on a machine busy with other work timed out at 20 s.

@@ -76,6 +76,13 @@
     ensures tag: (asks) ==> out->reply[at] == 0; \
     ensures tag: (asks) ==> \old(out->n_can) <= out->n_can; \
     ensures tag: (asks) && 1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
+/* A frame's message step (plain_step, msg_step, request_step) that asks a stop (asks, a
+ * premise over its pre-state): the unit STOPPED with NAK 0, the frames already in out kept.
+ * Three clauses named tag, one goal each. */
+#define ENSURES_STEP_STOPS(tag, asks) \
+    ensures tag: (asks) ==> core->state == 0 && \result == 0; \
+    ensures tag: (asks) ==> \old(out->n_can) <= out->n_can; \
+    ensures tag: (asks) && 1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
 /* What estop__begin's clauses read (its core, out and times), asserted after each of its three
  * calls: left to the solvers at the return, past all three calls at once, its clauses took 15
  * to 35 s each (issue 24's twenty-ninth round). */
@@ -166,6 +173,11 @@
  * the one kept for its remote on TCP: what a keyed RELEASE needs besides its tag. */
 #define request_fresh(c, b) ids_fresh(c, &(b)[0], 12, 1)
 /* A message ID that asks the unit to stop: its stop ID (stop_id) or LIFT. */
+/* A keyed unit's 60-byte control packet at d, authentic under the key state of c (its tag at
+ * byte 44 the MAC of its first 44 bytes), of c's session, with a counter above its remote's
+ * kept UDP counter (valid_body's body_keyed, estop_udp_rx's handled_keyed). */
+#define datagram_keyed(c, d) \
+    ((c)->mac.outlen == 16 && tag_ok(&(c)->mac, d, 44) && ids_fresh(c, d, 4, 0))
 #define stop_asked(id, stop_id) ((id) == (stop_id) || (id) == ESTOP_MSG_LIFT)
 #define core_ok(c) ((c)->magic == 0x45535450 ==> inv(c))
 #define host(c, o) (\valid(c) && \valid(o) && \separated(c, o) && core_ok(c))

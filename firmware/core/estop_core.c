@@ -638,7 +638,7 @@ static int plain_valid(const uint8_t *d, size_t len)
     ensures body_keeps_link: core->last_neutral == \old(core->last_neutral);
     ensures body_keeps_link: core->valid_run == \old(core->valid_run);
     ensures body_keyed: \result != \null && core->cfg.key_len != 0 ==> len == 60 &&
-        \at(core->mac.outlen == 16 && tag_ok(&core->mac, d, 44) && ids_fresh(core, d, 4, 0), Pre);
+        \at(datagram_keyed(core, d), Pre);
  */
 static const uint8_t *valid_body(estop_core_t *core, const uint8_t *d, size_t len)
 {
@@ -784,8 +784,7 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
                 body = valid_body(core, data, len);
                 /* body_keyed, at the label (handled_keyed below, one branch at a time). */
                 /*@ assert keyed_body: body != \null && core->cfg.key_len != 0 ==> len == 60 &&
-                        \at(core->mac.outlen == 16 && tag_ok(&core->mac, data, 44) &&
-                            ids_fresh(core, data, 4, 0), checked); */
+                        \at(datagram_keyed(core, data), checked); */
             }
         }
         /*@ assert datagram_read: data != \null &&
@@ -820,8 +819,7 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
                 core->valid_run == \at(core->valid_run, checked); */
         /*@ assert branch_keyed: reason == 0 && body != \null && core->cfg.key_len != 0 ==>
                 data != \null && len == 60 &&
-                \at(core->mac.outlen == 16 && tag_ok(&core->mac, data, 44) &&
-                    ids_fresh(core, data, 4, 0), checked); */
+                \at(datagram_keyed(core, data), checked); */
         /*@ assert branch_times: reason != 0 ==> times_ok(core); */
         /*@ assert branch_times: reason == 0 && body != \null ==> times_ok(core); */
         /*@ assert branch_times: reason == 0 && body == \null ==> times_ok(core); */
@@ -853,8 +851,7 @@ estop_err_t estop_udp_rx(estop_core_t *core, const uint8_t *data, size_t len, ui
                  core->link_fresh != \at(core->link_fresh, checked) ||
                  core->last_neutral != \at(core->last_neutral, checked) ||
                  core->valid_run > \at(core->valid_run, checked)) ==> data != \null &&
-                len == 60 && \at(core->mac.outlen == 16 && tag_ok(&core->mac, data, 44) &&
-                                  ids_fresh(core, data, 4, 0), checked); */
+                len == 60 && \at(datagram_keyed(core, data), checked); */
         estop__finish(core, out);
     }
     return err;

@@ -164,12 +164,7 @@ static void reply_request(const estop_core_t *core, uint32_t k, uint8_t nak_code
     ensures plain_step_frames: out->n_can <= 3;
     ensures plain_step_release: \old(core->state) == 0 && core->state != 0 ==>
         msg_id == ESTOP_MSG_RELEASE && core->cfg.key_len == 0 && \result == 0;
-    ensures plain_step_stops: stop_asked(msg_id, \old(core->cfg.stop_id)) ==>
-        core->state == 0 && \result == 0;
-    ensures plain_step_stops: stop_asked(msg_id, \old(core->cfg.stop_id)) ==>
-        \old(out->n_can) <= out->n_can;
-    ensures plain_step_stops: stop_asked(msg_id, \old(core->cfg.stop_id)) &&
-        1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
+    ENSURES_STEP_STOPS(plain_step_stops, stop_asked(msg_id, \old(core->cfg.stop_id)))
     ENSURES_STOP_BRAKES_AT(plain_step_brakes)
  */
 static uint8_t plain_step(estop_core_t *core, uint32_t msg_id, estop_out_t *out)
@@ -278,12 +273,8 @@ static void commit_request(estop_core_t *core, uint32_t k, uint32_t verdict, int
     ensures msg_step_frames: out->n_can <= 3;
     ensures msg_step_release: \old(core->state) == 0 && core->state != 0 ==>
         msg_id == ESTOP_MSG_RELEASE && authenticated != 0 && \result == 0;
-    ensures msg_step_stops: stop_asked(msg_id, \old(core->cfg.stop_id)) &&
-        msg_id != ESTOP_MSG_RELEASE ==> core->state == 0 && \result == 0;
-    ensures msg_step_stops: stop_asked(msg_id, \old(core->cfg.stop_id)) &&
-        msg_id != ESTOP_MSG_RELEASE ==> \old(out->n_can) <= out->n_can;
-    ensures msg_step_stops: stop_asked(msg_id, \old(core->cfg.stop_id)) &&
-        msg_id != ESTOP_MSG_RELEASE && 1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
+    ENSURES_STEP_STOPS(msg_step_stops,
+                       stop_asked(msg_id, \old(core->cfg.stop_id)) && msg_id != ESTOP_MSG_RELEASE)
     ENSURES_STOP_BRAKES_AT(msg_step_brakes)
  */
 static uint8_t msg_step(estop_core_t *core, uint32_t msg_id, int authenticated, estop_out_t *out)
@@ -317,12 +308,8 @@ static uint8_t msg_step(estop_core_t *core, uint32_t msg_id, int authenticated, 
         \at(tag_made(core, &core->slots[k].buf[0], 32), Pre);
     ensures request_step_fresh: \old(core->state) == 0 && core->state != 0 ==>
         \at(request_fresh(core, core->slots[k].buf), Pre);
-    ensures request_step_stops: stop_asked(msg_id, \old(core->cfg.stop_id)) &&
-        msg_id != ESTOP_MSG_RELEASE ==> core->state == 0 && \result == 0;
-    ensures request_step_stops: stop_asked(msg_id, \old(core->cfg.stop_id)) &&
-        msg_id != ESTOP_MSG_RELEASE ==> \old(out->n_can) <= out->n_can;
-    ensures request_step_stops: stop_asked(msg_id, \old(core->cfg.stop_id)) &&
-        msg_id != ESTOP_MSG_RELEASE && 1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
+    ENSURES_STEP_STOPS(request_step_stops,
+                       stop_asked(msg_id, \old(core->cfg.stop_id)) && msg_id != ESTOP_MSG_RELEASE)
     ENSURES_STOP_BRAKES_AT(request_step_brakes)
  */
 static uint8_t request_step(estop_core_t *core, uint32_t k, uint32_t msg_id, estop_out_t *out)

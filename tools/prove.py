@@ -126,6 +126,9 @@ def report_wp(wps: list[concurrent.futures.Future[tuple[list[str], WpResult]]]) 
         for g in w.smoke_failed:
             print(f"prove:   smoke test failed (a precondition that cannot hold, or code "
                   f"the proof finds dead): {g}")
+        if w.smoke_unanswered:
+            print(f"prove:   {w.smoke_unanswered} smoke tests passed that no solver answered "
+                  "(it did not run: a smoke test then shows nothing)")
         for g in w.wrong_model[:5]:
             print(f"prove:   goal of another memory model than {model}: {g}")
         if w.error:
@@ -133,8 +136,8 @@ def report_wp(wps: list[concurrent.futures.Future[tuple[list[str], WpResult]]]) 
         ok = ok and wp.ok(w)
     if wps:
         print(f"prove: wp total: {sums[0]}/{sums[1]} proof goals proved, {sums[2]} smoke tests "
-              f"({sums[3]} failed); WP's count by prover (no smoke test among them; a goal "
-              "both solvers proved counts for each): "
+              f"({sums[3]} failed); WP's count by prover (a solver's count holds the smoke "
+              "tests it answered; a goal both solvers proved counts for each): "
               + ", ".join(f"{k} {v}" for k, v in sorted(totals.items())))
     return ok
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import resource
 import shutil
 import subprocess
 import time
@@ -128,6 +129,29 @@ def test_a_smoke_test_gets_resource_units_not_wall_time(tmp_path: Path, name: st
     run = subprocess.run([str(SOLVERS / name), *given.split()], capture_output=True, text=True,
                          timeout=10, env=env)
     assert run.stdout.strip() == f"cpu=90 args={run_as}", run.stderr
+
+
+@pytest.mark.parametrize(("given", "why3_limit_s", "runs_under"), [
+    # a smoke test: WP's 10 s, so Why3's 41 s, below the goals' 90: Why3's stands
+    (SMOKE, 41, "41"),
+    # a goal: WP's 900 s, so Why3's 3,601 s: lowered to the goals' 90
+    ("--stats --tlimit=900000 g.smt2", 3601, "90"),
+])
+def test_the_solver_runs_under_why3s_own_cpu_limit(tmp_path: Path, given: str,
+                                                   why3_limit_s: int, runs_under: str) -> None:
+    """Why3 starts each solver under a hard CPU limit of 4 times the call's limit plus 1 s. The
+    wrapper may lower it, never raise it: raising it failed, the wrapper exited 126 before the
+    solver ran, and every smoke test of make prove passed unrun (issue 24's thirty-eighth
+    round; the self-test's plant dead-branch-past-qed shows it on WP itself)."""
+    env = dict(stand_in(tmp_path, "cvc4"), **SMOKE_ENV)
+
+    def why3s_limit() -> None:
+        resource.setrlimit(resource.RLIMIT_CPU, (why3_limit_s, why3_limit_s))
+
+    run = subprocess.run([str(SOLVERS / "cvc4"), *given.split()], capture_output=True,
+                         text=True, timeout=10, env=env, preexec_fn=why3s_limit)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip().startswith(f"cpu={runs_under} args="), run.stdout
 
 
 def _pigeons(n: int) -> str:

@@ -4,6 +4,7 @@ self-test plants faults in the core that only a smoke test catches)."""
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import os
 import sys
@@ -33,6 +34,8 @@ GOOD = """[wp] [Qed] Goal typed_estop_ct_equal_ensures : Valid (3ms)
 [wp] [Passed] Smoke-test typed_estop_ct_equal_wp_smoke_default_requires
 [wp] [Passed] Smoke-test typed_estop_ct_equal_wp_smoke_dead_code_s290
 [wp] Proved goals:    4 / 4
+  Qed:             1  (3ms)
+  CVC4 1.8:        3  (40ms-1s) (7778)
 """
 
 
@@ -53,6 +56,25 @@ def test_a_failed_smoke_test_is_a_failure() -> None:
     res = checked(out)
     assert res.smoke == 2
     assert res.smoke_failed == ["typed_estop_ct_equal_wp_smoke_dead_code_s290"]
+
+
+def test_a_smoke_test_no_solver_answered_fails_the_run() -> None:
+    """Until issue 24's thirty-eighth round no solver ran on any smoke test of make prove (the
+    CPU-limit wrapper exited first), every one passed, and WP's count by solver showed it: CVC4
+    1.8 33 in the auth run, its 33 proof goals, none of its 97 smoke tests."""
+    res = checked(GOOD)
+    assert res.smoke_unanswered == 0
+    unrun = GOOD.replace("CVC4 1.8:        3", "CVC4 1.8:        1")
+    res = checked(unrun)
+    assert (res.smoke, res.smoke_failed, res.smoke_unanswered) == (2, [], 2)
+    res.proved = res.total = 4
+    assert not prove.wp.ok(res)
+    assert prove.wp.ok(dataclasses.replace(res, smoke_unanswered=0))
+    # both solvers asked (%both): each smoke test counts once for each
+    both = GOOD.replace("CVC4 1.8:        3", "CVC4 1.8:        3\n  Z3 4.8.12:        2")
+    assert checked(both).smoke_unanswered == 0
+    # no count at all (a run that ended early): none answered
+    assert checked(GOOD.split("[wp] Proved goals")[0]).smoke_unanswered == 2
 
 
 def test_a_smoke_test_failed_by_one_prover_stays_failed() -> None:

@@ -102,6 +102,7 @@ class WpResult:
     error: str = ""
     smoke: int = 0  # smoke tests checked (Typed runs)
     smoke_failed: list[str] = dataclasses.field(default_factory=list)
+    smoke_unanswered: int = 0  # passed smoke tests no solver answered (it never ran)
     wrong_model: list[str] = dataclasses.field(default_factory=list)
     wall_s: float = 0.0
 
@@ -267,6 +268,7 @@ def parse_checks(res: WpResult, out: str, model: str) -> None:
         smoke[sm.group(2)] = smoke.get(sm.group(2), True) and sm.group(1) == "Passed"
     res.smoke = len(smoke)
     res.smoke_failed = sorted(g for g, passed in smoke.items() if not passed)
+    res.smoke_unanswered = smoke_unanswered(out, len(smoke) - len(res.smoke_failed))
     # Every goal carries the run's model and no other one (WP names them typed_* under Typed,
     # typed_caveat_* under Caveat: Typed with Caveat's hypotheses, which a run under Typed
     # alone must not get).
@@ -275,6 +277,24 @@ def parse_checks(res: WpResult, out: str, model: str) -> None:
     res.wrong_model = sorted(g for g in goals if not g.startswith(tag) or any(
         g.startswith(tag + extra) for extra in ("caveat_", "ref_", "raw_")
         if extra not in tag))
+
+
+# A solver's verdict on a proof goal, and a solver's line of WP's count after "Proved goals".
+SOLVER_VALID = re.compile(r"^\[wp\] \[((?:CVC4|Z3|Alt-Ergo)[^\]]*)\] Goal (\S+) : Valid", re.M)
+SOLVER_COUNT = re.compile(r"^\s+(?:CVC4|Z3|Alt-Ergo)[^:]*:\s+(\d+)", re.M)
+
+
+def smoke_unanswered(out: str, passed: int) -> int:
+    """How many of a run's passed smoke tests no solver answered. A smoke test passes when no
+    solver proves \\false, so one whose solver never ran passes too: until issue 24's
+    thirty-eighth round every smoke test of make prove's runs did (tools/proof/solvers/
+    cpu-limited exited before the solver, under Why3's own CPU limit), and no check saw it.
+    WP's count by solver after "Proved goals" holds the proof goals each solver proved and the
+    smoke tests it answered; a solver that did not run answered none."""
+    m = re.search(r"Proved goals:\s+\d+\s*/\s*\d+", out)
+    answers = sum(int(c) for c in SOLVER_COUNT.findall(out[m.end():])) if m else 0
+    proved_by_solver = len(set(SOLVER_VALID.findall(out)))
+    return max(0, passed - max(0, answers - proved_by_solver))
 
 
 def goal_function(goal: str, model: str, fcts: list[str]) -> str | None:
@@ -311,6 +331,7 @@ def merge_retry(first: WpResult, retry: WpResult) -> WpResult:
         first, proved=first.total - left if retry.total else 0, by_prover=by_prover,
         failed=retry.failed, error=retry.error,
         smoke_failed=sorted(set(first.smoke_failed) | set(retry.smoke_failed)),
+        smoke_unanswered=first.smoke_unanswered + retry.smoke_unanswered,
         wrong_model=sorted(set(first.wrong_model) | set(retry.wrong_model)),
         wall_s=first.wall_s + retry.wall_s)
 
@@ -343,4 +364,4 @@ def proof_goals(w: WpResult) -> tuple[int, int]:
 
 def ok(w: WpResult) -> bool:
     return not w.error and w.proved == w.total and w.total > 0 and not w.smoke_failed \
-        and not w.wrong_model
+        and not w.smoke_unanswered and not w.wrong_model

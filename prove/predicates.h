@@ -172,12 +172,12 @@
 /* A request frame at b (5.2: ids from byte 12) of this unit's session, with a counter above
  * the one kept for its remote on TCP: what a keyed RELEASE needs besides its tag. */
 #define request_fresh(c, b) ids_fresh(c, &(b)[0], 12, 1)
-/* A message ID that asks the unit to stop: its stop ID (stop_id) or LIFT. */
 /* A keyed unit's 60-byte control packet at d, authentic under the key state of c (its tag at
  * byte 44 the MAC of its first 44 bytes), of c's session, with a counter above its remote's
  * kept UDP counter (valid_body's body_keyed, estop_udp_rx's handled_keyed). */
 #define datagram_keyed(c, d) \
     ((c)->mac.outlen == 16 && tag_ok(&(c)->mac, d, 44) && ids_fresh(c, d, 4, 0))
+/* A message ID that asks the unit to stop: its stop ID (stop_id) or LIFT. */
 #define stop_asked(id, stop_id) ((id) == (stop_id) || (id) == ESTOP_MSG_LIFT)
 #define core_ok(c) ((c)->magic == 0x45535450 ==> inv(c))
 #define host(c, o) (\valid(c) && \valid(o) && \separated(c, o) && core_ok(c))

@@ -68,21 +68,24 @@
     ensures tag##_times: status_due_ok(core); \
     ensures tag##_times: link_ok(core); \
     ensures tag##_times: armed_ok(core);
+/* Where a call asks a stop (asks): the frames already in out kept, none taken out. Two
+ * clauses named tag, one goal each; the last two of ENSURES_STOPS and ENSURES_STEP_STOPS. */
+#define ENSURES_FRAMES_KEPT(tag, asks) \
+    ensures tag: (asks) ==> \old(out->n_can) <= out->n_can; \
+    ensures tag: (asks) && 1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
 /* A step that answers a frame asking a stop (asks, a premise over its pre- and post-state):
  * the unit STOPPED, the reply's NAK byte (out->reply[at]) the ACK, the frames already in out
  * kept. Four clauses named tag, one goal each. */
 #define ENSURES_STOPS(tag, asks, at) \
     ensures tag: (asks) ==> core->state == 0; \
     ensures tag: (asks) ==> out->reply[at] == 0; \
-    ensures tag: (asks) ==> \old(out->n_can) <= out->n_can; \
-    ensures tag: (asks) && 1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
+    ENSURES_FRAMES_KEPT(tag, asks)
 /* A frame's message step (plain_step, msg_step, request_step) that asks a stop (asks, a
  * premise over its pre-state): the unit STOPPED with NAK 0, the frames already in out kept.
  * Three clauses named tag, one goal each. */
 #define ENSURES_STEP_STOPS(tag, asks) \
     ensures tag: (asks) ==> core->state == 0 && \result == 0; \
-    ensures tag: (asks) ==> \old(out->n_can) <= out->n_can; \
-    ensures tag: (asks) && 1 <= \old(out->n_can) ==> frame_kept(Pre, Post, out, 0);
+    ENSURES_FRAMES_KEPT(tag, asks)
 /* What estop__begin's clauses read (its core, out and times), asserted after each of its three
  * calls: left to the solvers at the return, past all three calls at once, its clauses took 15
  * to 35 s each (issue 24's twenty-ninth round). */

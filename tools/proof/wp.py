@@ -256,10 +256,7 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
             res.error += ": " + " | ".join(tail)
         return res
     res.proved, res.total = int(m.group(1)), int(m.group(2))
-    for pm in re.finditer(r"^\s+(Qed|Z3[^:]*|CVC4[^:]*|Alt-Ergo[^:]*|Terminating|Unreachable)"
-                          r":\s+(\d+)", out[m.end():], re.M):
-        prover = pm.group(1).split()[0]
-        res.by_prover[prover] = res.by_prover.get(prover, 0) + int(pm.group(2))
+    res.by_prover = prover_counts(out)
     res.failed += failed_goals(out)
     parse_checks(res, out, model)
     return res
@@ -285,9 +282,22 @@ def parse_checks(res: WpResult, out: str, model: str) -> None:
         if extra not in tag))
 
 
-# A solver's verdict on a proof goal, and a solver's line of WP's count after "Proved goals".
+# A solver's verdict on a proof goal, and a line of WP's count by prover after "Proved goals".
 SOLVER_VALID = re.compile(r"^\[wp\] \[((?:CVC4|Z3|Alt-Ergo)[^\]]*)\] Goal (\S+) : Valid", re.M)
-SOLVER_COUNT = re.compile(r"^\s+(?:CVC4|Z3|Alt-Ergo)[^:]*:\s+(\d+)", re.M)
+PROVER_COUNT = re.compile(
+    r"^\s+(Qed|Z3[^:]*|CVC4[^:]*|Alt-Ergo[^:]*|Terminating|Unreachable):\s+(\d+)", re.M)
+NOT_SOLVERS = ("Qed", "Terminating", "Unreachable")
+
+
+def prover_counts(out: str) -> dict[str, int]:
+    """WP's count by prover after "Proved goals" (a solver's name without its version), or
+    none where the log has no count."""
+    m = re.search(r"Proved goals:\s+\d+\s*/\s*\d+", out)
+    counts: dict[str, int] = {}
+    for pm in PROVER_COUNT.finditer(out[m.end():] if m else ""):
+        prover = pm.group(1).split()[0]
+        counts[prover] = counts.get(prover, 0) + int(pm.group(2))
+    return counts
 
 
 def smoke_unanswered(out: str, passed: int) -> int:
@@ -297,8 +307,7 @@ def smoke_unanswered(out: str, passed: int) -> int:
     cpu-limited exited before the solver, under Why3's own CPU limit), and no check saw it.
     WP's count by solver after "Proved goals" holds the proof goals each solver proved and the
     smoke tests it answered; a solver that did not run answered none."""
-    m = re.search(r"Proved goals:\s+\d+\s*/\s*\d+", out)
-    answers = sum(int(c) for c in SOLVER_COUNT.findall(out[m.end():])) if m else 0
+    answers = sum(n for p, n in prover_counts(out).items() if p not in NOT_SOLVERS)
     proved_by_solver = len(set(SOLVER_VALID.findall(out)))
     return max(0, passed - max(0, answers - proved_by_solver))
 

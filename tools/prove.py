@@ -32,7 +32,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from proof import assumed, eva, selftest, wp
+from proof import assumed, eva, frama, selftest, wp
 from proof.frama import BUILD, CORE, ROOT, TOOLS, core_functions, why3_env
 from proof.wp import MODEL_CHECKS, WpResult, parse_checks  # noqa: F401 - tests use them
 
@@ -62,6 +62,18 @@ def cost_s(key: str) -> int:
     return COST_S.get(key, DEFAULT_COST_S)
 
 
+def cpu_line(runs: list[tuple[str, float]]) -> str:
+    """The CPU time of the Frama-C runs by part (a run's log names it: eva-<run>.log,
+    wp-<group>.log and its retry, the self-test's wp-planted-*, eva-planted-* and wp-mutant-*)."""
+    parts = {"wp": 0.0, "eva": 0.0, "self-test": 0.0}
+    for log, cpu in runs:
+        part = ("self-test" if "planted" in log or "mutant" in log else
+                "eva" if log.startswith("eva-") else "wp")
+        parts[part] += cpu
+    return (f"prove: CPU time of frama-c and its solvers: {sum(parts.values()):.0f} s ("
+            + ", ".join(f"{k} {v:.0f}" for k, v in parts.items()) + ")")
+
+
 def report_eva(evas: list[concurrent.futures.Future[eva.EvaResult]]) -> bool:
     ok = True
     for fut in evas:
@@ -73,7 +85,8 @@ def report_eva(evas: list[concurrent.futures.Future[eva.EvaResult]]) -> bool:
         core_reached = sum(1 for f in core_fns if r.functions.get(f, (0, 1))[0] > 0)
         core_st = sum(r.functions.get(f, (0, 0))[0] for f in core_fns)
         core_all = sum(r.functions.get(f, (0, 0))[1] for f in core_fns)
-        print(f"prove: eva {r.name}: {len(r.alarms)} alarms; core functions reached "
+        print(f"prove: eva {r.name} ({r.cpu_s:.0f} CPU-s): {len(r.alarms)} alarms; core "
+              f"functions reached "
               f"{core_reached}/{len(core_fns)}, core statements reached {core_st}/"
               f"{core_all} ({100.0 * core_st / max(core_all, 1):.1f} %); with the driver "
               f"{reached} functions, {stmts}/{all_stmts} statements; rules shown "
@@ -120,7 +133,7 @@ def report_wp(wps: list[concurrent.futures.Future[tuple[list[str], WpResult]]]) 
                   "; no smoke tests, hypotheses not checked")
         print(f"prove: wp {w.name} ({model}): {proved}/{goals} proof goals proved "
               f"(WP's count {w.proved}/{w.total} with the smoke tests; {provers})"
-              + checks + f"; {w.wall_s:.0f} s")
+              + checks + f"; {w.wall_s:.0f} s, {w.cpu_s:.0f} CPU-s")
         for g in w.failed:
             print(f"prove:   not proved: {g}")
         for g in w.smoke_failed:
@@ -245,6 +258,7 @@ def main() -> int:
                                                      for k in keys if k.startswith("wp:")}):
                 print(f"prove:   error: {err}")
                 ok = False
+    print(cpu_line(frama.CPU_RUNS))
     print(f"prove: {'ok' if ok else 'FAILED'} in {time.monotonic() - t0:.0f} s "
           f"(logs in {BUILD.relative_to(ROOT)}/)")
     return 0 if ok else 1

@@ -539,3 +539,32 @@ def test_a_failed_goal_names_the_clause_a_mutant_second_pass_asks_z3_of() -> Non
     # a Caveat run's goals carry its tag
     assert prove.selftest.goal_prop("typed_caveat_handle_request_ensures_request_release",
                                     ["handle_request", "@Caveat"]) == "request_release"
+
+
+# -- what each analysis cost in CPU time (issue 24) --------------------------------------------
+
+def test_a_runs_cpu_time_holds_its_solvers_and_its_exit_status_is_kept(tmp_path: Path) -> None:
+    """A stand-in frama-c that leaves the work to a child (as WP leaves it to its solvers) and
+    exits 3: the run's CPU time holds the child's, and the exit status is still frama-c's."""
+    from proof import frama  # tools/ is on the path (load_prove)
+
+    fake = tmp_path / "frama-c"
+    fake.write_text("#!/bin/sh\n"
+                    f"'{sys.executable}' -c 'import time\nt = time.process_time()\n"
+                    "while time.process_time() - t < 0.5: pass'\n"
+                    "echo done\nexit 3\n")
+    fake.chmod(0o755)
+    env = {**os.environ, "PATH": f"{tmp_path}:{os.environ['PATH']}"}
+    rc, out = frama.frama_c([], tmp_path / "wp-cost.log", 60, env)
+    assert rc == 3 and "done" in out
+    assert 0.45 <= frama.CPU_S["wp-cost.log"] < 5
+    assert "CPU time 0 s" not in out and "CPU time" in (tmp_path / "wp-cost.log").read_text()
+    assert frama.CPU_RUNS[-1] == ("wp-cost.log", frama.CPU_S["wp-cost.log"])
+
+
+def test_the_cpu_time_is_summed_by_part_of_make_prove() -> None:
+    runs = [("wp-clock.log", 200.0), ("wp-clock-retry.log", 10.0), ("eva-keyed.log", 90.0),
+            ("eva-planted-eva.log", 5.0), ("wp-planted-wp-ct.log", 3.0),
+            ("wp-mutant-0.log", 20.0), ("wp-mutant-0-z3.log", 2.0)]
+    assert prove.cpu_line(runs) == ("prove: CPU time of frama-c and its solvers: 330 s "
+                                    "(wp 210, eva 90, self-test 30)")

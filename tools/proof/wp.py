@@ -9,7 +9,7 @@ import re
 import time
 from pathlib import Path
 
-from .frama import BUILD, CORE, PROVE, ROOT, core_sources, cpp_args, frama_c, frama_c_until
+from .frama import BUILD, CORE, CPU_S, PROVE, ROOT, core_sources, cpp_args, frama_c, frama_c_until
 
 PROVERS = "z3,cvc4"
 # The first pass of every run asks CVC4 alone: both solvers on a goal cost both cores until one
@@ -111,6 +111,7 @@ class WpResult:
     smoke_unanswered: int = 0  # passed smoke tests no solver answered (it never ran)
     wrong_model: list[str] = dataclasses.field(default_factory=list)
     wall_s: float = 0.0
+    cpu_s: float = 0.0  # frama-c's and its solvers' (frama.CPU_S)
 
 
 def wp_groups(path: Path = PROVE / "wp_groups.txt") -> list[tuple[str, list[str]]]:
@@ -240,6 +241,7 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
         rc, out, stopped = frama_c_until(args, log, WP_TIMEOUT_S, env, FIRST_FAILURE)
         refuse_missing_solver(out)
         res.wall_s = time.monotonic() - t0
+        res.cpu_s = CPU_S.get(log.name, 0.0)
         if stopped:
             m = FIRST_FAILURE.search(out)
             res.failed.append(next((g for g in m.groups() if g), "?") if m else "?")
@@ -248,6 +250,7 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
         rc, out = frama_c(args, log, WP_TIMEOUT_S, env)
         refuse_missing_solver(out)
         res.wall_s = time.monotonic() - t0
+        res.cpu_s = CPU_S.get(log.name, 0.0)
     m = re.search(r"Proved goals:\s+(\d+)\s*/\s*(\d+)", out)
     if rc != 0 or m is None:
         res.error = f"frama-c failed (exit {rc}); see {log.relative_to(ROOT)}"
@@ -348,7 +351,7 @@ def merge_retry(first: WpResult, retry: WpResult) -> WpResult:
         smoke_failed=sorted(set(first.smoke_failed) | set(retry.smoke_failed)),
         smoke_unanswered=first.smoke_unanswered + retry.smoke_unanswered,
         wrong_model=sorted(set(first.wrong_model) | set(retry.wrong_model)),
-        wall_s=first.wall_s + retry.wall_s)
+        wall_s=first.wall_s + retry.wall_s, cpu_s=first.cpu_s + retry.cpu_s)
 
 
 def run_wp_retrying(name: str, fcts: list[str], env: dict[str, str]) -> tuple[list[str], WpResult]:

@@ -20,7 +20,8 @@ TOOLS = ("frama-c", "why3", "z3", "cvc4")
 # The CPU time of the Frama-C runs of this process (frama-c and the solvers it waited for): the
 # last run's by its log's name, and every run's in order. make prove prints what each analysis
 # cost beside its wall time, which beside make test's other steps says little of the work
-# (issue 24).
+# (issue 24). A run stopped at its first failure (a self-test mutant) counts only the solvers
+# frama-c reaped before it was killed: the others are reaped by init.
 CPU_S: dict[str, float] = {}
 CPU_RUNS: list[tuple[str, float]] = []
 _CPU_LOCK = threading.Lock()

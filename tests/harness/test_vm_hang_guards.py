@@ -10,7 +10,12 @@ hil/run, alone, 384 s, of which the scenarios 310 s (its budget was 240 s)."""
 
 from __future__ import annotations
 
+import os
 import re
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import pytest
 
@@ -45,3 +50,22 @@ def test_a_hang_guard_is_twice_the_slowest_run_seen(step: str) -> None:
 def test_the_scenario_runner_default_budget_matches_hil_run() -> None:
     assert default_of("hil/scenarios.py", r'"--budget", type=float, default=(\d+)') == \
         default_of("hil/run", r"HIL_BUDGET:-(\d+)")
+
+
+def test_the_vm_pytest_loads_the_per_test_timeout_with_autoload_off(tmp_path: Path) -> None:
+    """tools/vm-pytest runs pytest with plugin autoload off and names the plugins it keeps
+    (issue 24: hypothesis's import was most of pytest's start in the TCG guest). The per-test
+    timeout must be among them: without it a hung test would hold the VM to its 1200-s guard.
+    Run here as the script runs it, on a test that hangs past a 1-s timeout."""
+    text = (ROOT / "tools" / "vm-pytest").read_text()
+    assert "export PYTEST_DISABLE_PLUGIN_AUTOLOAD=1" in text
+    m = re.search(r"^PLUGINS=\((.*)\)$", text, re.M)
+    assert m is not None, "tools/vm-pytest names no PLUGINS"
+    (tmp_path / "test_hang.py").write_text("import time\n\ndef test_hang():\n    time.sleep(30)\n")
+    env = {**os.environ, "PYTEST_DISABLE_PLUGIN_AUTOLOAD": "1"}
+    t0 = time.monotonic()
+    run = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider",
+                          *m.group(1).split(), "--timeout=1", "test_hang.py"],
+                         cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
+    assert run.returncode == 1 and "Timeout" in run.stdout + run.stderr, run.stdout + run.stderr
+    assert time.monotonic() - t0 < 20

@@ -557,9 +557,9 @@ def test_a_runs_cpu_time_holds_its_solvers_and_its_exit_status_is_kept(tmp_path:
     env = {**os.environ, "PATH": f"{tmp_path}:{os.environ['PATH']}"}
     rc, out = frama.frama_c([], tmp_path / "wp-cost.log", 60, env)
     assert rc == 3 and "done" in out
-    assert 0.45 <= frama.CPU_S["wp-cost.log"] < 5
+    assert 0.45 <= frama.cpu_time(tmp_path / "wp-cost.log") < 5
     assert "CPU time 0 s" not in out and "CPU time" in (tmp_path / "wp-cost.log").read_text()
-    assert frama.CPU_RUNS[-1] == ("wp-cost.log", frama.CPU_S["wp-cost.log"])
+    assert frama.CPU_RUNS[-1] == ("wp-cost.log", frama.cpu_time(tmp_path / "wp-cost.log"))
 
 
 def test_the_cpu_time_is_summed_by_part_of_make_prove() -> None:

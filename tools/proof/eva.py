@@ -11,7 +11,7 @@ import dataclasses
 import re
 from pathlib import Path
 
-from .frama import BUILD, CPU_S, PROVE, ROOT, core_functions, core_sources, cpp_args, frama_c
+from .frama import BUILD, PROVE, ROOT, core_functions, core_sources, cpp_args, cpu_time, frama_c
 
 EVA_TIMEOUT_S = 1200  # the keyed run took 322 s beside make test's other steps (149 s idle, then)
 # Eva's precision: meta-option level 2, and loops up to 1024 iterations unrolled (the
@@ -43,7 +43,7 @@ class EvaResult:
     unknown_props: int = 0
     invalid: list[str] = dataclasses.field(default_factory=list)  # annotations found false
     rules: dict[str, str] = dataclasses.field(default_factory=dict)  # rule -> Eva's status
-    cpu_s: float = 0.0  # frama-c's (frama.CPU_S)
+    cpu_s: float = 0.0  # frama-c's (frama.cpu_time)
 
     @property
     def rules_not_shown(self) -> list[str]:
@@ -77,7 +77,7 @@ def run_eva(name: str, core_dir: Path, keyed: int, env: dict[str, str],
             *map(str, core_sources(core_dir)), "-eva", *EVA_OPTS,
             "-then", "-metrics", "-metrics-eva-cover", "-then", "-report"]
     rc, out = frama_c(args, log, EVA_TIMEOUT_S, env)
-    res = EvaResult(name, [], {}, [], log, cpu_s=CPU_S.get(log.name, 0.0))
+    res = EvaResult(name, [], {}, [], log, cpu_s=cpu_time(log))
     if rc != 0 or "ANALYSIS SUMMARY" not in out:
         res.error = f"frama-c failed (exit {rc}); see {log.relative_to(ROOT)}"
         return res

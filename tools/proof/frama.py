@@ -17,14 +17,19 @@ PROVE = ROOT / "prove"
 BUILD = ROOT / "build" / "prove"
 SOLVERS = ROOT / "tools" / "proof" / "solvers"  # the solvers as Why3 runs them (cpu-limited)
 TOOLS = ("frama-c", "why3", "z3", "cvc4")
-# The CPU time of the Frama-C runs of this process (frama-c and the solvers it waited for): the
-# last run's by its log's name, and every run's in order. make prove prints what each analysis
-# cost beside its wall time, which beside make test's other steps says little of the work
-# (issue 24). A run stopped at its first failure (a self-test mutant) counts only the solvers
-# frama-c reaped before it was killed: the others are reaped by init.
-CPU_S: dict[str, float] = {}
+# The CPU time of every Frama-C run of this process, in order, by its log's name (frama-c and
+# the solvers it waited for). make prove prints what each analysis cost beside its wall time,
+# which beside make test's other steps says little of the work (issue 24). A run stopped at its
+# first failure (a self-test mutant) counts only the solvers frama-c reaped before it was
+# killed: the others are reaped by init.
 CPU_RUNS: list[tuple[str, float]] = []
 _CPU_LOCK = threading.Lock()
+
+
+def cpu_time(log: Path) -> float:
+    """The CPU time of the last run that wrote log (0 if none did)."""
+    with _CPU_LOCK:
+        return next((cpu for name, cpu in reversed(CPU_RUNS) if name == log.name), 0.0)
 
 
 def core_sources(core_dir: Path) -> list[Path]:
@@ -96,16 +101,16 @@ def frama_c_until(args: list[str], log: Path, timeout: int, env: dict[str, str],
             # wait4: the exit status and the CPU time of frama-c with the solvers it reaped
             _, status, usage = os.wait4(proc.pid, 0)
             proc.returncode = rc = os.waitstatus_to_exitcode(status)
+        cpu = usage.ru_utime + usage.ru_stime
         with _CPU_LOCK:
-            CPU_S[log.name] = usage.ru_utime + usage.ru_stime
-            CPU_RUNS.append((log.name, CPU_S[log.name]))
+            CPU_RUNS.append((log.name, cpu))
         err.seek(0)
         lines.append(err.read())
     if not stopped and time.monotonic() - t0 >= timeout:
         rc = -1
         lines.append(f"timed out after {timeout} s\n")
     out = "".join(lines) + (f"\n[prove] wall time {time.monotonic() - t0:.0f} s, CPU time "
-                            f"{usage.ru_utime + usage.ru_stime:.0f} s\n")
+                            f"{cpu:.0f} s\n")
     log.write_text(out)
     return rc, out, stopped
 

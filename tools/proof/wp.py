@@ -9,7 +9,17 @@ import re
 import time
 from pathlib import Path
 
-from .frama import BUILD, CORE, CPU_S, PROVE, ROOT, core_sources, cpp_args, frama_c, frama_c_until
+from .frama import (
+    BUILD,
+    CORE,
+    PROVE,
+    ROOT,
+    core_sources,
+    cpp_args,
+    cpu_time,
+    frama_c,
+    frama_c_until,
+)
 
 PROVERS = "z3,cvc4"
 # The first pass of every run asks CVC4 alone: both solvers on a goal cost both cores until one
@@ -118,7 +128,7 @@ class WpResult:
     smoke_unanswered: int = 0  # passed smoke tests no solver answered (it never ran)
     wrong_model: list[str] = dataclasses.field(default_factory=list)
     wall_s: float = 0.0
-    cpu_s: float = 0.0  # frama-c's and its solvers' (frama.CPU_S)
+    cpu_s: float = 0.0  # frama-c's and its solvers' (frama.cpu_time)
 
 
 def wp_groups(path: Path = PROVE / "wp_groups.txt") -> list[tuple[str, list[str]]]:
@@ -249,7 +259,7 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
         rc, out, stopped = frama_c_until(args, log, WP_TIMEOUT_S, env, FIRST_FAILURE)
         refuse_missing_solver(out)
         res.wall_s = time.monotonic() - t0
-        res.cpu_s = CPU_S.get(log.name, 0.0)
+        res.cpu_s = cpu_time(log)
         if stopped:
             m = FIRST_FAILURE.search(out)
             res.failed.append(next((g for g in m.groups() if g), "?") if m else "?")
@@ -258,7 +268,7 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
         rc, out = frama_c(args, log, WP_TIMEOUT_S, env)
         refuse_missing_solver(out)
         res.wall_s = time.monotonic() - t0
-        res.cpu_s = CPU_S.get(log.name, 0.0)
+        res.cpu_s = cpu_time(log)
     m = re.search(r"Proved goals:\s+(\d+)\s*/\s*(\d+)", out)
     if rc != 0 or m is None:
         res.error = f"frama-c failed (exit {rc}); see {log.relative_to(ROOT)}"

@@ -115,8 +115,9 @@ gamepad-vm: setup
 # estopd installed as docs/DEPLOY.md says and run under a real systemd, in qemu VMs (TCG):
 # Debian 12 (systemd 252, this machine's kernel) and Debian 13 (systemd 257, its own kernel).
 # Each image is built once with mmdebstrap and kept in ~/.cache/estop/systemd-vm (keyed on
-# what goes into it); both boot at once. Skips with the reason where it cannot run, except
-# under CI. Prints each check with what it measured (tools/systemd-vm --help).
+# what goes into it); the images are built at once, the VMs boot one at a time. Skips with
+# the reason where it cannot run, except under CI. Prints each check with what it measured
+# (tools/systemd-vm --help).
 systemd-vm: setup
 	tools/systemd-vm
 

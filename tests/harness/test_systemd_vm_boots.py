@@ -37,6 +37,12 @@ def script() -> Iterator[types.ModuleType]:
         yield module
     finally:
         sys.path[:] = saved
+        # its helpers (boot, image, report...) were imported by their bare names: not left
+        # behind for another test's import of the same name
+        helpers = str(ROOT / "tools" / "systemd_vm")
+        for name, mod in list(sys.modules.items()):
+            if str(getattr(mod, "__file__", "") or "").startswith(helpers):
+                del sys.modules[name]
 
 
 def intervals(script: types.ModuleType, monkeypatch: pytest.MonkeyPatch, tmp_path: Path,

@@ -80,8 +80,8 @@ def intervals(script: types.ModuleType, monkeypatch: pytest.MonkeyPatch, tmp_pat
 
 
 def overlap(a: list[tuple[float, float]]) -> bool:
-    (s0, e0), (s1, e1) = sorted(a)[:2]
-    return s1 < e0
+    first, second = sorted(a)[:2]
+    return second[0] < first[1]  # the second began before the first ended
 
 
 def test_the_images_are_built_at_once_and_the_vms_boot_one_at_a_time(

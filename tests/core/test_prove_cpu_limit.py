@@ -222,26 +222,6 @@ def test_z3_past_its_units_on_a_smoke_test_is_ended_by_its_cpu_time() -> None:
     assert prove.wp.SMOKE_Z3_CPU_S == int(SMOKE_ENV["ESTOP_SMOKE_Z3_CPU_S"])
 
 
-@pytest.mark.parametrize("name", ["cvc4", "z3"])
-def test_the_solver_runs_under_jemalloc_where_it_is_installed(tmp_path: Path, name: str) -> None:
-    """The solvers' allocator (10 to 25 % of CVC4's CPU time, issue 24's forty-first round):
-    jemalloc, preloaded by the wrapper, unless ESTOP_SOLVER_JEMALLOC=0 (for a measurement)."""
-    libs = sorted(Path("/usr/lib").glob("*-linux-gnu/libjemalloc.so.2"))
-    if not libs:
-        pytest.skip("libjemalloc2 is not installed (scripts/ensure-debs prove)")
-    env = stand_in(tmp_path, name)
-    (tmp_path / "bin" / name).write_text('#!/bin/sh\necho "preload=$LD_PRELOAD"\n')
-
-    def preload(**more: str) -> str:
-        run = subprocess.run([str(SOLVERS / name), "g.smt2"], capture_output=True, text=True,
-                             timeout=10, env=dict(env, ESTOP_SOLVER_CPU_S="90", **more))
-        return run.stdout.strip()
-
-    assert preload() == f"preload={libs[0]}"
-    assert preload(LD_PRELOAD="/x.so") == f"preload={libs[0]}:/x.so"
-    assert preload(ESTOP_SOLVER_JEMALLOC="0") == "preload="
-
-
 def test_no_run_asks_cvc4_alone_a_goal_only_z3_proves() -> None:
     """CVC4 runs its whole CPU time out on the two goals of bit 8 of a byte minus one: the runs
     that hold them ask both solvers from the start."""

@@ -369,6 +369,33 @@ def test_a_frama_c_run_past_its_timeout_is_killed_with_its_children(tmp_path: Pa
     assert (rc, stopped) == (-1, False)
     assert "timed out after 2 s" in out
     assert "timed out after 2 s" in (tmp_path / "eva.log").read_text()
+    # its preprocessed annotations went to the run's own directory, and went with it
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["eva.log"]
+
+
+def test_a_killed_frama_c_leaves_no_temporary_file(tmp_path: Path) -> None:
+    """A stand-in frama-c that writes a temporary file where frama-c writes its preprocessed
+    annotations (cppannot*.c in $TMPDIR) and is then stopped at a line (a mutant's first
+    failure): the file goes with the run. Before issue 24's forty-first round each stopped or
+    killed frama-c left 7 of them in /tmp."""
+    import re
+
+    from proof import frama  # tools/ is on the path (load_prove)
+
+    fake = tmp_path / "bin" / "frama-c"
+    fake.parent.mkdir()
+    fake.write_text('#!/bin/sh\nf=$(mktemp "${TMPDIR:-/tmp}/cppannotXXXXXX")\necho "at $f"\n'
+                    "echo failed\nexec sleep 30\n")
+    fake.chmod(0o755)
+    env = {**os.environ, "PATH": f"{fake.parent}:{os.environ['PATH']}"}
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    rc, out, stopped = frama.frama_c_until([], logs / "wp-m.log", 20, env, re.compile("failed"))
+    assert stopped
+    left = Path(out.split("at ", 1)[1].split()[0])
+    assert left.name.startswith("cppannot") and left.parent.parent == logs
+    assert not left.exists() and not left.parent.exists()
+    assert sorted(p.name for p in logs.iterdir()) == ["wp-m.log"]
 
 
 # -- the first pass with CVC4 alone, the retry over the functions it left (issue 24) ----------

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import re
+import shutil
 import signal
 import subprocess
 import tempfile
@@ -72,6 +73,11 @@ def frama_c_until(args: list[str], log: Path, timeout: int, env: dict[str, str],
     t0 = time.monotonic()
     lines: list[str] = []
     stopped = False
+    # The temporary files of frama-c and its solvers in a directory of the run's own, removed
+    # after it: a frama-c killed (a mutant's first failure, a timeout) leaves its preprocessed
+    # annotations (cppannot*.c, one a source file), 7 in /tmp for each such run before.
+    scratch = Path(tempfile.mkdtemp(prefix="tmp-", dir=log.parent))
+    env = dict(env, TMPDIR=str(scratch))
     # stderr after stdout, as the parsers read it (an error line never splits an alarm's)
     with tempfile.TemporaryFile("w+") as err, subprocess.Popen(
             ["frama-c", *args], stdout=subprocess.PIPE, stderr=err, text=True, env=env,
@@ -101,6 +107,7 @@ def frama_c_until(args: list[str], log: Path, timeout: int, env: dict[str, str],
             # wait4: the exit status and the CPU time of frama-c with the solvers it reaped
             _, status, usage = os.wait4(proc.pid, 0)
             proc.returncode = rc = os.waitstatus_to_exitcode(status)
+            shutil.rmtree(scratch, ignore_errors=True)
         cpu = usage.ru_utime + usage.ru_stime
         with _CPU_LOCK:
             CPU_RUNS.append((log.name, cpu))

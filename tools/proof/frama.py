@@ -75,7 +75,7 @@ def frama_c_until(args: list[str], log: Path, timeout: int, env: dict[str, str],
     stopped = False
     # The temporary files of frama-c and its solvers in a directory of the run's own, removed
     # after it: a frama-c killed (a mutant's first failure, a timeout) leaves its preprocessed
-    # annotations (cppannot*.c, one a source file), 7 in /tmp for each such run before.
+    # annotations (cppannot*.c, one per source file): 7 in /tmp for each such run before.
     scratch = Path(tempfile.mkdtemp(prefix="tmp-", dir=log.parent))
     env = dict(env, TMPDIR=str(scratch))
     # stderr after stdout, as the parsers read it (an error line never splits an alarm's)

@@ -70,8 +70,9 @@ SMOKE_RLIMIT = 50000
 SMOKE_Z3_RLIMIT = 1000000
 # Z3 overruns its units in some phase on one smoke test of ct (it gives up in 0.05 s at 200,000
 # units, and ran over 30 s at 1,000,000): the CPU time that ends such a call, 4 times what its
-# units cost here, so a verdict within them is the same on a machine twice as slow (issue 24's
-# forty-first round; the wall guard ended it before, after 10 s in each of the 3 ct runs).
+# units cost here, so a verdict within them is the same on a machine up to 4 times slower
+# (issue 24's forty-first round; the wall guard ended it before, after 10 s in each of the 3 ct
+# runs).
 SMOKE_Z3_CPU_S = 3
 SMOKE_WALL_GUARD_S = 10
 MODEL_CHECKS = {"Typed": ["-wp-check-memory-model", "-wp-smoke-tests"]}

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import os
 import re
-import shutil
 import signal
 import subprocess
 import tempfile
@@ -76,12 +75,12 @@ def frama_c_until(args: list[str], log: Path, timeout: int, env: dict[str, str],
     # The temporary files of frama-c and its solvers in a directory of the run's own, removed
     # after it: a frama-c killed (a mutant's first failure, a timeout) leaves its preprocessed
     # annotations (cppannot*.c, one per source file): 7 in /tmp for each such run before.
-    scratch = Path(tempfile.mkdtemp(prefix="tmp-", dir=log.parent))
-    env = dict(env, TMPDIR=str(scratch))
     # stderr after stdout, as the parsers read it (an error line never splits an alarm's)
-    with tempfile.TemporaryFile("w+") as err, subprocess.Popen(
-            ["frama-c", *args], stdout=subprocess.PIPE, stderr=err, text=True, env=env,
-            cwd=cwd, start_new_session=True) as proc:
+    with tempfile.TemporaryDirectory(prefix="tmp-", dir=log.parent,
+                                     ignore_cleanup_errors=True) as scratch, \
+            tempfile.TemporaryFile("w+") as err, subprocess.Popen(
+            ["frama-c", *args], stdout=subprocess.PIPE, stderr=err, text=True,
+            env=dict(env, TMPDIR=scratch), cwd=cwd, start_new_session=True) as proc:
 
         def kill() -> None:
             # frama-c and its solvers. Not through proc.poll(), which would reap frama-c and
@@ -107,7 +106,6 @@ def frama_c_until(args: list[str], log: Path, timeout: int, env: dict[str, str],
             # wait4: the exit status and the CPU time of frama-c with the solvers it reaped
             _, status, usage = os.wait4(proc.pid, 0)
             proc.returncode = rc = os.waitstatus_to_exitcode(status)
-            shutil.rmtree(scratch, ignore_errors=True)
         cpu = usage.ru_utime + usage.ru_stime
         with _CPU_LOCK:
             CPU_RUNS.append((log.name, cpu))

@@ -340,6 +340,8 @@ static uint8_t request_step(estop_core_t *core, uint32_t k, uint32_t msg_id, est
      * (request_commit_fills) is found from it. */
     /*@ assert stepped_fills: \forall integer j; 0 <= j < 8 ==>
             a_slot(j) && core->slots[j].fill == \at(core->slots[j].fill, Pre); */
+    /* After stepped_fills, not before: right after msg_step, its hypotheses made that
+     * assertion run out of 90 s. */
     /*@ ghost word_at(core, k, 4); */
     return nak;
 }

@@ -56,6 +56,11 @@ COST_S = {"eva:keyed": 68, "wp:tcp": 123, "wp:tcpframe": 50, "wp:reqstep": 70, "
           "wp:udp": 31, "wp:frames": 26, "wp:link": 11, "wp:ct": 9, "wp:lemmas": 4,
           "wp:blake2s": 20}
 DEFAULT_COST_S = 60
+# Why this make prove failed, and which goals needed the retry, each in a line: main prints them
+# again last, as CI keeps only the end of a log (the CI run of fcfba03 showed the self-test's
+# lines and "FAILED", and not which goal had failed 20 lines up).
+WHY_FAILED: list[str] = []
+RETRIED: list[str] = []
 
 
 def cost_s(key: str) -> int:
@@ -99,13 +104,18 @@ def report_eva(evas: list[concurrent.futures.Future[eva.EvaResult]]) -> bool:
             print(f"prove:   not reached in this run: {' '.join(r.unreached)}")
         if r.error:
             print(f"prove:   error: {r.error}")
-        ok = ok and not r.alarms and not r.error and not r.rules_not_shown and bool(r.rules)
+        if r.alarms or r.error or r.rules_not_shown or not r.rules:
+            WHY_FAILED.append(f"eva {r.name}: {len(r.alarms)} alarms, "
+                              f"{len(r.rules_not_shown)} rules not shown"
+                              + (f", {r.error}" if r.error else ""))
+            ok = False
     if evas:
         never = set(core_functions(CORE))
         for fut in evas:
             never &= set(fut.result().unreached)
         if never:
             print(f"prove: eva: core functions no run reached: {' '.join(sorted(never))}")
+            WHY_FAILED.append(f"eva: core functions no run reached: {' '.join(sorted(never))}")
         ok = ok and not never
     return ok
 
@@ -121,6 +131,7 @@ def report_wp(wps: list[concurrent.futures.Future[tuple[list[str], WpResult]]]) 
             print(f"prove: wp {w.name}: {len(retried)} goals not proved by "
                   f"{wp.FIRST_PASS_PROVERS} in {wp.GOAL_TIMEOUT_S} s each ({' '.join(retried)}); "
                   f"their functions run again with {wp.PROVERS}, {wp.GOAL_RETRY_TIMEOUT_S} s each")
+            RETRIED.append(f"{w.name}: {' '.join(retried)}")
         for k, v in w.by_prover.items():
             totals[k] = totals.get(k, 0) + v
         provers = ", ".join(f"{k} {v}" for k, v in sorted(w.by_prover.items()))
@@ -146,7 +157,16 @@ def report_wp(wps: list[concurrent.futures.Future[tuple[list[str], WpResult]]]) 
             print(f"prove:   goal of another memory model than {model}: {g}")
         if w.error:
             print(f"prove:   error: {w.error}")
-        ok = ok and wp.ok(w)
+        if not wp.ok(w):
+            WHY_FAILED.append(
+                f"wp {w.name}: {proved}/{goals} proof goals proved"
+                + "".join(f"; not proved: {g}" for g in w.failed[:3])
+                + "".join(f"; smoke test failed: {g}" for g in w.smoke_failed[:3])
+                + (f"; {w.smoke_unanswered} smoke tests no solver answered"
+                   if w.smoke_unanswered else "")
+                + (f"; {len(w.wrong_model)} goals of another model" if w.wrong_model else "")
+                + (f"; error: {w.error}" if w.error else ""))
+            ok = False
     if wps:
         print(f"prove: wp total: {sums[0]}/{sums[1]} proof goals proved, {sums[2]} smoke tests "
               f"({sums[3]} failed); WP's count by prover (a solver's count holds the smoke "
@@ -161,6 +181,7 @@ def report_assumed() -> bool:
         print(f"prove: assumed, not proved: {a.name} ({a.why}; tested by {a.test})")
     for e in errors:
         print(f"prove:   error: {e}")
+        WHY_FAILED.append(f"assumed: {e}")
     return not errors
 
 
@@ -183,9 +204,12 @@ def report_mutants(tries: list[selftest.MutantTry], equivalent: dict[str, str],
         print(f"prove: self-test mutant {t.key} ({t.check}): {verdict}: {t.what}")
         caught_n += int(t.caught)
         ok = ok and (t.caught or listed)
+        if not (t.caught or listed):
+            WHY_FAILED.append(f"self-test mutant {t.key}: not caught")
         if t.caught and listed:
             print("prove:   error: listed as equivalent in prove/mutants_equivalent.txt, "
                   "but caught: take it off the list")
+            WHY_FAILED.append(f"self-test mutant {t.key}: listed as equivalent, but caught")
             ok = False
     print(f"prove: self-test mutants caught {caught_n}/{tried_n} "
           f"(of {in_scope} in prove/mutants_scope.txt; "
@@ -193,8 +217,19 @@ def report_mutants(tries: list[selftest.MutantTry], equivalent: dict[str, str],
           f"{len(tries) - tried_n} not mutants, not tried)")
     if tried_n == 0:
         print("prove:   error: no mutant of the sample could be tried")
+        WHY_FAILED.append("self-test: no mutant of the sample could be tried")
         ok = False
     return ok
+
+
+def summary(ok: bool) -> list[str]:
+    """The lines printed last: the goals that needed the retry (a slow or fragile goal, passed or
+    not), and why the run failed (a failure with no reason recorded says so, not nothing)."""
+    lines = [f"prove: needed the retry: {r}" for r in RETRIED]
+    if not ok:
+        lines += [f"prove: failed: {w}" for w in WHY_FAILED] or [
+            "prove: failed: no reason recorded (see the lines above)"]
+    return lines
 
 
 def main() -> int:
@@ -251,14 +286,19 @@ def main() -> int:
             for p, caught, what in fut.result():
                 print(f"prove: self-test {p.name} ({p.check}): "
                       f"{'caught' if caught else 'NOT CAUGHT'}: {what}")
+                if not caught:
+                    WHY_FAILED.append(f"self-test {p.name} ({p.check}): not caught")
                 ok = ok and caught
         if mutated:
             ok = report_mutants([f.result() for f in mutated], equivalent, len(in_scope)) and ok
             for err in selftest.mutant_limit_errors({k.split(":")[1]: futs[k].result()
                                                      for k in keys if k.startswith("wp:")}):
                 print(f"prove:   error: {err}")
+                WHY_FAILED.append(f"self-test: {err}")
                 ok = False
     print(cpu_line(frama.CPU_RUNS))
+    for line in summary(ok):
+        print(line)
     print(f"prove: {'ok' if ok else 'FAILED'} in {time.monotonic() - t0:.0f} s "
           f"(logs in {BUILD.relative_to(ROOT)}/)")
     return 0 if ok else 1

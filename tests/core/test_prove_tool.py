@@ -616,3 +616,39 @@ def test_request_step_words_is_proved_alone(tmp_path: Path,
                           frama.why3_env(), provers=prove.wp.FIRST_PASS_PROVERS,
                           only_prop="request_step_words")
     assert (res.proved, res.total, res.failed, res.error) == (1, 1, [], "")
+
+
+def test_why_make_prove_failed_and_what_needed_the_retry_are_printed_last(
+        monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    """CI keeps only a log's end: the CI run of fcfba03 showed the self-test's lines and
+    "FAILED", and not which WP goal had failed 20 lines above them."""
+    import concurrent.futures
+    monkeypatch.setattr(prove, "WHY_FAILED", [])
+    monkeypatch.setattr(prove, "RETRIED", [])
+    monkeypatch.setattr(prove.wp, "wp_groups", lambda: [("tcp", ["estop_tcp_rx", "@Typed"]),
+                                                         ("udp", ["estop_udp_rx", "@Typed"])])
+
+    def done(retried: list[str], w: Any) -> Any:
+        fut: concurrent.futures.Future[Any] = concurrent.futures.Future()
+        fut.set_result((retried, w))
+        return fut
+
+    WpResult = prove.WpResult
+    failed = WpResult("tcp", 94, 95, {}, ["typed_estop_tcp_rx_ensures_leaves"], Path("x.log"))
+    passed = WpResult("udp", 9, 9, {}, [], Path("y.log"))
+    assert prove.report_wp([done([], passed)])
+    assert prove.summary(True) == [] and prove.summary(False) == [
+        "prove: failed: no reason recorded (see the lines above)"]
+    assert not prove.report_wp([done(["typed_estop_tcp_rx_ensures_leaves"], failed),
+                                done(["typed_estop_udp_rx_ensures_a"], passed)])
+    capsys.readouterr()
+    assert prove.summary(True) == [
+        "prove: needed the retry: tcp: typed_estop_tcp_rx_ensures_leaves",
+        "prove: needed the retry: udp: typed_estop_udp_rx_ensures_a"]
+    assert prove.summary(False)[2:] == [
+        "prove: failed: wp tcp: 94/95 proof goals proved; not proved: "
+        "typed_estop_tcp_rx_ensures_leaves"]
+    caught = prove.selftest.MutantTry("b", "wp:entry", True, "1 goals fail")
+    survivor = prove.selftest.MutantTry("c", "wp:entry", False, "37/37 goals proved")
+    assert not prove.report_mutants([caught, survivor], {}, 385)
+    assert prove.summary(False)[-1] == "prove: failed: self-test mutant c: not caught"

@@ -95,6 +95,12 @@ GOAL_TIMEOUT_S = 90
 # make test's load, clock_brake_due (888,038 of CVC4's units; 64 s alone idle there) ran out
 # 90 s of CPU, then 150 s in the retry: the CPU time per unit more than doubled under load.
 GOAL_RETRY_TIMEOUT_S = 300
+# The retry asks CVC4 each goal in this many orders of its problem's assertions, its own with
+# half of GOAL_RETRY_TIMEOUT_S, the others the rest (tools/proof/solvers/cpu-limited): the
+# first pass and the retry had both asked the one order WP wrote, and a goal whose search
+# hangs on it failed both (tcp's leaves_stopped_only_by_release in the CI run of fcfba03;
+# issue 24's forty-third round). Any order is the same logic: a proof in one is a proof.
+RETRY_ORDERS = 4
 WALL_GUARD = 10
 # OCaml's collector for WP's frama-c: a larger minor heap (16M words) and a major heap let grow
 # to 5 times its live data before the collector works harder (o=400, 120 by default). WP's
@@ -228,14 +234,16 @@ def failed_goals(out: str) -> list[str]:
 def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
            goal_timeout_s: int = GOAL_TIMEOUT_S, cache: bool = False,
            only_prop: str = "", first_failure: bool = False,
-           provers: str = PROVERS, log_name: str = "", cpu_limited: bool = True) -> WpResult:
+           provers: str = PROVERS, log_name: str = "", cpu_limited: bool = True,
+           orders: int = 1) -> WpResult:
     """One WP run. goal_timeout_s is the CPU time a solver gets on a goal (cpu_limited), or
     the wall time (not cpu_limited: the self-test's planted goals, false at any limit, whose
     solvers run their limit out). A smoke test gets SMOKE_RLIMIT of CVC4's resource units and
     SMOKE_Z3_RLIMIT of Z3's (cpu_limited), or SMOKE_TIMEOUT_S of wall time. only_prop
     restricts it to one property: the self-test's planted faults only (the planted goal costs
     its timeout), never a run of make prove's proof. first_failure stops it at the first goal
-    that fails (the self-test's mutants). The cache is kept by name; the log is
+    that fails (the self-test's mutants). orders: CVC4's goals each in that many orders of
+    their assertions (the retry). The cache is kept by name; the log is
     wp-<log_name or name>.log."""
     t0 = time.monotonic()
     log = BUILD / f"wp-{log_name or name}.log"
@@ -254,7 +262,7 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
     if cpu_limited:
         env = dict(env, ESTOP_SOLVER_CPU_S=str(goal_timeout_s), ESTOP_SMOKE_RLIMIT=str(
             SMOKE_RLIMIT), ESTOP_SMOKE_Z3_RLIMIT=str(SMOKE_Z3_RLIMIT),
-            ESTOP_SMOKE_Z3_CPU_S=str(SMOKE_Z3_CPU_S))
+            ESTOP_SMOKE_Z3_CPU_S=str(SMOKE_Z3_CPU_S), ESTOP_SOLVER_ORDERS=str(orders))
     if cache:
         # The solvers' verdicts by goal (a hash of the goal and the prover): a run again with
         # a longer timeout re-tries only what timed out. Emptied by every make prove.
@@ -381,7 +389,8 @@ def merge_retry(first: WpResult, retry: WpResult) -> WpResult:
 
 def run_wp_retrying(name: str, fcts: list[str], env: dict[str, str]) -> tuple[list[str], WpResult]:
     """A run of the core's group with CVC4 alone, and once more, with both solvers and
-    GOAL_RETRY_TIMEOUT_S a goal, over the functions of the goals it left unproved (the cache
+    GOAL_RETRY_TIMEOUT_S a goal (CVC4 in RETRY_ORDERS orders of each), over the functions of
+    the goals it left unproved (the cache
     keeps what the first pass proved; the retry asks Z3 those functions' smoke tests too); the
     goals the first pass left unproved, and the whole result."""
     (WP_CACHE / name).mkdir(parents=True, exist_ok=True)
@@ -393,7 +402,7 @@ def run_wp_retrying(name: str, fcts: list[str], env: dict[str, str]) -> tuple[li
     if first.proved + len(first.failed) + len(first.smoke_failed) != first.total:
         again = fcts  # a goal left that the log does not name: its function is not known
     retry = run_wp(name, CORE, again, env, GOAL_RETRY_TIMEOUT_S, cache=True,
-                   log_name=f"{name}-retry")
+                   log_name=f"{name}-retry", orders=RETRY_ORDERS)
     return first.failed, merge_retry(first, retry)
 
 

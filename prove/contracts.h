@@ -55,21 +55,7 @@
 estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 
 /*@ requires \valid(core) && \valid(out) && \separated(core, out);
-    requires finish_inv: cfg_ok(core);
-    requires finish_inv: known_ok(core);
-    requires finish_inv: fresh_ok(core);
-    requires finish_times: brake_due_ok(core);
-    requires finish_times: status_due_ok(core);
-    requires finish_times: link_ok(core);
-    requires finish_times: armed_ok(core);
-    assigns out->next_call_us, out->state, out->reason, out->flags;
-    ensures out->state == core->state && out->reason == core->reason;
-    ensures next_call_ahead: 1 <= udiff(out->next_call_us, core->now_us) <= core->cfg.brake_period_us;
-    ensures finish_keeps: core->magic == \old(core->magic) && core->now_us == \old(core->now_us) &&
-        core->state == \old(core->state) &&
-        core->cfg.brake_period_us == \old(core->cfg.brake_period_us) &&
-        core->cfg.brake_can_id == \old(core->cfg.brake_can_id);
-    ensures finish_keeps_inv: \at(inv(core), Pre) ==> inv(core);
+    FINISH_CONTRACT
  */
 void estop__finish(const estop_core_t *core, estop_out_t *out);
 

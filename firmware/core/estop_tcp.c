@@ -519,21 +519,7 @@ static int handle_frame(estop_core_t *core, uint32_t k, estop_out_t *out)
  * fcfba03). Here the context is this contract alone. core is not const: estop__finish
  * requires \valid(core), which Eva found invalid through a pointer to const. */
 /*@ requires \valid(core) && \valid(out) && \separated(core, out) && k < 8;
-    requires finish_inv: cfg_ok(core);
-    requires finish_inv: known_ok(core);
-    requires finish_inv: fresh_ok(core);
-    requires finish_times: brake_due_ok(core);
-    requires finish_times: status_due_ok(core);
-    requires finish_times: link_ok(core);
-    requires finish_times: armed_ok(core);
-    assigns out->next_call_us, out->state, out->reason, out->flags;
-    ensures out->state == core->state && out->reason == core->reason;
-    ensures next_call_ahead: 1 <= udiff(out->next_call_us, core->now_us) <= core->cfg.brake_period_us;
-    ensures finish_keeps: core->magic == \old(core->magic) && core->now_us == \old(core->now_us) &&
-        core->state == \old(core->state) &&
-        core->cfg.brake_period_us == \old(core->cfg.brake_period_us) &&
-        core->cfg.brake_can_id == \old(core->cfg.brake_can_id);
-    ensures finish_keeps_inv: \at(inv(core), Pre) ==> inv(core);
+    FINISH_CONTRACT
     ensures frame_finish_keeps: out->has_reply == \old(out->has_reply) &&
         out->reply[11] == \old(out->reply[11]) && out->reply[15] == \old(out->reply[15]) &&
         core->slots[k].fill == \old(core->slots[k].fill) &&

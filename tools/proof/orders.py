@@ -32,10 +32,6 @@ class Answer:
     cpu_s: float
 
 
-# A call's wall time, against a hang, as a multiple of its CPU limit (as wp.WALL_GUARD).
-WALL_GUARD = 10
-
-
 def ask(problem: str, seeds: range, cpu_s: int) -> list[Answer]:
     """CVC4 on the problem in each order of seeds, each bounded by cpu_s of CPU time, up to
     the first order it does not prove (a fragile goal costs one limit, not one a seed)."""
@@ -48,7 +44,7 @@ def ask(problem: str, seeds: range, cpu_s: int) -> list[Answer]:
             try:
                 p = subprocess.run(
                     ["sh", "-c", f'ulimit -t {cpu_s}; exec cvc4 --lang=smt2 "$0"', str(f)],
-                    capture_output=True, text=True, check=False, timeout=cpu_s * WALL_GUARD)
+                    capture_output=True, text=True, check=False, timeout=cpu_s * wp.WALL_GUARD)
                 proved = p.stdout.startswith("unsat")
             except subprocess.TimeoutExpired:
                 proved = False

@@ -390,9 +390,9 @@ def merge_retry(first: WpResult, retry: WpResult) -> WpResult:
 def run_wp_retrying(name: str, fcts: list[str], env: dict[str, str]) -> tuple[list[str], WpResult]:
     """A run of the core's group with CVC4 alone, and once more, with both solvers and
     GOAL_RETRY_TIMEOUT_S a goal (CVC4 in RETRY_ORDERS orders of each), over the functions of
-    the goals it left unproved (the cache
-    keeps what the first pass proved; the retry asks Z3 those functions' smoke tests too); the
-    goals the first pass left unproved, and the whole result."""
+    the goals it left unproved (the cache keeps what the first pass proved; the retry asks Z3
+    those functions' smoke tests too); the goals the first pass left unproved, and the whole
+    result."""
     (WP_CACHE / name).mkdir(parents=True, exist_ok=True)
     first = run_wp(name, CORE, fcts, env, GOAL_TIMEOUT_S, cache=True,
                    provers=first_pass_provers(fcts))

@@ -33,8 +33,9 @@ class Answer:
 
 
 def ask(problem: str, seeds: range, cpu_s: int) -> list[Answer]:
-    """CVC4 on the problem in each order of seeds, each bounded by cpu_s of CPU time, up to
-    the first order it does not prove (a fragile goal costs one limit, not one a seed)."""
+    """CVC4 on the problem in each order of seeds, each as make prove asks a goal of it
+    (tools/proof/solvers/cpu-limited: its options, cpu_s of CPU time), up to the first order
+    it does not prove (a fragile goal costs one limit, not one a seed)."""
     answers: list[Answer] = []
     with tempfile.TemporaryDirectory(prefix="orders-") as d:
         for seed in seeds:
@@ -42,8 +43,11 @@ def ask(problem: str, seeds: range, cpu_s: int) -> list[Answer]:
             f.write_text(reordered(problem, seed))
             t0 = os.times()
             try:
+                # through the wrapper make prove's goals go through (its options, its limit)
                 p = subprocess.run(
-                    ["sh", "-c", f'ulimit -t {cpu_s}; exec cvc4 --lang=smt2 "$0"', str(f)],
+                    [str(frama.SOLVERS / "cvc4"), "--lang=smt2", str(f)],
+                    env=dict({k: v for k, v in os.environ.items()
+                              if not k.startswith("ESTOP_")}, ESTOP_SOLVER_CPU_S=str(cpu_s)),
                     capture_output=True, text=True, check=False, timeout=cpu_s * wp.WALL_GUARD)
                 proved = p.stdout.startswith("unsat")
             except subprocess.TimeoutExpired:

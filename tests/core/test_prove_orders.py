@@ -137,3 +137,16 @@ def test_the_retrys_cvc4_goes_on_to_the_next_order_until_one_proves(tmp_path: Pa
                         str(problem)], capture_output=True, text=True, env=env, timeout=60,
                        check=False)
     assert p.stdout == "unknown\n" and calls.read_text().splitlines() == [f"{problem} 300"]
+
+
+def test_a_goal_is_captured_with_the_options_of_its_run(monkeypatch: pytest.MonkeyPatch) -> None:
+    """orders.problems writes a goal's problem as make prove's run of its function writes it:
+    clock's %ground and %noprune (without them, a clock goal was another problem)."""
+    if shutil.which("cvc4") is None or shutil.which("frama-c") is None:
+        pytest.skip("no frama-c or cvc4 here (scripts/ensure-debs prove)")
+    asked: list[list[str]] = []
+    monkeypatch.setattr(orders.wp, "run_wp", lambda name, core, fcts, *a, **k: asked.append(fcts))
+    for fct in ("advance_clock", "estop_tcp_rx", "handle_frame"):
+        assert orders.problems(ROOT / "firmware" / "core", fct, "x") == []
+    assert asked == [["advance_clock", "@Typed", "%noprune", "%ground"],
+                     ["estop_tcp_rx", "@Typed"], ["handle_frame", "@Typed", "%split"]]

@@ -60,13 +60,22 @@ def ask(problem: str, seeds: range, cpu_s: int) -> list[Answer]:
     return answers
 
 
+def run_options(fct: str) -> list[str]:
+    """The options (%flag, @Model) of the make prove run that proves fct: its problems are
+    written as that run writes them (clock's %ground and %noprune change them)."""
+    for _, fcts in wp.wp_groups():
+        if fct in fcts:
+            return [f for f in fcts if f.startswith(("%", "@"))]
+    return ["@Typed"]
+
+
 def problems(core: Path, fct: str, prop: str) -> list[str]:
-    """The SMT problems WP gives CVC4 for the clauses named prop of fct, asked alone (each
-    call cut at 1 s: the problem is copied as the call starts)."""
+    """The SMT problems WP gives CVC4 for the clauses named prop of fct, asked alone with the
+    options of its run (each call cut at 1 s: the problem is copied as the call starts)."""
     if shutil.which("cvc4") is None or shutil.which("frama-c") is None:
         raise RuntimeError("no frama-c or cvc4 here (scripts/ensure-debs prove)")
     with tempfile.TemporaryDirectory(prefix="capture-") as d:
         env = dict(frama.why3_env(), ESTOP_CAPTURE_DIR=d)
-        wp.run_wp(f"orders-{fct}", core, [fct, "@Typed"], env, 1, provers="cvc4",
+        wp.run_wp(f"orders-{fct}", core, [fct, *run_options(fct)], env, 1, provers="cvc4",
                   only_prop=prop)
         return [f.read_text() for f in sorted(Path(d).glob("cvc4-*.smt2"))]

@@ -75,9 +75,10 @@ def test_why3_runs_the_bounded_solvers(monkeypatch: pytest.MonkeyPatch, tmp_path
     assert conf.stat().st_ino == inode
 
 
-def caught_run(monkeypatch: pytest.MonkeyPatch,
+def caught_run(monkeypatch: pytest.MonkeyPatch, group: str = "link",
+               fcts: tuple[str, ...] = ("estop_gap_bin", "@Typed"),
                **kw: Any) -> tuple[list[str], dict[str, str]]:
-    """WP's command line and environment for one run of the link group."""
+    """WP's command line and environment for one run (the link group's by default)."""
     seen: dict[str, Any] = {}
 
     def fake(args: list[str], log: Path, timeout: int, env: dict[str, str]) -> tuple[int, str]:
@@ -85,7 +86,7 @@ def caught_run(monkeypatch: pytest.MonkeyPatch,
         return 1, ""
 
     monkeypatch.setattr(prove.wp, "frama_c", fake)  # writes no log
-    prove.wp.run_wp("link", frama.CORE, ["estop_gap_bin", "@Typed"], {"A": "1"}, 90,
+    prove.wp.run_wp(group, frama.CORE, list(fcts), {"A": "1"}, 90,
                     log_name="cpu-limit-test", **kw)
     return seen["args"], seen["env"]
 
@@ -253,15 +254,6 @@ def test_only_the_clock_run_keeps_qeds_ground_simplifications(monkeypatch: pytes
     """Every run goes without Qed's aggressive ground simplifications (-wp-no-ground: tcp 118
     CPU-s against 148) but clock, which takes longer without them (280 CPU-s against 223): its
     -wp-ground comes after, and the last of the two is the one frama-c keeps."""
-    seen: dict[str, Any] = {}
-
-    def fake(args: list[str], log: Path, timeout: int, env: dict[str, str]) -> tuple[int, str]:
-        seen.update(args=args)
-        return 1, ""
-
-    monkeypatch.setattr(prove.wp, "frama_c", fake)
-    fcts = dict(prove.wp.wp_groups())[group]
-    prove.wp.run_wp(group, frama.CORE, fcts, {}, 90, log_name="ground-test")
-    args = seen["args"]
+    args, _ = caught_run(monkeypatch, group, tuple(dict(prove.wp.wp_groups())[group]))
     kept = max((i, a) for i, a in enumerate(args) if a in ("-wp-ground", "-wp-no-ground"))[1]
     assert kept == ("-wp-ground" if ground else "-wp-no-ground")

@@ -65,7 +65,7 @@ def run_options(fct: str) -> list[str]:
     written as that run writes them (clock's %ground and %noprune change them)."""
     for _, fcts in wp.wp_groups():
         if fct in fcts:
-            return [f for f in fcts if f.startswith(("%", "@"))]
+            return wp.run_flags(fcts)
     return ["@Typed"]
 
 

@@ -172,7 +172,7 @@ def wp_fcts(check: str) -> list[str]:
     parts = check.split(":")  # wp:GROUP or wp:GROUP:FUNCTION
     fcts = dict(wp.wp_groups())[parts[1]]
     if len(parts) > 2:  # the group's options on one of its functions
-        fcts = [f for f in fcts if f.startswith(("@", "%"))] + [parts[2]]
+        fcts = wp.run_flags(fcts) + [parts[2]]
     return fcts
 
 

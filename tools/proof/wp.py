@@ -181,6 +181,11 @@ def first_pass_provers(fcts: list[str]) -> str:
     return PROVERS if "%both" in fcts else FIRST_PASS_PROVERS
 
 
+def run_flags(fcts: list[str]) -> list[str]:
+    """A run's options (%flag, @Model) among its functions' names, in their order."""
+    return [f for f in fcts if f.startswith(("@", "%"))]
+
+
 def model_of(fcts: list[str]) -> str:
     return next((f[1:] for f in fcts if f.startswith("@")), WP_MODEL)
 
@@ -372,7 +377,7 @@ def retry_fcts(name: str, fcts: list[str], failed: list[str]) -> list[str]:
     owners = [goal_function(g, model, fcts) for g in failed]
     if name == LEMMAS or None in owners:
         return fcts
-    return [f for f in fcts if f.startswith(("@", "%"))] + sorted({o for o in owners if o})
+    return run_flags(fcts) + sorted({o for o in owners if o})
 
 
 def merge_retry(first: WpResult, retry: WpResult) -> WpResult:

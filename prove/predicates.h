@@ -118,10 +118,6 @@
      (\at(core->state, Pre) != 0 && core->state == 0 ==> \
       1 <= out->n_can && emergency(out, 0, core)) && \
      link_ok(core) && armed_ok(core))
-/* What advance_clock's clauses read, asserted at the end of each of its three branches. */
-#define clock_branch_left(now) \
-    (cfg_ok(core) && slots_ok(core) && core->now_us == (now) && out->n_can <= 1 && \
-     link_ok(core))
 /* A step that stops a moving unit (with room in out) appends one frame: the emergency one. */
 #define stops_moving_unit (\old(core->state) != 0 && core->state == 0)
 #define ENSURES_STOP_BRAKES(tag) \

@@ -349,6 +349,46 @@ static void age_link(estop_core_t *core, uint32_t step)
     }
 }
 
+/* The clock's verdict on the state, once the link is aged: a moving unit whose link went stale
+ * stops for reason, an ARMED one whose link is past the slow time slows, any other stays. A
+ * function of its own so that advance_clock's clauses meet one call and its contract, not three
+ * branches: past the branches, six of them took 10 to 25 s each of the solvers (issue 24's
+ * forty-fifth round). The fields it does not assign (the clock, the link, the configuration)
+ * are kept by its assigns. */
+/*@ requires \valid(core) && \valid(out) && \separated(core, out) && inv_base(core);
+    requires link_ok(core) && (reason == 3 || reason == 4);
+    requires out->n_can == 0 && out->state_changed == 0;
+    assigns core->valid_run, core->state, core->reason, core->counters.stops[0 .. 5],
+            core->counters.slowdowns, core->slow_run, core->status_stops,
+            core->status_slowdowns, core->brake_counter, core->brake_due_us,
+            out->can[0 .. 2], out->n_can, out->state_changed;
+    ENSURES_INV(verdict)
+    ensures verdict_frame: out->n_can == out->state_changed && out->state_changed <= 1;
+    ensures verdict_changed: out->state_changed != 0 <==> core->state != \old(core->state);
+    ensures verdict_stays_stopped: \old(core->state) == 0 ==> core->state == 0;
+    ensures verdict_run: core->valid_run == 0 || core->valid_run == \old(core->valid_run);
+    ensures verdict_stop: \old(core->state) != 0 && core->state == 0 ==>
+        out->n_can == 1 && emergency(out, 0, core) && core->reason == reason &&
+        core->link_fresh == 0;
+    ensures verdict_armed: core->state == 1 ==>
+        udiff(core->now_us, core->last_valid_us) < core->cfg.slow_us;
+    ensures verdict_due: out->state_changed != 0 ==>
+        udiff(core->brake_due_us, core->now_us) == core->cfg.brake_period_us;
+ */
+static void clock_verdict(estop_core_t *core, uint8_t reason, estop_out_t *out)
+{
+    /* The state itself rather than moving(): Eva then keeps the test and the stop together
+     * (through the call it split the states apart and lost that a moving unit is stopped). */
+    if ((core->state != ESTOP_STATE_STOPPED) && (core->link_fresh == 0u)) {
+        stop(core, reason, out);
+    } else if ((core->state == ESTOP_STATE_ARMED) && (link_age(core) >= core->cfg.slow_us)) {
+        enter_slowing(core); /* ARMED implies a fresh link, so the age is meaningful */
+        state_changed(core, out);
+    } else {
+        /* nothing is due: the state stays */
+    }
+}
+
 /*@ requires \valid(core) && \valid(out) && \separated(core, out) && inv(core);
     requires out->n_can == 0 && out->state_changed == 0;
     assigns core->now_us, core->link_fresh, core->valid_run, core->counters.faults,
@@ -392,39 +432,7 @@ static void advance_clock(estop_core_t *core, uint32_t now_us, estop_out_t *out)
         reason = (uint8_t)ESTOP_REASON_FAULT;
     }
     age_link(core, step);
-    /* What the clauses read, asserted past each call and at the merge of the branches: left to
-     * the solvers at the return, six clauses took 8 to 25 s each (issue 24's twenty-ninth
-     * round; the clock run went from 425 to 226 CPU-s alone). */
-    /*@ assert clock_branch: clock_branch_left(now_us); */
-    /* The state itself rather than moving(): Eva then keeps the test and the stop together
-     * (through the call it split the states apart and lost that a moving unit is stopped). */
-    /* Each branch asserts what it leaves, right after its call: the solvers then need not
-     * split the three branches in every clause (clock_brake_due: 265,326 CVC4 units, not
-     * 888,038; docs/PROOF.md). */
-    if ((core->state != ESTOP_STATE_STOPPED) && (core->link_fresh == 0u)) {
-        stop(core, reason, out);
-        /*@ assert clock_due:
-                udiff(core->brake_due_us, core->now_us) == core->cfg.brake_period_us; */
-        /*@ assert clock_due: out->n_can == 1 && emergency(out, 0, core); */
-        /*@ assert clock_branch: clock_branch_left(now_us); */
-    } else if ((core->state == ESTOP_STATE_ARMED) && (link_age(core) >= core->cfg.slow_us)) {
-        enter_slowing(core); /* ARMED implies a fresh link, so the age is meaningful */
-        state_changed(core, out);
-        /*@ assert clock_due:
-                udiff(core->brake_due_us, core->now_us) == core->cfg.brake_period_us; */
-        /*@ assert clock_due: core->state == 2; */
-        /*@ assert clock_branch: clock_branch_left(now_us); */
-    } else {
-        /* nothing is due: the state stays */
-        /*@ assert clock_due: out->state_changed == 0 && out->n_can == 0; */
-        /*@ assert clock_due: core->state == \at(core->state, Pre); */
-        /*@ assert clock_branch: clock_branch_left(now_us); */
-    }
-    /*@ assert clock_merged: core->now_us == now_us && out->n_can <= 1; */
-    /*@ assert clock_merged: out->state_changed != 0 ==>
-            udiff(core->brake_due_us, core->now_us) == core->cfg.brake_period_us; */
-    /*@ assert clock_merged: fresh_ok(core); */
-    /*@ assert clock_merged: out->n_can == out->state_changed && out->state_changed <= 1; */
+    clock_verdict(core, reason, out);
     out->changed_by_clock = out->state_changed; /* every change so far came from the clock */
     out->clock_state = core->state;
     out->clock_reason = core->reason;

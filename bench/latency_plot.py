@@ -63,7 +63,9 @@ def plot(results: list[RunResult], path: Path, timeout_ms: int,
             ax.set_xlabel("ms (log; values <= 0.001 ms drawn at 0.001)")
             ax.set_ylabel("trials")
             ax.set_title(f"{METRIC_TITLES[m]}, {load}")
-            ax.legend(fontsize=8)
+            # a fixed corner: matplotlib's "best" searches the samples, slow on large runs
+            # (it warned so in make test's untimed tests)
+            ax.legend(fontsize=8, loc="upper right")
     fig.suptitle(f"estop stop latency, timeout {timeout_ms} ms")
     fig.tight_layout()
     fig.savefig(path, dpi=100)

@@ -735,7 +735,8 @@ static uint8_t stop_datagram(const estop_core_t *core, const uint8_t *d, size_t 
     ensures rearm_frames: out->n_can <= 3;
     ensures rearm_keeps_clock: core->now_us == \old(core->now_us) &&
         core->magic == \old(core->magic) && core->link_fresh == \old(core->link_fresh) &&
-        core->last_valid_us == \old(core->last_valid_us);
+        core->last_valid_us == \old(core->last_valid_us) &&
+        core->cfg.key_len == \old(core->cfg.key_len);
  */
 static void rearm(estop_core_t *core, estop_out_t *out)
 {

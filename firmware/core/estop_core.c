@@ -484,6 +484,7 @@ static uint32_t next_due(uint32_t due, uint32_t period, uint32_t now)
         core->cfg.timeout_us == \old(core->cfg.timeout_us) &&
         core->cfg.slow_us == \old(core->cfg.slow_us) &&
         core->cfg.stop_id == \old(core->cfg.stop_id);
+    ensures due_keeps_period: core->cfg.brake_period_us == \old(core->cfg.brake_period_us);
     ensures due_keeps_out: out->has_reply == \old(out->has_reply) &&
         out->close_slot == \old(out->close_slot) &&
         out->state_changed == \old(out->state_changed) &&

@@ -116,6 +116,9 @@ uint32_t estop__auth_verdict(estop_core_t *core, const uint8_t *msg, size_t tag_
 /*@ requires \valid(core) && channel <= 1;
     assigns core->counters, core->status_auth_failed, core->remotes[0 .. 7],
             core->tag_window_us, core->tag_window_open, core->newcomer_checks;
+    ensures commit_fills: \forall integer j; a_slot(j) ==>
+        core->slots[j].fill == \old(core->slots[j].fill);
+    ensures commit_state: core->state == \old(core->state);
  */
 void estop__auth_commit(estop_core_t *core, uint32_t id, uint64_t counter, uint32_t channel,
                         uint32_t verdict, int stopped);

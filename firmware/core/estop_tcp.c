@@ -459,9 +459,6 @@ static int take_frame(estop_slot_t *s, const uint8_t *data, size_t len, size_t *
     return whole;
 }
 
-/* One whole frame in slot k, of either form. Returns 1 when the stream has lost framing (a
- * plain frame with a bad CRC): nothing after it can be trusted, and the slot is closed. */
-
 /* take_frame on slot k, with what estop_tcp_rx's assertions read of the core and of out stated
  * kept. Past take_frame's writes to the slot's 48 bytes, in the entry point's whole context,
  * the solvers had to tell each byte they read of the core and of out from those 48 (taken_stop
@@ -499,6 +496,9 @@ static int fill_slot(estop_core_t *core, uint32_t k, const uint8_t *data, size_t
     (void)out; /* the contract's */
     return take_frame(&core->slots[k], data, len, took);
 }
+
+/* One whole frame in slot k, of either form. Returns 1 when the stream has lost framing (a
+ * plain frame with a bad CRC): nothing after it can be trusted, and the slot is closed. */
 /*@ requires \valid(core) && \valid(out) && \separated(core, out);
     requires core->magic == 0x45535450 && inv(core) && times_ok(core);
     requires k < 8 && out->n_can <= 3;

@@ -81,6 +81,19 @@
         core->cfg.brake_period_us == \old(core->cfg.brake_period_us) && \
         core->cfg.brake_can_id == \old(core->cfg.brake_can_id); \
     ensures finish_keeps_inv: \at(inv(core), Pre) ==> inv(core);
+/* take_frame's clauses over slot s (estop_tcp.c), which fill_slot repeats over slot k of the
+ * core with what estop_tcp_rx reads stated kept: one text for both. */
+#define TAKE_ENSURES(tag, s) \
+    ensures *took <= len; \
+    ensures \result == 0 || \result == 1; \
+    ensures \result == 1 ==> (s)->fill == 0; \
+    ensures (s)->fill < 48; \
+    ensures tag##_kept: \forall integer i; 0 <= i < \old((s)->fill) ==> \
+        (s)->buf[i] == \old((s)->buf[i]); \
+    ensures tag##_bytes: \forall integer i; 0 <= i < *took ==> \
+        (s)->buf[\old((s)->fill) + i] == data[i]; \
+    ensures tag##_partial: \result == 0 ==> (s)->fill == \old((s)->fill) + *took; \
+    ensures tag##_rest: \old(slot_partial(s)) && \result == 0 ==> *took == len && slot_partial(s);
 #define ENSURES_KEPT(tag) \
     ENSURES_INV(tag) \
     ensures tag##_times: brake_due_ok(core); \

@@ -397,14 +397,7 @@ static uint32_t frame_len(const estop_slot_t *s)
 /*@ requires \valid(s) && \valid(took) && s->fill < 48 && \valid_read(data + (0 .. len - 1));
     requires \separated(s, took, data + (0 .. len - 1));
     assigns s->fill, s->buf[0 .. 47], *took;
-    ensures *took <= len;
-    ensures \result == 0 || \result == 1;
-    ensures \result == 1 ==> s->fill == 0;
-    ensures s->fill < 48;
-    ensures take_kept: \forall integer i; 0 <= i < \old(s->fill) ==> s->buf[i] == \old(s->buf[i]);
-    ensures take_bytes: \forall integer i; 0 <= i < *took ==> s->buf[\old(s->fill) + i] == data[i];
-    ensures take_partial: \result == 0 ==> s->fill == \old(s->fill) + *took;
-    ensures take_rest: \old(slot_partial(s)) && \result == 0 ==> *took == len && slot_partial(s);
+    TAKE_ENSURES(take, s)
  */
 static int take_frame(estop_slot_t *s, const uint8_t *data, size_t len, size_t *took)
 {
@@ -470,25 +463,11 @@ static int take_frame(estop_slot_t *s, const uint8_t *data, size_t len, size_t *
     requires core->slots[k].fill < 48 && \valid_read(data + (0 .. len - 1));
     requires \separated(&core->slots[k], took, data + (0 .. len - 1));
     assigns core->slots[k].fill, core->slots[k].buf[0 .. 47], *took;
-    ensures *took <= len;
-    ensures \result == 0 || \result == 1;
-    ensures \result == 1 ==> core->slots[k].fill == 0;
-    ensures core->slots[k].fill < 48;
-    ensures fill_kept: \forall integer i; 0 <= i < \old(core->slots[k].fill) ==>
-        core->slots[k].buf[i] == \old(core->slots[k].buf[i]);
-    ensures fill_bytes: \forall integer i; 0 <= i < *took ==>
-        core->slots[k].buf[\old(core->slots[k].fill) + i] == data[i];
-    ensures fill_partial: \result == 0 ==>
-        core->slots[k].fill == \old(core->slots[k].fill) + *took;
-    ensures fill_rest: \old(slot_partial(&core->slots[k])) && \result == 0 ==>
-        *took == len && slot_partial(&core->slots[k]);
-    INV_PARTS(ENSURES_PART_KEPT, fill)
-    ensures fill_times: \at(times_ok(core), Pre) ==> times_ok(core);
-    ensures fill_core: core->state == \old(core->state) && core->reason == \old(core->reason) &&
+    TAKE_ENSURES(fill, &core->slots[k])
+    ENSURES_REPLY_KEEPS(fill)
+    ensures fill_keeps: core->reason == \old(core->reason) &&
         core->link_fresh == \old(core->link_fresh) && core->magic == \old(core->magic) &&
-        core->now_us == \old(core->now_us);
-    ensures fill_out: out->n_can == \old(out->n_can) && out->has_reply == \old(out->has_reply) &&
-        frames_kept(Pre, Post, out, 3);
+        core->now_us == \old(core->now_us) && out->has_reply == \old(out->has_reply);
  */
 static int fill_slot(estop_core_t *core, uint32_t k, const uint8_t *data, size_t len,
                      size_t *took, const estop_out_t *out)

@@ -235,7 +235,9 @@ static void state_changed(estop_core_t *core, estop_out_t *out)
     core->brake_due_us = core->now_us + core->cfg.brake_period_us;
 }
 
-/* Every stop request restarts the release count; only the first one sets the reason. */
+/* Every stop request restarts the release count; only the first one sets the reason.
+ * stop_brakes is stated once per path (a moving unit; a stopped one whose brake frame came
+ * first): as one clause the solvers paid for the merge of both (9.9 s, against 5.6 and 0.1). */
 /*@ requires \valid(core) && \valid(out) && \separated(core, out) && inv_base(core);
     requires 1 <= reason <= 5 && out->n_can <= 3;
     assigns core->valid_run, core->state, core->reason, core->counters.stops[0 .. 5],
@@ -250,8 +252,10 @@ static void state_changed(estop_core_t *core, estop_out_t *out)
         core->cfg.brake_can_id == \old(core->cfg.brake_can_id) && core->magic == \old(core->magic);
     ensures stop_keeps_link: core->last_valid_us == \old(core->last_valid_us) &&
         core->link_fresh == \old(core->link_fresh) && core->last_neutral == \old(core->last_neutral);
-    ensures stop_brakes: \old(out->n_can) <= 2 && (\old(core->state) != 0 ||
-        (1 <= \old(out->n_can) && \at(emergency(out, 0, core), Pre))) ==>
+    ensures stop_brakes: \old(out->n_can) <= 2 && \old(core->state) != 0 ==>
+        emergency_sent(out, core);
+    ensures stop_brakes_stopped: \old(out->n_can) <= 2 && \old(core->state) == 0 &&
+        1 <= \old(out->n_can) && \at(emergency(out, 0, core), Pre) ==>
         emergency_sent(out, core);
     behavior moving:
       assumes core->state != 0;

@@ -86,9 +86,7 @@ MODEL_TAGS = {"Typed": "typed_", "Caveat": "typed_caveat_"}  # how WP names thei
 # them against 280 without, side by side, its goals harder without (clock_link 31 s against 16).
 # -wp-par 1 since issue 24's forty-sixth round: make prove runs two analyses at once (--jobs)
 # beside make test's other steps, so two solvers a run made four on two cores; alone on the
-# idle machine the tcp run took 97 CPU-s with one against 116 with two (the forty-fifth). With
-# one call at a time, Frama-C's 50-ms poll for each verdict left a run idle for a fifth to a
-# third of its time: TASK_IDLE polls every 2 ms (the forty-seventh).
+# idle machine the tcp run took 97 CPU-s with one against 116 with two (the forty-fifth).
 WP_OPTS = ["-wp-par", "1", "-wp-bound-forall-unfolding", "8", "-wp-no-ground"]
 # The time a goal gets is the CPU time its solver uses, not the wall time it waits: make test
 # runs make prove at low priority beside other work, where a goal is starved. Bounded by wall

@@ -120,8 +120,6 @@ WALL_GUARD = 10
 # of before). Eva gained nothing (98 CPU-s either way) and keeps the default.
 WP_OCAMLRUNPARAM = "s=16M,o=400"
 WP_CACHE = BUILD / "wp-cache"
-# Frama-C's wait for its solvers, polled every 2 ms instead of 50 (task_idle.ml says why).
-TASK_IDLE = ROOT / "tools" / "proof" / "task_idle.ml"
 # Per-run WP options of prove/wp_groups.txt ("%name").
 WP_FLAGS = {
     "split": ["-wp-split"],  # conjunctions and branches as sub-goals (mostly Qed's then)
@@ -270,8 +268,7 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
     flags = [opt for f in fcts if f.startswith("%") for opt in WP_FLAGS[f[1:]]]
     model = model_of(fcts)
     target = ["-wp-prop=@lemma"] if name == LEMMAS else ["-wp-fct", ",".join(names)]
-    args = ["-load-script", str(TASK_IDLE),
-            *cpp_args(core_dir, f"-include {PROVE / 'contracts.h'}"),
+    args = [*cpp_args(core_dir, f"-include {PROVE / 'contracts.h'}"),
             *map(str, core_sources(core_dir)),
             "-inline-calls", inline_list(), "-wp", *target,
             # One model a run: a second -wp-model is added to the first, not put in its place

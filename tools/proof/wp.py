@@ -87,6 +87,14 @@ MODEL_TAGS = {"Typed": "typed_", "Caveat": "typed_caveat_"}  # how WP names thei
 # -wp-par 1 since issue 24's forty-sixth round: make prove runs two analyses at once (--jobs)
 # beside make test's other steps, so two solvers a run made four on two cores; alone on the
 # idle machine the tcp run took 97 CPU-s with one against 116 with two (the forty-fifth).
+# With one call at a time a run waits up to 50 ms for each verdict (Frama-C's command line
+# polls its running calls in Task.on_idle, then sleeps 50 ms): alone, a fifth to a third of a
+# run's wall time. A script setting a 2-ms poll (frama-c -load-script) took make prove alone
+# from 822 s to 705; not kept (issue 24's forty-seventh round): two runs starting together
+# raced on the module frama-c compiles beside the script ("cannot load plug-in"). Its effect
+# on make test is unknown: its fresh clone took 1,394 s against 1,285 for the code before it,
+# but a clone of that same code an hour later took longer still (the machine's drift). A
+# module built once per make prove would avoid the race; then measure side by side.
 WP_OPTS = ["-wp-par", "1", "-wp-bound-forall-unfolding", "8", "-wp-no-ground"]
 # The time a goal gets is the CPU time its solver uses, not the wall time it waits: make test
 # runs make prove at low priority beside other work, where a goal is starved. Bounded by wall

@@ -16,7 +16,7 @@ CORE = ROOT / "firmware" / "core"
 PROVE = ROOT / "prove"
 BUILD = ROOT / "build" / "prove"
 SOLVERS = ROOT / "tools" / "proof" / "solvers"  # the solvers as Why3 runs them (cpu-limited)
-TOOLS = ("frama-c", "why3", "z3", "cvc4")
+TOOLS = ("frama-c", "why3", "z3", "cvc4", "ocamlopt")  # ocamlopt: task_idle.py
 # The CPU time of every Frama-C run of this process, in order, by its log's name (frama-c and
 # the solvers it waited for). make prove prints what each analysis cost beside its wall time,
 # which beside make test's other steps says little of the work (issue 24). A run stopped at its

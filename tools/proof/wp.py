@@ -9,6 +9,7 @@ import re
 import time
 from pathlib import Path
 
+from . import task_idle
 from .frama import (
     BUILD,
     CORE,
@@ -87,14 +88,12 @@ MODEL_TAGS = {"Typed": "typed_", "Caveat": "typed_caveat_"}  # how WP names thei
 # -wp-par 1 since issue 24's forty-sixth round: make prove runs two analyses at once (--jobs)
 # beside make test's other steps, so two solvers a run made four on two cores; alone on the
 # idle machine the tcp run took 97 CPU-s with one against 116 with two (the forty-fifth).
-# With one call at a time a run waits up to 50 ms for each verdict (Frama-C's command line
+# With one call at a time a run waited up to 50 ms for each verdict (Frama-C's command line
 # polls its running calls in Task.on_idle, then sleeps 50 ms): alone, a fifth to a third of a
-# run's wall time. A script setting a 2-ms poll (frama-c -load-script) took make prove alone
-# from 822 s to 705; not kept (issue 24's forty-seventh round): two runs starting together
-# raced on the module frama-c compiles beside the script ("cannot load plug-in"). Its effect
-# on make test is unknown: its fresh clone took 1,394 s against 1,285 for the code before it,
-# but a clone of that same code an hour later took longer still (the machine's drift). A
-# module built once per make prove would avoid the race; then measure side by side.
+# run's wall time. Every run loads a module that polls every 2 ms (TASK_IDLE: task_idle.ml),
+# built once (task_idle.py: frama-c -load-script built it beside the script at every run, and
+# two runs starting together raced on it). make prove alone took 705 s against 822 with it
+# (issue 24's forty-seventh round).
 WP_OPTS = ["-wp-par", "1", "-wp-bound-forall-unfolding", "8", "-wp-no-ground"]
 # The time a goal gets is the CPU time its solver uses, not the wall time it waits: make test
 # runs make prove at low priority beside other work, where a goal is starved. Bounded by wall
@@ -128,6 +127,8 @@ WALL_GUARD = 10
 # of before). Eva gained nothing (98 CPU-s either way) and keeps the default.
 WP_OCAMLRUNPARAM = "s=16M,o=400"
 WP_CACHE = BUILD / "wp-cache"
+# Frama-C's wait for its solvers, polled every 2 ms instead of 50 (task_idle.ml says why).
+TASK_IDLE = task_idle.SOURCE
 # Per-run WP options of prove/wp_groups.txt ("%name").
 WP_FLAGS = {
     "split": ["-wp-split"],  # conjunctions and branches as sub-goals (mostly Qed's then)
@@ -276,7 +277,8 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
     flags = [opt for f in fcts if f.startswith("%") for opt in WP_FLAGS[f[1:]]]
     model = model_of(fcts)
     target = ["-wp-prop=@lemma"] if name == LEMMAS else ["-wp-fct", ",".join(names)]
-    args = [*cpp_args(core_dir, f"-include {PROVE / 'contracts.h'}"),
+    args = ["-load-module", str(task_idle.module(TASK_IDLE, BUILD)),
+            *cpp_args(core_dir, f"-include {PROVE / 'contracts.h'}"),
             *map(str, core_sources(core_dir)),
             "-inline-calls", inline_list(), "-wp", *target,
             # One model a run: a second -wp-model is added to the first, not put in its place

@@ -92,8 +92,9 @@ MODEL_TAGS = {"Typed": "typed_", "Caveat": "typed_caveat_"}  # how WP names thei
 # polls its running calls in Task.on_idle, then sleeps 50 ms): alone, a fifth to a third of a
 # run's wall time. Every run loads a module that polls every 2 ms (TASK_IDLE: task_idle.ml),
 # built once (task_idle.py: frama-c -load-script built it beside the script at every run, and
-# two runs starting together raced on it). make prove alone took 705 s against 822 with it
-# (issue 24's forty-seventh round).
+# two runs starting together raced on it). make prove alone: 764 s for 1,471 CPU-s with it
+# (both cores busy 96 % of the time), 822 s for 1,309 without (80 %). In make test, fresh
+# clones in turn left about 35 CPU-s less of the cores idle (issue 24's forty-eighth round).
 WP_OPTS = ["-wp-par", "1", "-wp-bound-forall-unfolding", "8", "-wp-no-ground"]
 # The time a goal gets is the CPU time its solver uses, not the wall time it waits: make test
 # runs make prove at low priority beside other work, where a goal is starved. Bounded by wall

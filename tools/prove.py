@@ -27,12 +27,13 @@ import argparse
 import concurrent.futures
 import functools
 import shutil
+import subprocess
 import sys
 import time
 from collections.abc import Callable
 from typing import Any
 
-from proof import assumed, eva, frama, selftest, wp
+from proof import assumed, eva, frama, selftest, task_idle, wp
 from proof.frama import BUILD, CORE, ROOT, TOOLS, core_functions, why3_env
 from proof.wp import MODEL_CHECKS, WpResult, parse_checks  # noqa: F401 - tests use them
 
@@ -251,6 +252,12 @@ def main() -> int:
               file=sys.stderr)
         return 2
     BUILD.mkdir(parents=True, exist_ok=True)
+    try:  # once, before the runs that load it: a failed build is one line, not one per run
+        task_idle.module()
+    except (RuntimeError, OSError, subprocess.SubprocessError) as err:
+        print(f"prove: error: the module every WP run loads (tools/proof/task_idle.ml): {err}",
+              file=sys.stderr)
+        return 2
     shutil.rmtree(wp.WP_CACHE, ignore_errors=True)
     env = why3_env()
     t0 = time.monotonic()

@@ -94,3 +94,15 @@ def test_runs_that_start_together_each_get_the_whole_module(tmp_path: Path) -> N
     res = subprocess.run(["frama-c", "-load-module", str(module)], capture_output=True,
                          text=True, timeout=120)
     assert res.returncode == 0, res.stderr
+
+
+def test_a_module_that_does_not_build_is_one_line_naming_the_compiler(tmp_path: Path) -> None:
+    """A script the compiler refuses (a Frama-C whose Task has no on_idle, say) raises one line
+    that names ocamlopt and its message: make prove prints it once and stops (tools/prove.py)."""
+    needs_frama_c()
+    broken = tmp_path / "broken.ml"
+    broken.write_text("let () =\n  Task.no_such_hook := ()\n")
+    with pytest.raises(RuntimeError) as err:
+        prove.wp.task_idle.module(broken, tmp_path / "build")
+    msg = str(err.value)
+    assert "\n" not in msg and "ocamlopt" in msg and "no_such_hook" in msg, msg

@@ -27,8 +27,8 @@ def _run(args: list[str], cwd: Path | None = None) -> str:
     res = subprocess.run(args, capture_output=True, text=True, timeout=120, check=False,
                          cwd=cwd)
     if res.returncode != 0:
-        raise RuntimeError(f"{' '.join(args)}: exit {res.returncode}: "
-                           f"{(res.stderr or res.stdout).strip()[-500:]}")
+        why = " ".join((res.stderr or res.stdout).split())[-500:]  # one line
+        raise RuntimeError(f"{' '.join(args)}: exit {res.returncode}: {why}")
     return res.stdout.strip()
 
 

@@ -3,8 +3,8 @@
 frama-c -load-script compiles a script beside it at each run and removes the result: two runs
 that start together race on it ("cannot load plug-in task_idle", issue 24's forty-seventh
 round). Here each build compiles in a directory of its own and renames its module into place,
-named by a hash of the source and the compiler, so that concurrent builds each finish with the
-same whole file and a changed script is built again."""
+named by a hash of the source, the compiler and Frama-C's library path, so that concurrent builds
+each finish with the same whole file and a changed script is built again."""
 
 from __future__ import annotations
 

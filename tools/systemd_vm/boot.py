@@ -17,6 +17,12 @@ from image import TEST_UNIT, Image
 QEMU = "qemu-system-x86_64"
 # The emulated CPU ("max"; the baseline qemu64 cost more CPU time per boot here).
 CPU_MODEL = "max"
+# Modules no test uses, which udev would load at every boot (the list's header says why).
+UNUSED_MODULES = Path(__file__).resolve().parent.parent / "vm_unused_modules.txt"
+
+
+def unused_modules(path: Path = UNUSED_MODULES) -> list[str]:
+    return [w for w in path.read_text().splitlines() if w and not w.startswith("#")]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,7 +49,8 @@ def qemu_argv(image: Image, disk: Path, project: Path, out: Path, memory_mb: int
         # emulation slowly ("IO-APIC + timer doesn't work!", a panic seen here under load)
         "console=ttyS0", "root=/dev/vda", "rw", "loglevel=4", "panic=-1", "no_timer_check",
         f"systemd.wants={TEST_UNIT}", f"estop_vm.project={project}",
-        "systemd.show_status=auto", "net.ifnames=0", extra_cmdline,
+        "systemd.show_status=auto", "net.ifnames=0",
+        f"modprobe.blacklist={','.join(unused_modules())}", extra_cmdline,
     ]).strip()
     return [
         QEMU, "-accel", "tcg", "-cpu", os.environ.get("SYSTEMD_VM_CPU", CPU_MODEL), "-m",

@@ -33,7 +33,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from proof import assumed, eva, frama, selftest, task_idle, wp
+from proof import assumed, eva, frama, parsed, selftest, task_idle, wp
 from proof.frama import BUILD, CORE, ROOT, TOOLS, core_functions, why3_env
 from proof.wp import MODEL_CHECKS, WpResult, parse_checks  # noqa: F401 - tests use them
 
@@ -260,6 +260,13 @@ def main() -> int:
         return 2
     shutil.rmtree(wp.WP_CACHE, ignore_errors=True)
     env = why3_env()
+    if "wp" in parts:
+        try:  # once, before the runs that load it (tools/proof/parsed.py)
+            parsed.save(CORE, wp.parse_args(CORE), env)
+        except (RuntimeError, OSError) as err:
+            print(f"prove: error: the parse of firmware/core for the WP runs: {err}",
+                  file=sys.stderr)
+            return 2
     t0 = time.monotonic()
     ok = report_assumed()
     in_scope = selftest.mutants_in_scope() if parts & {"self-test", "mutants"} else []

@@ -9,7 +9,7 @@ import re
 import time
 from pathlib import Path
 
-from . import task_idle
+from . import parsed, task_idle
 from .frama import (
     BUILD,
     CORE,
@@ -213,6 +213,13 @@ def model_checks(model: str, cpu_limited: bool) -> list[str]:
     return [*MODEL_CHECKS[model], "-wp-smoke-timeout", str(smoke_s)]
 
 
+def parse_args(core_dir: Path) -> list[str]:
+    """What a WP run parses: the core's sources with the contracts (parsed.py saves this parse
+    of firmware/core once for all of make prove's runs over it)."""
+    return [*cpp_args(core_dir, f"-include {PROVE / 'contracts.h'}"),
+            *map(str, core_sources(core_dir)), "-inline-calls", inline_list()]
+
+
 def inline_list() -> str:
     names = []
     for raw in (PROVE / "wp_inline.txt").read_text().splitlines():
@@ -279,9 +286,7 @@ def run_wp(name: str, core_dir: Path, fcts: list[str], env: dict[str, str],
     model = model_of(fcts)
     target = ["-wp-prop=@lemma"] if name == LEMMAS else ["-wp-fct", ",".join(names)]
     args = ["-load-module", str(task_idle.module(TASK_IDLE, BUILD)),
-            *cpp_args(core_dir, f"-include {PROVE / 'contracts.h'}"),
-            *map(str, core_sources(core_dir)),
-            "-inline-calls", inline_list(), "-wp", *target,
+            *parsed.head(core_dir, parse_args(core_dir)), "-wp", *target,
             # One model a run: a second -wp-model is added to the first, not put in its place
             # (Typed and Caveat together named the goals typed_caveat_*).
             "-wp-model", model, "-wp-prover", provers, *WP_OPTS, *model_checks(model, cpu_limited),

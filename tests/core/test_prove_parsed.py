@@ -1,7 +1,7 @@
 """tools/proof/parsed.py: make prove parses firmware/core once, and each WP run over it loads the
 saved state instead of parsing (issue 24's fiftieth round). A loaded state must give WP the very
 code and contracts that the parse gives, and a run over other sources (a planted copy, an edit
-made since) must parse them, never load a state of the core."""
+made since) or with another frama-c must parse them, never load a state saved before."""
 
 from __future__ import annotations
 
@@ -43,7 +43,7 @@ def test_a_loaded_state_holds_what_the_parse_gives(tmp_path: Path) -> None:
     assert loaded == printed(tmp_path, "parsed", parse)
 
 
-def test_a_run_over_other_sources_parses(tmp_path: Path) -> None:
+def test_a_run_over_other_sources_parses(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     core = tmp_path / "core"
     shutil.copytree(prove.frama.CORE, core, ignore=shutil.ignore_patterns("build", "*.o"))
     parse = prove.wp.parse_args(core)
@@ -61,6 +61,17 @@ def test_a_run_over_other_sources_parses(tmp_path: Path) -> None:
         src = core / name
         src.write_text(src.read_text() + "/* edited */\n")
         assert prove.parsed.head(core, parse, states) == parse, name
+    # another frama-c (an upgrade) never loads a state the one before saved
+    state = prove.parsed.state_path(core, parse, states)
+    state.write_bytes(b"")
+    other = tmp_path / "bin"
+    other.mkdir()
+    (other / "frama-c").write_text("#!/bin/sh\n")
+    (other / "frama-c").chmod(0o755)
+    monkeypatch.setenv("PATH", f"{other}{os.pathsep}{os.environ['PATH']}")
+    assert prove.parsed.head(core, parse, states) == parse
+    monkeypatch.undo()
+    assert prove.parsed.head(core, parse, states) == ["-load", str(state)]
     # the core of make prove never loads the state of a copy (other paths, other digest)
     core_parse = prove.wp.parse_args(prove.frama.CORE)
     assert prove.parsed.head(prove.frama.CORE, core_parse, states) == core_parse

@@ -4,13 +4,16 @@ CIL's normalisation, the inlining of prove/wp_inline.txt) took 1.4 CPU-s a run, 
 each of the 19 runs of firmware/core (issue 24's fiftieth round; the ct run's goals and
 verdicts were the same both ways).
 
-A saved state is named by a digest of the parse's arguments and of every file it reads from the
-core's folder and prove/: a run whose sources differ from the saved ones (a planted copy, or
-an edit during the run) finds no state of its own and parses, as before."""
+A saved state is named by a digest of the parse's arguments, of every file it reads from the
+core's folder and prove/, and of the frama-c that parsed: a run whose sources differ from the
+saved ones (a planted copy, or an edit during the run) finds no state of its own and parses,
+as before."""
 
 from __future__ import annotations
 
 import hashlib
+import os
+import shutil
 from pathlib import Path
 
 from .frama import BUILD, PROVE, frama_c
@@ -19,8 +22,13 @@ SAVE_TIMEOUT_S = 300  # a hang guard: the parse takes seconds
 
 
 def state_path(core_dir: Path, parse: list[str], into: Path = BUILD) -> Path:
-    """Where the state of this parse is saved: <into>/parsed-<digest>.sav."""
-    h = hashlib.sha256("\0".join(parse).encode())
+    """Where the state of this parse is saved: <into>/parsed-<digest>.sav. The digest holds
+    the frama-c that parsed too (its path, size and time): a state saved before an upgrade is
+    not loaded after it."""
+    exe = shutil.which("frama-c")
+    st = os.stat(exe) if exe else None
+    h = hashlib.sha256(f"{exe} {st.st_size} {st.st_mtime_ns}".encode() if st else b"-")
+    h.update(b"\0" + "\0".join(parse).encode())
     for f in sorted([*core_dir.glob("*.[ch]"), *PROVE.glob("*.h")]):
         h.update(b"\0" + str(f).encode() + b"\0" + f.read_bytes())
     return into / f"parsed-{h.hexdigest()[:16]}.sav"

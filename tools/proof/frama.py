@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import ctypes
 import os
 import re
 import signal
@@ -17,13 +18,18 @@ PROVE = ROOT / "prove"
 BUILD = ROOT / "build" / "prove"
 SOLVERS = ROOT / "tools" / "proof" / "solvers"  # the solvers as Why3 runs them (cpu-limited)
 TOOLS = ("frama-c", "why3", "z3", "cvc4", "ocamlopt")  # ocamlopt: task_idle.py
-# The CPU time of every Frama-C run of this process, in order, by its log's name (frama-c and
-# the solvers it waited for). make prove prints what each analysis cost beside its wall time,
-# which beside make test's other steps says little of the work (issue 24). A run stopped at its
-# first failure (a self-test mutant) counts only the solvers frama-c reaped before it was
-# killed: the others are reaped by init.
+# The CPU time of every Frama-C run of this process, in order, by its log's name (frama-c,
+# why3server and the solvers). make prove prints what each analysis cost beside its wall time,
+# which beside make test's other steps says little of the work (issue 24). Frama-C runs its
+# solvers through why3server, and a run is ended by killing its process group: why3server,
+# orphaned, was reaped by init with the solvers it had reaped, so a run stopped at its first
+# failure (a self-test mutant) counted 3 of its 17 s (issue 24's fifty-first round). While a
+# run is on, this process is their subreaper (prctl): it reaps them and counts their time.
 CPU_RUNS: list[tuple[str, float]] = []
 _CPU_LOCK = threading.Lock()
+_PR_SET_CHILD_SUBREAPER = 36
+_SUBREAPER_LOCK = threading.Lock()
+_subreaper_runs = 0  # the runs on: this process is the subreaper while any is
 
 
 def cpu_time(log: Path) -> float:
@@ -54,6 +60,52 @@ def core_functions(core_dir: Path) -> set[str]:
     return names
 
 
+def _subreaper(on: bool) -> None:
+    """Counted per run: the first run on makes this process the subreaper of the orphans below
+    it, the last one off gives that up (a pytest process outside the runs adopts nothing)."""
+    global _subreaper_runs
+    with _SUBREAPER_LOCK:
+        _subreaper_runs += 1 if on else -1
+        if _subreaper_runs == (1 if on else 0):
+            libc = ctypes.CDLL(None, use_errno=True)
+            if libc.prctl(_PR_SET_CHILD_SUBREAPER, int(on), 0, 0, 0) != 0:
+                raise OSError(ctypes.get_errno(), "prctl(PR_SET_CHILD_SUBREAPER)")
+
+
+def _group(pgid: int) -> list[tuple[int, int]]:
+    """(pid, parent pid) of the processes of a process group, zombies too."""
+    found = []
+    for entry in os.scandir("/proc"):
+        if entry.name.isdigit():
+            try:
+                stat = Path(entry.path, "stat").read_text()
+            except OSError:
+                continue  # gone meanwhile
+            fields = stat.rsplit(")", 1)[1].split()
+            if int(fields[2]) == pgid:
+                found.append((int(entry.name), int(fields[1])))
+    return found
+
+
+def _reap_group(pgid: int, limit_s: float = 10.0) -> float:
+    """The CPU time of the processes of a killed group that this process adopted (its
+    subreaper), with what they had reaped; each reaped here as it comes, until none is left
+    (or limit_s passed: a process held in the kernel stays)."""
+    cpu = 0.0
+    end = time.monotonic() + limit_s
+    while (left := _group(pgid)) and time.monotonic() < end:
+        adopted = [pid for pid, parent in left if parent == os.getpid()]
+        for pid in adopted:
+            try:
+                _, _, usage = os.wait4(pid, 0)  # killed: it ends at once
+            except ChildProcessError:
+                continue
+            cpu += usage.ru_utime + usage.ru_stime
+        if not adopted:
+            time.sleep(0.005)  # a parent still dying: its orphans come here after it
+    return cpu
+
+
 def frama_c(args: list[str], log: Path, timeout: int, env: dict[str, str]) -> tuple[int, str]:
     """Frama-C run to its end (or killed, with its solvers, after timeout s: exit -1)."""
     rc, out, _ = frama_c_until(args, log, timeout, env, None)
@@ -76,41 +128,46 @@ def frama_c_until(args: list[str], log: Path, timeout: int, env: dict[str, str],
     # after it: a frama-c killed (a mutant's first failure, a timeout) leaves its preprocessed
     # annotations (cppannot*.c, one per source file): 7 in /tmp for each such run before.
     # stderr after stdout, as the parsers read it (an error line never splits an alarm's)
-    with tempfile.TemporaryDirectory(prefix="tmp-", dir=log.parent,
-                                     ignore_cleanup_errors=True) as scratch, \
-            tempfile.TemporaryFile("w+") as err, subprocess.Popen(
-            ["frama-c", *args], stdout=subprocess.PIPE, stderr=err, text=True,
-            env=dict(env, TMPDIR=scratch), cwd=cwd, start_new_session=True) as proc:
+    _subreaper(True)
+    try:
+        with tempfile.TemporaryDirectory(prefix="tmp-", dir=log.parent,
+                                         ignore_cleanup_errors=True) as scratch, \
+                tempfile.TemporaryFile("w+") as err, subprocess.Popen(
+                ["frama-c", *args], stdout=subprocess.PIPE, stderr=err, text=True,
+                env=dict(env, TMPDIR=scratch), cwd=cwd, start_new_session=True) as proc:
 
-        def kill() -> None:
-            # frama-c and its solvers. Not through proc.poll(), which would reap frama-c and
-            # lose its CPU time; a group whose leader is a zombie is still there to signal.
-            if proc.returncode is None:
-                try:
-                    os.killpg(proc.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
+            def kill() -> None:
+                # frama-c and its solvers. Not through proc.poll(), which would reap frama-c and
+                # lose its CPU time; a group whose leader is a zombie is still there to signal.
+                if proc.returncode is None:
+                    try:
+                        os.killpg(proc.pid, signal.SIGKILL)
+                    except ProcessLookupError:
+                        pass
 
-        timer = threading.Timer(timeout, kill)
-        timer.start()
-        assert proc.stdout is not None
-        try:
-            for line in proc.stdout:
-                lines.append(line)
-                if stop is not None and stop.search(line):
-                    stopped = True
-                    break
-        finally:
-            timer.cancel()
-            kill()
-            # wait4: the exit status and the CPU time of frama-c with the solvers it reaped
-            _, status, usage = os.wait4(proc.pid, 0)
-            proc.returncode = rc = os.waitstatus_to_exitcode(status)
-        cpu = usage.ru_utime + usage.ru_stime
-        with _CPU_LOCK:
-            CPU_RUNS.append((log.name, cpu))
-        err.seek(0)
-        lines.append(err.read())
+            timer = threading.Timer(timeout, kill)
+            timer.start()
+            assert proc.stdout is not None
+            try:
+                for line in proc.stdout:
+                    lines.append(line)
+                    if stop is not None and stop.search(line):
+                        stopped = True
+                        break
+            finally:
+                timer.cancel()
+                kill()
+                # wait4: the exit status and the CPU time of frama-c with what it reaped, then
+                # of what it left (why3server, a solver), adopted here
+                _, status, usage = os.wait4(proc.pid, 0)
+                proc.returncode = rc = os.waitstatus_to_exitcode(status)
+                cpu = usage.ru_utime + usage.ru_stime + _reap_group(proc.pid)
+            with _CPU_LOCK:
+                CPU_RUNS.append((log.name, cpu))
+            err.seek(0)
+            lines.append(err.read())
+    finally:
+        _subreaper(False)
     if not stopped and time.monotonic() - t0 >= timeout:
         rc = -1
         lines.append(f"timed out after {timeout} s\n")

@@ -89,18 +89,15 @@ coverage-untimed: setup
 	$(COVTEST) -m "not vm and not timing"
 
 # The timing tests in two processes (pytest-xdist), a module each at a time (its fixtures,
-# such as the browser, once), both browser modules on one of them, one after the other
-# (--dist loadgroup, tests/conftest.py: two chromiums at once failed the pages' 300-ms bounds):
-# they wait far more than they compute (about 10 % of the two cores in one process), and make
-# test runs them alone, after the provers; 116 s in one process against 62 to 73 s in two
-# (issue 24's thirty-second round). In three, 52 to 55 s, a browser test failed: its page
-# sent 22 of 32 frames (the fifty-first round). TIMING_ALONE's modules
+# such as the browser, once): they wait far more than they compute (about 10 % of the two
+# cores in one process), and make test runs them alone, after the provers; 116 s in one
+# process against 62 to 73 s in two (issue 24's thirty-second round). TIMING_ALONE's modules
 # run after them in one process: their bounds are on the daemon's CPU time in a backlog; in
 # two processes 2 runs of 22 failed one test, the rxtime one in the run whose output was kept
 # (a 1-ms sleeper overslept 3.7 ms beside the other worker), and the drain tests flaked before.
 TIMING_ALONE = tests/daemon/test_estopd_rxtime.py tests/daemon/test_estopd_drain.py
 coverage-timed: setup
-	$(COVTEST) -m "timing and not vm" -n 2 --dist loadgroup $(addprefix --ignore=,$(TIMING_ALONE))
+	$(COVTEST) -m "timing and not vm" -n 2 --dist loadfile $(addprefix --ignore=,$(TIMING_ALONE))
 	$(COVTEST) -m "timing and not vm" $(TIMING_ALONE)
 	$(VENV)/bin/gcovr --root . --filter 'firmware/core/' --object-directory $(COVDIR) \
 	  --txt-metric branch --print-summary --fail-under-line 100 $(COVDIR)

@@ -35,7 +35,6 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     for the estopd fixture. A test file outside the kinds' folders is refused: its kind would
     decide what ``make test-fast`` and tools/vm-pytest run."""
     astray: set[str] = set()
-    xdist = config.pluginmanager.hasplugin("xdist")
     for item in items:
         try:
             kind = item.path.relative_to(HERE).parts[0]
@@ -47,13 +46,6 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         item.add_marker(kind)
         if "estopd" in getattr(item, "fixturenames", ()) and kind != "daemon":
             item.add_marker("daemon")
-        # pytest-xdist's --dist loadgroup (make's timing tests): a module on one worker at a
-        # time (its module fixtures once), and the browser's modules on the same one, one
-        # after the other: two chromiums at once failed the pages' 300-ms bounds. Only where
-        # xdist is loaded (--strict-markers refuses its marker elsewhere: tools/vm-pytest).
-        if xdist:
-            item.add_marker(pytest.mark.xdist_group(
-                "chromium" if kind == "browser" else str(item.path.relative_to(HERE))))
     untimed = sorted({str(item.path.relative_to(HERE.parent)) for item in items
                       if _uses_stall_probe(item) and item.get_closest_marker("timing") is None})
     if untimed:

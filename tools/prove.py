@@ -270,8 +270,8 @@ def main() -> int:
     t0 = time.monotonic()
     ok = report_assumed()
     in_scope = selftest.mutants_in_scope() if parts & {"self-test", "mutants"} else []
-    muts = selftest.sample(in_scope, args.mutants)
     equivalent = selftest.equivalents()
+    muts = selftest.sample(in_scope, args.mutants, frozenset(equivalent))
     with concurrent.futures.ThreadPoolExecutor(max_workers=args.jobs) as pool:
         jobs: list[tuple[int, str, Callable[[], Any]]] = []
         if "eva" in parts:

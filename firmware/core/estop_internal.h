@@ -7,8 +7,8 @@
  *   are static inline so that each file gets them inlined as before the split (a call per
  *   byte field would cost the packet paths their budget).
  * - The functions one job of the core calls in another, named estop__*: the state machine
- *   (estop_core.c), authentication (estop_auth.c), TCP framing and replies (estop_tcp.c) and
- *   the link statistics (estop_link.c).
+ *   (estop_core.c), a datagram's step (estop_udp.c), authentication (estop_auth.c), TCP
+ *   framing and replies (estop_tcp.c) and the link statistics (estop_link.c).
  */
 #ifndef ESTOP_INTERNAL_H
 #define ESTOP_INTERNAL_H
@@ -157,6 +157,13 @@ estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 void estop__finish(const estop_core_t *core, estop_out_t *out);
 /* The flags byte of frames and replies. */
 uint8_t estop__current_flags(const estop_core_t *core);
+/* A state change: ESTOP_BRAKE at once, its period restarted from there. */
+void estop__state_changed(estop_core_t *core, estop_out_t *out);
+/* A stop request (reason 1..5): a moving unit STOPPED with its brake frame; the release count
+ * restarts either way. */
+void estop__stop(estop_core_t *core, uint8_t reason, estop_out_t *out);
+/* The reason a stop request of msg_id stops the unit with (its stop ID, LIFT), or 0. */
+uint8_t estop__stop_reason(const estop_core_t *core, uint32_t msg_id);
 /* What a good TCP frame of either form asks for (STOP, LIFT, RELEASE, STATUS, unknown);
  * returns the NAK code of its reply. release_authenticated: a RELEASE may pass. */
 uint8_t estop__handle_msg(estop_core_t *core, uint32_t msg_id, int release_authenticated,

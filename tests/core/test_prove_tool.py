@@ -261,6 +261,17 @@ def test_make_proves_mutant_sample_comes_from_the_short_runs() -> None:
     assert [m.key for m, _ in prove.selftest.sample(every, 8)] == [m.key for m, _ in picked]
 
 
+def test_make_proves_mutant_sample_leaves_out_the_mutants_listed_equivalent() -> None:
+    every = prove.selftest.mutants_in_scope()
+    listed = frozenset(prove.selftest.equivalents())
+    cheap = [m.key for m, c in every if c.split(":")[1] in prove.selftest.SAMPLE_RUNS]
+    assert set(cheap) & listed  # the short runs have listed mutants to leave out
+    picked = [m.key for m, _ in prove.selftest.sample(every, 40, listed)]
+    assert picked and not set(picked) & listed
+    # without the list, the same draw takes them
+    assert set(m.key for m, _ in prove.selftest.sample(every, 40)) & listed
+
+
 def test_the_sampled_mutants_get_their_runs_shorter_limit_and_the_others_the_long_one() -> None:
     assert prove.selftest.mutant_timeout_s("wp:entry:estop_fault") == 12
     assert prove.selftest.mutant_timeout_s("wp:steps:release") == prove.selftest.GOAL_TIMEOUT_S
@@ -652,3 +663,17 @@ def test_why_make_prove_failed_and_what_needed_the_retry_are_printed_last(
     survivor = prove.selftest.MutantTry("c", "wp:entry", False, "37/37 goals proved")
     assert not prove.report_mutants([caught, survivor], {}, 385)
     assert prove.summary(False)[-1] == "prove: failed: self-test mutant c: not caught"
+
+
+def test_a_plant_names_a_helper_whatever_number_frama_c_gave_its_copy() -> None:
+    # Frama-C numbers each file's copy of a static inline helper by the order of the files:
+    # the planted datagram read was rd_u32le_0's alarm, and rd_u32le_3's once estop_udp.c
+    # came before the files that include it after it
+    helpers = {"rd_u32le", "sat32_inc"}
+    alarm = ("build/prove/planted-eva-reads/estop_udp.c:47: function rd_u32le_3: "
+             "precondition got status invalid.")
+    assert "function rd_u32le: precondition got status invalid" in \
+        prove.eva.copies_unnumbered(alarm, helpers)
+    # only the core's functions lose a number: a logic function, a driver's name keep theirs
+    assert prove.eva.copies_unnumbered("rd_u32le_l(x) main_2: a sat32_inc", helpers) == \
+        "rd_u32le_l(x) main_2: a sat32_inc"

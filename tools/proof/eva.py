@@ -66,6 +66,15 @@ def rule_statuses(out: str, rules: list[str]) -> dict[str, str]:
     return found
 
 
+def copies_unnumbered(text: str, functions: set[str]) -> str:
+    """text with Frama-C's number taken off each copy of a static inline helper (rd_u32le_3:
+    the copy in the fourth file that includes it, rd_u32le here): which number a copy gets
+    depends on the order of the files, so a self-test plant names the helper alone (estop_udp.c
+    split off estop_core.c made rd_u32le_0 of the planted datagram read rd_u32le_3)."""
+    return re.sub(r"\b([A-Za-z_]\w*?)_\d+\b",
+                  lambda m: m.group(1) if m.group(1) in functions else m.group(0), text)
+
+
 def run_eva(name: str, core_dir: Path, keyed: int, env: dict[str, str],
             calls: int = ALL_CALLS, whole_chunks: bool = False) -> EvaResult:
     """Eva over the driver; calls: the driver's calls it makes (a self-test copy's few);

@@ -17,7 +17,7 @@
 #include "estop_internal.h"
 #include "predicates.h"
 
-/* ---- the state machine's steps (estop_core.c) --------------------------------------------- */
+/* ---- the state machine's steps (estop_core.c, estop_clock.c) ------------------------------ */
 
 /* begin_keeps_slots once per result: as one clause over both branches the solvers paid for
  * their merge (12 to 15 s), although each branch ends on an assertion of the clause itself. */

@@ -7,8 +7,9 @@
  *   are static inline so that each file gets them inlined as before the split (a call per
  *   byte field would cost the packet paths their budget).
  * - The functions one job of the core calls in another, named estop__*: the state machine
- *   (estop_core.c), a datagram's step (estop_udp.c), authentication (estop_auth.c), TCP
- *   framing and replies (estop_tcp.c) and the link statistics (estop_link.c).
+ *   (estop_core.c), the clock step and the CAN frames (estop_clock.c), a datagram's step
+ *   (estop_udp.c), authentication (estop_auth.c), TCP framing and replies (estop_tcp.c) and the
+ *   link statistics (estop_link.c).
  */
 #ifndef ESTOP_INTERNAL_H
 #define ESTOP_INTERNAL_H
@@ -152,13 +153,19 @@ static inline void copy_bytes(uint8_t *dst, const uint8_t *src, size_t n)
 /* ---- the state machine (estop_core.c) ----------------------------------------------------- */
 
 /* Every entry point: estop__begin() advances the clock and sends what is due; estop__finish()
- * fills the state read-out and the next call time. */
+ * fills the state read-out and the next call time (estop_clock.c). */
 estop_err_t estop__begin(estop_core_t *core, uint32_t now_us, estop_out_t *out);
 void estop__finish(const estop_core_t *core, estop_out_t *out);
 /* The flags byte of frames and replies. */
 uint8_t estop__current_flags(const estop_core_t *core);
-/* A state change: ESTOP_BRAKE at once, its period restarted from there. */
+/* A state change: ESTOP_BRAKE at once, its period restarted from there (estop_clock.c). */
 void estop__state_changed(estop_core_t *core, estop_out_t *out);
+/* The link's age: the time since its last valid packet (wraps with the clock). */
+uint32_t estop__link_age(const estop_core_t *core);
+/* ARMED or SLOWING: the brake is not latched and the watchdog runs. */
+int estop__moving(const estop_core_t *core);
+/* SLOWING at the slow time; the caller sends the state change. */
+void estop__enter_slowing(estop_core_t *core);
 /* A stop request (reason 1..5): a moving unit STOPPED with its brake frame; the release count
  * restarts either way. */
 void estop__stop(estop_core_t *core, uint8_t reason, estop_out_t *out);

@@ -529,7 +529,7 @@ def test_the_comparison_catches_a_build_that_differs(tmp_path: Path) -> None:
     twin must tell it from the host build at the first frame where the counters part."""
     core = tmp_path / "core"
     shutil.copytree(mcubuild.CORE_DIR, core)
-    src = core / "estop_core.c"
+    src = core / "estop_clock.c"
     text = src.read_text()
     assert "#define COUNTER_MODULO 15u" in text
     src.write_text(text.replace("#define COUNTER_MODULO 15u", "#define COUNTER_MODULO 14u"))

@@ -3,7 +3,7 @@
  * another (docs/PROOF.md). Frama-C only: tools/prove.py passes this file with -include, and
  * Frama-C merges each contract with the function's declaration in estop_core.h or
  * estop_internal.h. The loop annotations and the contracts of static functions with loops
- * live beside their code in firmware/core, and so does estop__stop's (estop_core.c): Eva reads
+ * live beside their code in firmware/core, and so does estop__stop's (estop_clock.c): Eva reads
  * no contract of this file, and its rule that a fault stops the unit needs that one.
  *
  * The host contract of estop_core.h, as preconditions: the core, out and every buffer are

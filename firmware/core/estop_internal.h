@@ -150,7 +150,7 @@ static inline void copy_bytes(uint8_t *dst, const uint8_t *src, size_t n)
     }
 }
 
-/* ---- the state machine (estop_core.c) ----------------------------------------------------- */
+/* ---- the state machine (estop_core.c, estop_clock.c) -------------------------------------- */
 
 /* Every entry point: estop__begin() advances the clock and sends what is due; estop__finish()
  * fills the state read-out and the next call time (estop_clock.c). */
@@ -162,14 +162,13 @@ uint8_t estop__current_flags(const estop_core_t *core);
 void estop__state_changed(estop_core_t *core, estop_out_t *out);
 /* The link's age: the time since its last valid packet (wraps with the clock). */
 uint32_t estop__link_age(const estop_core_t *core);
-/* ARMED or SLOWING: the brake is not latched and the watchdog runs. */
-int estop__moving(const estop_core_t *core);
-/* SLOWING at the slow time; the caller sends the state change. */
+/* SLOWING at the slow time; the caller sends the state change (estop_clock.c). */
 void estop__enter_slowing(estop_core_t *core);
 /* A stop request (reason 1..5): a moving unit STOPPED with its brake frame; the release count
- * restarts either way. */
+ * restarts either way (estop_clock.c). */
 void estop__stop(estop_core_t *core, uint8_t reason, estop_out_t *out);
-/* The reason a stop request of msg_id stops the unit with (its stop ID, LIFT), or 0. */
+/* The reason a stop request of msg_id stops the unit with (its stop ID, LIFT), or 0
+ * (estop_core.c). */
 uint8_t estop__stop_reason(const estop_core_t *core, uint32_t msg_id);
 /* What a good TCP frame of either form asks for (STOP, LIFT, RELEASE, STATUS, unknown);
  * returns the NAK code of its reply. release_authenticated: a RELEASE may pass. */

@@ -66,13 +66,19 @@ def rule_statuses(out: str, rules: list[str]) -> dict[str, str]:
     return found
 
 
+def helper_name(name: str, functions: set[str]) -> str:
+    """The function a name of Eva's stands for: Frama-C numbers each file's copy of a static
+    inline helper (rd_u32le_3 is a copy of rd_u32le), by the order of the files; any other
+    name is itself."""
+    base = re.sub(r"_\d+$", "", name)
+    return base if base in functions else name
+
+
 def copies_unnumbered(text: str, functions: set[str]) -> str:
-    """text with Frama-C's number taken off each copy of a static inline helper (rd_u32le_3:
-    the copy in the fourth file that includes it, rd_u32le here): which number a copy gets
-    depends on the order of the files, so a self-test plant names the helper alone (estop_udp.c
-    split off estop_core.c made rd_u32le_0 of the planted datagram read rd_u32le_3)."""
-    return re.sub(r"\b([A-Za-z_]\w*?)_\d+\b",
-                  lambda m: m.group(1) if m.group(1) in functions else m.group(0), text)
+    """text with each copy of a helper named as the helper (helper_name): a self-test plant
+    names the helper alone (estop_udp.c split off estop_core.c made rd_u32le_0 of the planted
+    datagram read rd_u32le_3)."""
+    return re.sub(r"\b[A-Za-z_]\w*\b", lambda m: helper_name(m.group(0), functions), text)
 
 
 def run_eva(name: str, core_dir: Path, keyed: int, env: dict[str, str],
@@ -125,13 +131,11 @@ def run_eva(name: str, core_dir: Path, keyed: int, env: dict[str, str],
         res.error = f"summary says {m.group(1)} alarms, the log lists {len(res.alarms)}"
     for m in re.finditer(r"^  (\w+): (\d+) stmts out of (\d+)", out, re.M):
         res.functions[m.group(1)] = (int(m.group(2)), int(m.group(3)))
-    # Frama-C renames the copies of a static inline helper in each file (rd_u32le_0, ...):
-    # a helper counts under its own name, reached when any copy is.
+    # A helper counts under its own name (helper_name), reached when any copy is.
     wanted = core_functions(core_dir)
     merged: dict[str, tuple[int, int]] = {}
     for fn, (reached, total) in res.functions.items():
-        base = re.sub(r"_\d+$", "", fn)
-        base = base if base in wanted else fn
+        base = helper_name(fn, wanted)
         old = merged.get(base, (0, 0))
         merged[base] = (max(old[0], reached), max(old[1], total))
     res.functions = merged

@@ -302,9 +302,9 @@ def sample(items: list[tuple[Any, str]], n: int, listed: frozenset[str] = frozen
         return []
     if n == 0 or n >= len(items):
         return items
-    cheap = [it for it in items
-             if it[1].split(":")[1] in SAMPLE_RUNS and it[0].key not in listed]
-    ranked = sorted(cheap or items, key=lambda it: hashlib.sha256(
+    tried = [it for it in items if it[0].key not in listed]
+    cheap = [it for it in tried if it[1].split(":")[1] in SAMPLE_RUNS]
+    ranked = sorted(cheap or tried, key=lambda it: hashlib.sha256(
         it[0].key.encode()).hexdigest())
     return ranked[:n]
 
